@@ -1,0 +1,12 @@
+# Shared by the build tree and the installed flexsplatConfig.cmake.
+include(CMakeFindDependencyMacro)
+find_dependency(Threads)
+find_dependency(Eigen3 3.3 NO_MODULE)
+find_dependency(xtl)
+find_dependency(xsimd)
+find_dependency(xtensor)
+find_dependency(glm)
+find_dependency(nlohmann_json 3)
+find_dependency(TinyGLTF)
+find_path(FLEXSPLAT_STB_INCLUDE_DIR stb_image.h PATH_SUFFIXES stb REQUIRED)
+find_library(FLEXSPLAT_STB_LIBRARY stb REQUIRED)

@@ -1,0 +1,63 @@
+#pragma once
+// Subcommands and reference-bundle checkers register themselves from their own .cpp files.
+#include <functional>
+#include <map>
+#include <string>
+#include <vector>
+
+#include "flexsplat/core/reference_check.hpp"
+#include "flexsplat/io/safetensors.hpp"
+
+namespace flexsplat::cli {
+
+using Args = std::vector<std::string>;
+
+struct Command {
+  std::string summary;
+  std::string usage;
+  std::function<int(const Args&)> run;
+};
+
+inline std::map<std::string, Command>& commands() {
+  static std::map<std::string, Command> table;
+  return table;
+}
+
+struct RegisterCommand {
+  RegisterCommand(const std::string& name, Command command) { commands()[name] = std::move(command); }
+};
+
+// A checker runs the library on a bundle's inputs and fills one comparison row per output tensor.
+using Checker = std::function<void(const safetensors::File&, ReferenceReport&)>;
+
+inline std::map<std::string, Checker>& checkers() {
+  static std::map<std::string, Checker> table;
+  return table;
+}
+
+struct RegisterChecker {
+  RegisterChecker(const std::string& kind, Checker checker) { checkers()[kind] = std::move(checker); }
+};
+
+// Small argument helpers shared by subcommands.
+inline bool take_flag(Args& args, const std::string& flag) {
+  for (auto it = args.begin(); it != args.end(); ++it)
+    if (*it == flag) {
+      args.erase(it);
+      return true;
+    }
+  return false;
+}
+
+inline bool take_option(Args& args, const std::string& flag, std::string& value) {
+  for (auto it = args.begin(); it != args.end(); ++it)
+    if (*it == flag) {
+      require(std::next(it) != args.end(), "option ", flag, " needs a value");
+      value = *std::next(it);
+      args.erase(it, it + 2);
+      return true;
+    }
+  return false;
+}
+
+}  // namespace flexsplat::cli

@@ -1,0 +1,141 @@
+#pragma once
+// Fixed worker pool with static, deterministic partitioning: chunk k of a range always goes to worker k.
+#include <condition_variable>
+#include <cstdlib>
+#include <exception>
+#include <functional>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/core/tensor.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+
+// FLEXSPLAT_NUM_THREADS overrides the hardware concurrency; invalid values are an error.
+inline int default_thread_count() {
+  if (const char* env = std::getenv("FLEXSPLAT_NUM_THREADS"); env && *env) {
+    char* end = nullptr;
+    const long n = std::strtol(env, &end, 10);
+    require(end && *end == '\0' && n >= 1 && n <= 1024, "FLEXSPLAT_NUM_THREADS='", env,
+            "' is not a thread count in [1, 1024]");
+    return static_cast<int>(n);
+  }
+  const unsigned hw = std::thread::hardware_concurrency();
+  return hw ? static_cast<int>(hw) : 1;
+}
+
+class ThreadPool {
+public:
+  explicit ThreadPool(int threads = default_thread_count()) : size_(threads < 1 ? 1 : threads) {
+    for (int i = 1; i < size_; ++i) workers_.emplace_back([this, i] { worker_loop(i); });
+  }
+  ~ThreadPool() {
+    {
+      std::lock_guard lock(mutex_);
+      stop_ = true;
+    }
+    wake_.notify_all();
+    for (auto& w : workers_) w.join();
+  }
+  ThreadPool(const ThreadPool&) = delete;
+  ThreadPool& operator=(const ThreadPool&) = delete;
+
+  int size() const noexcept { return size_; }
+
+  // Runs task(worker) on every worker (the caller is worker 0) and waits; the first exception is rethrown.
+  void run_on_all(const std::function<void(int)>& task) {
+    if (size_ == 1 || inside_pool()) {
+      task(0);
+      return;
+    }
+    std::lock_guard submit(submit_mutex_);  // one parallel region at a time from outside the pool
+    {
+      std::lock_guard lock(mutex_);
+      task_ = &task;
+      pending_ = size_ - 1;
+      error_ = nullptr;
+      ++generation_;
+    }
+    wake_.notify_all();
+    std::exception_ptr mine;
+    inside_pool() = true;
+    try {
+      task(0);
+    } catch (...) {
+      mine = std::current_exception();
+    }
+    inside_pool() = false;
+    std::unique_lock lock(mutex_);
+    done_.wait(lock, [this] { return pending_ == 0; });
+    task_ = nullptr;
+    if (mine) std::rethrow_exception(mine);
+    if (error_) std::rethrow_exception(error_);
+  }
+
+private:
+  static bool& inside_pool() {
+    thread_local bool flag = false;
+    return flag;
+  }
+  void worker_loop(int index) {
+    inside_pool() = true;
+    std::size_t seen = 0;
+    for (;;) {
+      const std::function<void(int)>* task = nullptr;
+      {
+        std::unique_lock lock(mutex_);
+        wake_.wait(lock, [&] { return stop_ || generation_ != seen; });
+        if (stop_) return;
+        seen = generation_;
+        task = task_;
+      }
+      std::exception_ptr err;
+      try {
+        (*task)(index);
+      } catch (...) {
+        err = std::current_exception();
+      }
+      std::lock_guard lock(mutex_);
+      if (err && !error_) error_ = err;
+      if (--pending_ == 0) done_.notify_one();
+    }
+  }
+
+  int size_;
+  std::vector<std::thread> workers_;
+  std::mutex mutex_, submit_mutex_;
+  std::condition_variable wake_, done_;
+  const std::function<void(int)>* task_ = nullptr;
+  std::size_t generation_ = 0;
+  int pending_ = 0;
+  bool stop_ = false;
+  std::exception_ptr error_;
+};
+
+inline ThreadPool& global_pool() {
+  static ThreadPool pool;
+  return pool;
+}
+
+// Calls body(begin, end, worker) on contiguous chunks of [0, n); chunk boundaries depend only on n and the pool size.
+template <class Body>
+void parallel_for(index_t n, Body&& body, ThreadPool& pool = global_pool()) {
+  if (n <= 0) return;
+  const int workers = static_cast<int>(std::min<index_t>(pool.size(), n));
+  if (workers == 1) {
+    body(index_t{0}, n, 0);
+    return;
+  }
+  pool.run_on_all([&](int w) {
+    if (w >= workers) return;
+    const index_t begin = n * w / workers, end = n * (w + 1) / workers;
+    body(begin, end, w);
+  });
+}
+
+}  // namespace v0
+}  // namespace flexsplat
