@@ -7,3 +7,5 @@
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/reference_check.hpp"
 #include "flexsplat/io/safetensors.hpp"
+#include "flexsplat/core/simd.hpp"
+#include "flexsplat/core/gemm.hpp"

@@ -1,0 +1,129 @@
+#pragma once
+// The one SIMD layer: xsimd batches for the instruction set this translation unit is compiled for, run-time CPU
+// feature detection (cpuid + OS support), and a switch that forces the scalar path (FLEXSPLAT_SIMD=scalar) so tests
+// can compare both.
+#include <cpuid.h>
+
+#include <cstdint>
+#include <cstdlib>
+#include <cstring>
+#include <string>
+
+#include <xsimd/xsimd.hpp>
+
+#include "flexsplat/core/error.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace simd {
+
+using arch = xsimd::default_arch;
+template <class T>
+using batch = xsimd::batch<T, arch>;
+template <class T>
+inline constexpr std::size_t width = batch<T>::size;
+
+struct CpuFeatures {
+  bool sse2 = false, sse41 = false, avx = false, avx2 = false, fma = false;
+  bool avx512f = false, avx512bw = false, avx512vl = false, avx512dq = false, avx512bf16 = false;
+  bool amx_tile = false, amx_bf16 = false;
+  bool os_avx = false, os_avx512 = false, os_amx = false;  // the OS saves the register state
+};
+
+inline CpuFeatures detect_cpu_features() {
+  CpuFeatures f;
+#if defined(__x86_64__) || defined(__i386__)
+  unsigned a = 0, b = 0, c = 0, d = 0;
+  if (!__get_cpuid(1, &a, &b, &c, &d)) return f;
+  f.sse2 = d >> 26 & 1;
+  f.sse41 = c >> 19 & 1;
+  const bool osxsave = c >> 27 & 1;
+  f.fma = c >> 12 & 1;
+  f.avx = c >> 28 & 1;
+  std::uint64_t xcr0 = 0;
+  if (osxsave) {
+    unsigned lo = 0, hi = 0;
+    __asm__ volatile("xgetbv" : "=a"(lo), "=d"(hi) : "c"(0));
+    xcr0 = (std::uint64_t(hi) << 32) | lo;
+  }
+  f.os_avx = (xcr0 & 0x6) == 0x6;
+  f.os_avx512 = (xcr0 & 0xe6) == 0xe6;
+  f.os_amx = (xcr0 & 0x60000) == 0x60000;
+  if (__get_cpuid_count(7, 0, &a, &b, &c, &d)) {
+    f.avx2 = b >> 5 & 1;
+    f.avx512f = b >> 16 & 1;
+    f.avx512dq = b >> 17 & 1;
+    f.avx512bw = b >> 30 & 1;
+    f.avx512vl = b >> 31 & 1;
+    f.amx_bf16 = d >> 22 & 1;
+    f.amx_tile = d >> 24 & 1;
+  }
+  if (__get_cpuid_count(7, 1, &a, &b, &c, &d)) f.avx512bf16 = a >> 5 & 1;
+  f.avx = f.avx && f.os_avx;
+  f.avx2 = f.avx2 && f.os_avx;
+  f.fma = f.fma && f.os_avx;
+  f.avx512f = f.avx512f && f.os_avx512;
+  f.avx512bw = f.avx512bw && f.os_avx512;
+  f.avx512vl = f.avx512vl && f.os_avx512;
+  f.avx512dq = f.avx512dq && f.os_avx512;
+  f.avx512bf16 = f.avx512bf16 && f.os_avx512;
+#endif
+  return f;
+}
+
+inline const CpuFeatures& cpu_features() {
+  static const CpuFeatures features = detect_cpu_features();
+  return features;
+}
+
+inline std::string describe(const CpuFeatures& f) {
+  std::string s;
+  auto add = [&](bool on, const char* name) {
+    if (on) s += (s.empty() ? "" : " ") + std::string(name);
+  };
+  add(f.sse2, "sse2");
+  add(f.sse41, "sse4.1");
+  add(f.avx, "avx");
+  add(f.avx2, "avx2");
+  add(f.fma, "fma");
+  add(f.avx512f, "avx512f");
+  add(f.avx512bw, "avx512bw");
+  add(f.avx512vl, "avx512vl");
+  add(f.avx512bf16, "avx512bf16");
+  add(f.amx_tile && f.os_amx, "amx-tile");
+  add(f.amx_bf16 && f.os_amx, "amx-bf16");
+  return s.empty() ? "none detected" : s;
+}
+
+// Name of the instruction set this translation unit's batches use.
+inline const char* compiled_arch_name() { return arch::name(); }
+
+// A binary built with -march flags the CPU lacks gets a clear error instead of SIGILL in a kernel.
+inline void require_cpu_supports_build() {
+  const CpuFeatures& f = cpu_features();
+  bool ok = true;
+#if defined(__AVX512F__)
+  ok = ok && f.avx512f;
+#endif
+#if defined(__AVX2__)
+  ok = ok && f.avx2;
+#endif
+#if defined(__FMA__)
+  ok = ok && f.fma;
+#endif
+  require(ok, "this binary was compiled for ", compiled_arch_name(), " but the CPU offers only: ", describe(f),
+          "; rebuild without FLEXSPLAT_NATIVE");
+}
+
+// FLEXSPLAT_SIMD=scalar selects the scalar reference path at run time.
+inline bool enabled() {
+  static const bool on = [] {
+    const char* env = std::getenv("FLEXSPLAT_SIMD");
+    return !(env && std::strcmp(env, "scalar") == 0);
+  }();
+  return on;
+}
+
+}  // namespace simd
+}  // namespace v0
+}  // namespace flexsplat
