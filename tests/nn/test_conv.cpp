@@ -1,0 +1,105 @@
+#include <catch2/catch.hpp>
+
+#include "flexsplat/nn/conv.hpp"
+#include "flexsplat/testing/gradcheck.hpp"
+#include "nn_test_util.hpp"
+
+using namespace flexsplat;
+
+namespace {
+// Direct definitions of both convolutions, the reference for the im2col kernels.
+std::vector<double> direct_conv(const std::vector<double>& x, const std::vector<double>& w, const std::vector<double>& b,
+                                const nn::Conv2dShape& s) {
+  const index_t oh = s.conv_out_h(), ow = s.conv_out_w();
+  std::vector<double> y(s.batch * s.out_channels * oh * ow);
+  for (index_t n = 0; n < s.batch; ++n)
+    for (index_t o = 0; o < s.out_channels; ++o)
+      for (index_t oy = 0; oy < oh; ++oy)
+        for (index_t ox = 0; ox < ow; ++ox) {
+          double acc = b[o];
+          for (index_t c = 0; c < s.in_channels; ++c)
+            for (index_t i = 0; i < s.kernel_h; ++i)
+              for (index_t j = 0; j < s.kernel_w; ++j) {
+                const index_t yy = oy * s.stride - s.padding + i, xx = ox * s.stride - s.padding + j;
+                if (yy < 0 || yy >= s.in_h || xx < 0 || xx >= s.in_w) continue;
+                acc += w[((o * s.in_channels + c) * s.kernel_h + i) * s.kernel_w + j] *
+                       x[((n * s.in_channels + c) * s.in_h + yy) * s.in_w + xx];
+              }
+          y[((n * s.out_channels + o) * oh + oy) * ow + ox] = acc;
+        }
+  return y;
+}
+
+std::vector<double> direct_conv_transpose(const std::vector<double>& x, const std::vector<double>& w,
+                                          const std::vector<double>& b, const nn::Conv2dShape& s) {
+  const index_t oh = s.transposed_out_h(), ow = s.transposed_out_w();
+  std::vector<double> y(s.batch * s.out_channels * oh * ow);
+  for (index_t n = 0; n < s.batch; ++n)
+    for (index_t o = 0; o < s.out_channels; ++o)
+      for (index_t p = 0; p < oh * ow; ++p) y[(n * s.out_channels + o) * oh * ow + p] = b[o];
+  for (index_t n = 0; n < s.batch; ++n)
+    for (index_t c = 0; c < s.in_channels; ++c)
+      for (index_t iy = 0; iy < s.in_h; ++iy)
+        for (index_t ix = 0; ix < s.in_w; ++ix)
+          for (index_t o = 0; o < s.out_channels; ++o)
+            for (index_t i = 0; i < s.kernel_h; ++i)
+              for (index_t j = 0; j < s.kernel_w; ++j) {
+                const index_t yy = iy * s.stride - s.padding + i, xx = ix * s.stride - s.padding + j;
+                if (yy < 0 || yy >= oh || xx < 0 || xx >= ow) continue;
+                y[((n * s.out_channels + o) * oh + yy) * ow + xx] +=
+                    w[((c * s.out_channels + o) * s.kernel_h + i) * s.kernel_w + j] *
+                    x[((n * s.in_channels + c) * s.in_h + iy) * s.in_w + ix];
+              }
+  return y;
+}
+}  // namespace
+
+TEST_CASE("conv2d matches the direct definition and passes the float64 gradient check", "[nn][conv]") {
+  for (auto [k, stride, pad] : {std::tuple{3, 1, 1}, std::tuple{3, 2, 1}, std::tuple{1, 1, 0}, std::tuple{4, 4, 0}}) {
+    nn::Conv2dShape s{2, 3, 4, 9, 8, k, k, stride, pad};
+    auto x = random_vector(2 * 3 * 9 * 8, 31), w = random_vector(4 * 3 * k * k, 32), b = random_vector(4, 33);
+    std::vector<double> y(2 * 4 * s.conv_out_h() * s.conv_out_w()), scratch(nn::conv2d_scratch_size(s));
+    nn::conv2d_forward(y.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch));
+    auto expect = direct_conv(x, w, b, s);
+    for (std::size_t i = 0; i < y.size(); ++i) REQUIRE(y[i] == Approx(expect[i]).margin(1e-12));
+    std::vector<double> dx(x.size()), dw(w.size()), db(b.size());
+    auto result = testing::check_gradients(
+        {{"x", x, dx}, {"weight", w, dw}, {"bias", b, db}}, y.size(),
+        [&](std::span<double> o) { nn::conv2d_forward(o.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch)); },
+        [&](std::span<const double> d) {
+          nn::conv2d_backward(dx.data(), dw.data(), db.data(), d.data(), x.data(), w.data(), s, std::span<double>(scratch));
+        });
+    INFO("kernel " << k << " stride " << stride << ": " << result.summary());
+    CHECK(result.ok());
+  }
+}
+
+TEST_CASE("conv_transpose2d matches the direct definition and passes the float64 gradient check", "[nn][conv]") {
+  for (auto [k, stride, pad, outpad] : {std::tuple{4, 4, 0, 0}, std::tuple{2, 2, 0, 0}, std::tuple{3, 2, 1, 1}}) {
+    nn::Conv2dShape s{2, 3, 2, 4, 5, k, k, stride, pad, outpad};
+    auto x = random_vector(2 * 3 * 4 * 5, 41), w = random_vector(3 * 2 * k * k, 42), b = random_vector(2, 43);
+    std::vector<double> y(2 * 2 * s.transposed_out_h() * s.transposed_out_w()), scratch(nn::conv_transpose2d_scratch_size(s));
+    nn::conv_transpose2d_forward(y.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch));
+    auto expect = direct_conv_transpose(x, w, b, s);
+    for (std::size_t i = 0; i < y.size(); ++i) REQUIRE(y[i] == Approx(expect[i]).margin(1e-12));
+    std::vector<double> dx(x.size()), dw(w.size()), db(b.size());
+    auto result = testing::check_gradients(
+        {{"x", x, dx}, {"weight", w, dw}, {"bias", b, db}}, y.size(),
+        [&](std::span<double> o) {
+          nn::conv_transpose2d_forward(o.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch));
+        },
+        [&](std::span<const double> d) {
+          nn::conv_transpose2d_backward(dx.data(), dw.data(), db.data(), d.data(), x.data(), w.data(), s,
+                                        std::span<double>(scratch));
+        });
+    INFO("kernel " << k << " stride " << stride << ": " << result.summary());
+    CHECK(result.ok());
+  }
+}
+
+TEST_CASE("zero-size feature maps are a clear error", "[nn][conv]") {
+  nn::Conv2dShape s{1, 3, 4, 0, 8, 3, 3, 1, 1};
+  std::vector<double> buf(64);
+  CHECK_THROWS_WITH(nn::conv2d_forward(buf.data(), buf.data(), buf.data(), (const double*)nullptr, s, std::span<double>(buf)),
+                    Catch::Contains("0x8 (zero-size)"));
+}
