@@ -9,3 +9,8 @@
 #include "flexsplat/io/safetensors.hpp"
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/core/gemm.hpp"
+#include "flexsplat/core/workspace.hpp"
+#include "flexsplat/core/simd_kernels.hpp"
+#include "flexsplat/core/eigen_interop.hpp"
+#include "flexsplat/core/xtensor_interop.hpp"
+#include "flexsplat/image/image_io.hpp"
