@@ -24,6 +24,7 @@ struct RasterSkips {
   bool opacity_aware_extent = true;  // off: extent of an opacity-1 Gaussian
   bool exact_tile_test = true;       // off: every tile of the bounding rectangle
   bool early_exit = true;            // off: pixel batches keep looping (masked) after every pixel terminated
+  bool force_scalar = false;         // not a skip: run the scalar kernels even when SIMD is enabled (tests)
 };
 
 struct TileGrid {
@@ -157,7 +158,8 @@ struct TileIntersections {
 // Builds the per-tile lists of the visible Gaussians (visible[g] != 0, proj[g] filled by project_forward_one).
 template <class T>
 void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>* proj, const TileGrid& grid,
-                     const RasterSkips& skips, TileIntersections& out) {
+                     const RasterSkips& skips, TileIntersections& out,
+                     ThreadPool& pool = global_pool()) {
   out.grid = grid;
   out.rects.assign(std::size_t(n), TileRect{});
   out.radius2.assign(std::size_t(n), 0.0);
@@ -180,7 +182,7 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
       }
       out.gaussian_counts[g] = count;
     }
-  });
+  }, pool);
   // Front-to-back order of the Gaussians that touch at least one tile.
   auto sort_by_depth = [&](auto& keys, auto& tmp) {
     keys.clear();
@@ -218,7 +220,7 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
           ++e;
         }
     }
-  });
+  }, pool);
   // Stable counting sort of the emissions by tile: within a tile, emission order is depth order.
   const index_t tiles = grid.count();
   out.tile_offsets.assign(std::size_t(tiles) + 1, 0);

@@ -208,12 +208,12 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, TileScratch<
 
 // Runs body(tile, worker) over all tiles; tiles are handed out dynamically (results do not depend on the order).
 template <class Body>
-void for_each_tile(index_t tiles, Body&& body) {
+void for_each_tile(index_t tiles, ThreadPool& pool, Body&& body) {
   std::atomic<index_t> next{0};
-  const index_t workers = std::min<index_t>(global_pool().size(), std::max<index_t>(tiles, 1));
+  const index_t workers = std::min<index_t>(pool.size(), std::max<index_t>(tiles, 1));
   parallel_for(workers, [&](index_t begin, index_t end, int worker) {
     for (index_t t; (t = next.fetch_add(1, std::memory_order_relaxed)) < tiles;) body(t, worker);
-  });
+  }, pool);
 }
 
 }  // namespace detail
@@ -222,7 +222,7 @@ void for_each_tile(index_t tiles, Body&& body) {
 template <class T>
 void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
                        const T* background, const RasterSkips& skips, RasterWorkspace<T>& ws, T* out_channels,
-                       BlendState<T>& state) {
+                       BlendState<T>& state, ThreadPool& pool = global_pool()) {
   require(C >= 1 && C <= 64, "raster: ", C, " channels; between 1 and 64 are supported");
   require(ti.max_tile_entries < (std::int64_t(1) << 24), "raster: a tile holds ", ti.max_tile_entries,
           " Gaussians, above the 2^24 limit");
@@ -230,10 +230,10 @@ void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, c
   state.final_transmittance.resize(pixels);
   state.last_entry.resize(pixels);
   state.n_contrib.resize(pixels);
-  ws.scratch.resize(std::size_t(global_pool().size()));
+  ws.scratch.resize(std::size_t(pool.size()));
   for (auto& s : ws.scratch) s.reserve(ti.max_tile_entries, C);
-  const bool use_simd = simd::enabled();
-  detail::for_each_tile(ti.grid.count(), [&](index_t tile, int worker) {
+  const bool use_simd = simd::enabled() && !skips.force_scalar;
+  detail::for_each_tile(ti.grid.count(), pool, [&](index_t tile, int worker) {
     TileScratch<T>& s = ws.scratch[std::size_t(worker)];
     detail::gather_tile(ti, tile, proj, channels, C, s);
     if (use_simd) detail::blend_tile_forward<simd::batch<T>, T>(ti, tile, s, C, background, skips, out_channels, state);
@@ -246,13 +246,14 @@ void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, c
 template <class T>
 void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
                         const T* background, const BlendState<T>& state, const T* d_out_channels, const T* d_alpha,
-                        RasterWorkspace<T>& ws, index_t n, T* gaussian_grads) {
+                        const RasterSkips& skips, RasterWorkspace<T>& ws, index_t n, T* gaussian_grads,
+                        ThreadPool& pool = global_pool()) {
   const int stride = entry_grad_fixed + C;
   ws.entry_grads.resize(ti.isect_gaussian.size() * std::size_t(stride));
-  ws.scratch.resize(std::size_t(global_pool().size()));
+  ws.scratch.resize(std::size_t(pool.size()));
   for (auto& s : ws.scratch) s.reserve(ti.max_tile_entries, C);
-  const bool use_simd = simd::enabled();
-  detail::for_each_tile(ti.grid.count(), [&](index_t tile, int worker) {
+  const bool use_simd = simd::enabled() && !skips.force_scalar;
+  detail::for_each_tile(ti.grid.count(), pool, [&](index_t tile, int worker) {
     TileScratch<T>& s = ws.scratch[std::size_t(worker)];
     const std::int64_t begin = ti.tile_offsets[tile], count = ti.tile_offsets[tile + 1] - begin;
     if (count == 0) return;
@@ -272,7 +273,7 @@ void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, 
       for (std::int64_t e = first; e < first + cnt; ++e)
         for (int j = 0; j < stride; ++j) out[j] += ws.entry_grads[e * stride + j];
     }
-  });
+  }, pool);
 }
 
 }  // namespace raster

@@ -58,6 +58,7 @@ struct RenderOptions {
   bool expected_depth = false;  // depth output = sum(w z) / alpha (0 where alpha is 0)
   std::array<double, 3> background{0, 0, 0};
   RasterSkips skips;
+  ThreadPool* pool = nullptr;  // null: the global pool
 };
 
 template <class T>
@@ -203,6 +204,7 @@ template <class T>
 void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const RenderOptions& opt,
                     RenderWorkspace<T>& ws, RenderOutputs<T>& out) {
   const int degree = detail::validate_inputs(in, camera, opt);
+  ThreadPool& pool = opt.pool ? *opt.pool : global_pool();
   const index_t n = in.means.shape(0);
   const int F = in.features.empty() ? 0 : int(in.features.shape(1));
   const int C = 4 + F;
@@ -241,13 +243,13 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
       ch[3] = p.z;
       for (int f = 0; f < F; ++f) ch[4 + f] = in.features.data()[g * F + f];
     }
-  });
+  }, pool);
   const TileGrid grid(camera.width, camera.height);
-  intersect_tiles(n, ws.visible.data(), ws.projections.data(), grid, opt.skips, ws.tiles);
+  intersect_tiles(n, ws.visible.data(), ws.projections.data(), grid, opt.skips, ws.tiles, pool);
   const index_t pixels = index_t(camera.width) * camera.height;
   ws.out_channels.resize(std::size_t(pixels * C));
   rasterize_forward(ws.tiles, ws.projections.data(), ws.channels.data(), C, ws.background.data(), opt.skips, ws.raster,
-                    ws.out_channels.data(), ws.blend);
+                    ws.out_channels.data(), ws.blend, pool);
   const index_t H = camera.height, W = camera.width;
   detail::ensure_shape<T>(out.image, Shape<3>{H, W, 3});
   detail::ensure_shape<T>(out.alpha, Shape<2>{H, W});
@@ -270,6 +272,7 @@ void render_backward(const GaussianInputs<T>& in, const Camera<T>& camera, const
                      RenderWorkspace<T>& ws, const RenderOutputGrads<T>& d_out, GaussianGrads<T>& grads) {
   const index_t n = in.means.shape(0);
   const int C = ws.channel_count, F = C - 4;
+  ThreadPool& pool = opt.pool ? *opt.pool : global_pool();
   require(ws.n == n && index_t(ws.blend.final_transmittance.size()) == index_t(camera.width) * camera.height,
           "render_backward: the workspace does not hold the forward pass of these inputs");
   const index_t H = camera.height, W = camera.width, pixels = H * W;
@@ -312,7 +315,7 @@ void render_backward(const GaussianInputs<T>& in, const Camera<T>& camera, const
   const int stride = entry_grad_fixed + C;
   ws.gaussian_grads.assign(std::size_t(n * stride), T(0));
   rasterize_backward(ws.tiles, ws.projections.data(), ws.channels.data(), C, ws.background.data(), ws.blend,
-                     ws.d_out_channels.data(), ws.d_alpha.data(), ws.raster, n, ws.gaussian_grads.data());
+                     ws.d_out_channels.data(), ws.d_alpha.data(), opt.skips, ws.raster, n, ws.gaussian_grads.data(), pool);
   const CameraParams<T> cam = detail::camera_params(camera);
   ProjectSettings<T> set;
   set.eps2d = T(opt.eps2d), set.near_plane = T(opt.near_plane), set.far_plane = T(opt.far_plane);
@@ -371,7 +374,7 @@ void render_backward(const GaussianInputs<T>& in, const Camera<T>& camera, const
           for (int f = 0; f < F; ++f) grads.features.data()[g * F + f] += gg[entry_grad_fixed + 4 + f];
       }
     }
-  });
+  }, pool);
   if (grads.camera) {
     CameraGradParams<T> total;
     for (const auto& part : ws.camera_partials) total.add(part);
