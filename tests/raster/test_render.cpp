@@ -1,0 +1,377 @@
+#include <catch2/catch.hpp>
+
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <random>
+#include <vector>
+
+#include "flexsplat/raster/render.hpp"
+#include "flexsplat/testing/gradcheck.hpp"
+#include "scene_util.hpp"
+
+using namespace rastertest;
+
+namespace {
+
+template <class T>
+struct Grads {
+  Tensor<T, 2> means, quats, scales, features;
+  Tensor<T, 1> opacities;
+  Tensor<T, 3> sh;
+  CameraGrad<T> camera;
+  explicit Grads(const Scene<T>& s)
+      : means(s.means.shape()), quats(s.quats.shape()), scales(s.scales.shape()), features(s.features.shape()),
+        opacities(s.opacities.shape()), sh(s.sh.shape()) {}
+  GaussianGrads<T> views() {
+    return {means.view(), quats.view(), scales.view(), opacities.view(), sh.view(), features.view(), &camera};
+  }
+};
+
+template <class T>
+struct Cotangents {
+  Tensor<T, 3> image, features;
+  Tensor<T, 2> alpha, depth;
+  Cotangents(const Camera<T>& cam, int F, unsigned seed) {
+    std::mt19937 rng(seed);
+    std::normal_distribution<double> normal;
+    image.resize({cam.height, cam.width, 3});
+    features.resize({cam.height, cam.width, F});
+    alpha.resize({cam.height, cam.width});
+    depth.resize({cam.height, cam.width});
+    for (auto* t : {&image, &features}) for (auto& v : t->span()) v = T(normal(rng));
+    for (auto* t : {&alpha, &depth}) for (auto& v : t->span()) v = T(normal(rng));
+  }
+  RenderOutputGrads<T> views() const { return {image.view(), alpha.view(), depth.view(), features.view()}; }
+};
+
+template <class T>
+bool all_finite(std::span<const T> v) {
+  for (T x : v)
+    if (!std::isfinite(x)) return false;
+  return true;
+}
+
+template <class T, std::size_t R>
+bool same_bits(const Tensor<T, R>& a, const Tensor<T, R>& b) {
+  return a.shape() == b.shape() && std::memcmp(a.data(), b.data(), sizeof(T) * std::size_t(a.size())) == 0;
+}
+
+// Forward + backward of a scene; returns everything for bitwise comparisons.
+struct Run {
+  RenderOutputs<float> out;
+  Grads<float> grads;
+  explicit Run(const Scene<float>& s) : grads(s) {}
+};
+
+Run run_scene(const Scene<float>& s, const RenderOptions& opt, unsigned cot_seed = 5) {
+  Run r(s);
+  RenderWorkspace<float> ws;
+  render_forward(s.inputs(), s.camera, opt, ws, r.out);
+  Cotangents<float> cot(s.camera, int(s.features.shape(1)), cot_seed);
+  auto g = r.grads.views();
+  render_backward(s.inputs(), s.camera, opt, ws, cot.views(), g);
+  return r;
+}
+
+bool identical(const Run& a, const Run& b) {
+  return same_bits(a.out.image, b.out.image) && same_bits(a.out.alpha, b.out.alpha) &&
+         same_bits(a.out.depth, b.out.depth) && same_bits(a.out.n_contrib, b.out.n_contrib) &&
+         same_bits(a.out.features, b.out.features) && same_bits(a.grads.means, b.grads.means) &&
+         same_bits(a.grads.quats, b.grads.quats) && same_bits(a.grads.scales, b.grads.scales) &&
+         same_bits(a.grads.opacities, b.grads.opacities) && same_bits(a.grads.sh, b.grads.sh) &&
+         same_bits(a.grads.features, b.grads.features) &&
+         std::memcmp(&a.grads.camera, &b.grads.camera, sizeof(CameraGrad<float>)) == 0;
+}
+
+void full_gradcheck(bool antialiased, bool expected_depth, unsigned seed) {
+  SceneSpec spec;
+  spec.n = 14;
+  spec.width = 20, spec.height = 16;
+  spec.sh_degree = 3;
+  spec.features = 2;
+  spec.scale_min = 0.08, spec.scale_max = 0.3;
+  spec.opacity_min = 0.2, spec.opacity_max = 0.8;
+  spec.antialiased = antialiased;
+  spec.seed = seed;
+  auto s = make_scene<double>(spec);
+  s.options.expected_depth = expected_depth;
+  Grads<double> g(s);
+  std::vector<double> view(12), d_view(12), intr(4), d_intr(4);
+  for (int i = 0; i < 12; ++i) view[i] = s.camera.world_to_camera[i];
+  intr = {s.camera.fx, s.camera.fy, s.camera.cx, s.camera.cy};
+  auto sync = [&] {
+    for (int i = 0; i < 12; ++i) s.camera.world_to_camera[i] = view[i];
+    s.camera.fx = intr[0], s.camera.fy = intr[1], s.camera.cx = intr[2], s.camera.cy = intr[3];
+  };
+  const index_t pixels = index_t(spec.width) * spec.height;
+  const std::size_t out_size = std::size_t(pixels * (3 + 1 + 1 + spec.features));
+  RenderWorkspace<double> ws;
+  RenderOutputs<double> out;
+  auto forward = [&](std::span<double> flat) {
+    sync();
+    render_forward(s.inputs(), s.camera, s.options, ws, out);
+    double* p = flat.data();
+    for (double v : out.image.span()) *p++ = v;
+    for (double v : out.alpha.span()) *p++ = v;
+    for (double v : out.depth.span()) *p++ = v;
+    for (double v : out.features.span()) *p++ = v;
+  };
+  auto backward = [&](std::span<const double> d) {
+    sync();
+    render_forward(s.inputs(), s.camera, s.options, ws, out);
+    const double* p = d.data();
+    RenderOutputGrads<double> dg{{p, {spec.height, spec.width, 3}},
+                                 {p + pixels * 3, {spec.height, spec.width}},
+                                 {p + pixels * 4, {spec.height, spec.width}},
+                                 {p + pixels * 5, {spec.height, spec.width, spec.features}}};
+    g.camera = CameraGrad<double>{};
+    auto views = g.views();
+    render_backward(s.inputs(), s.camera, s.options, ws, dg, views);
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 4; ++j) d_view[i * 4 + j] += g.camera.world_to_camera[i * 4 + j];
+    d_intr[0] += g.camera.fx, d_intr[1] += g.camera.fy, d_intr[2] += g.camera.cx, d_intr[3] += g.camera.cy;
+  };
+  testing::GradCheckOptions opts;
+  opts.abs_tol = 1e-6;
+  opts.rel_tol = 1e-5;
+  opts.max_checks_per_param = 40;
+  auto result = testing::check_gradients(
+      {{"means", s.means.span(), g.means.span()}, {"quats", s.quats.span(), g.quats.span()},
+       {"scales", s.scales.span(), g.scales.span()}, {"opacities", s.opacities.span(), g.opacities.span()},
+       {"sh", s.sh.span(), g.sh.span()}, {"features", s.features.span(), g.features.span()},
+       {"world_to_camera", view, d_view}, {"intrinsics", intr, d_intr}},
+      out_size, forward, backward, opts, testing::gradcheck_seed(seed));
+  INFO("antialiased " << antialiased << " expected_depth " << expected_depth << ": " << result.summary());
+  CHECK(result.ok());
+}
+
+}  // namespace
+
+TEST_CASE("render: float64 gradient check of the whole pipeline, Gaussians and camera", "[raster][render]") {
+  full_gradcheck(false, false, 101);
+  full_gradcheck(true, false, 102);
+  full_gradcheck(false, true, 103);
+}
+
+TEST_CASE("render: results for 1 and 2 threads are bit-identical (forward and backward)", "[raster][render]") {
+  SceneSpec spec;
+  spec.n = 3000;
+  spec.width = 96, spec.height = 80;
+  spec.sh_degree = 3;
+  spec.features = 3;
+  spec.scale_min = 0.01, spec.scale_max = 0.1;
+  auto s = make_scene<float>(spec);
+  ThreadPool one(1), two(2);
+  RenderOptions opt = s.options;
+  opt.pool = &one;
+  const Run a = run_scene(s, opt);
+  opt.pool = &two;
+  const Run b = run_scene(s, opt);
+  const Run c = run_scene(s, opt);
+  CHECK(identical(a, b));
+  CHECK(identical(b, c));
+  long contributions = 0;
+  for (auto v : a.out.n_contrib.span()) contributions += v;
+  CHECK(contributions > 10000);
+}
+
+TEST_CASE("render: every skip leaves forward and backward bit-identical", "[raster][render]") {
+  SceneSpec spec;
+  spec.n = 600;
+  spec.width = 70, spec.height = 50;
+  spec.sh_degree = 2;
+  spec.scale_min = 0.02, spec.scale_max = 0.3;
+  spec.opacity_min = 0.3, spec.opacity_max = 0.99;
+  auto s = make_scene<float>(spec);
+  const Run all_on = run_scene(s, s.options);
+  for (int mask = 0; mask < 7; ++mask) {
+    RenderOptions opt = s.options;
+    opt.skips.opacity_aware_extent = mask & 1;
+    opt.skips.exact_tile_test = mask & 2;
+    opt.skips.early_exit = mask & 4;
+    INFO("skip mask " << mask);
+    CHECK(identical(all_on, run_scene(s, opt)));
+  }
+}
+
+TEST_CASE("render: SIMD and scalar kernels agree", "[raster][render]") {
+  SceneSpec spec;
+  spec.n = 500;
+  spec.width = 64, spec.height = 48;
+  spec.features = 2;
+  spec.scale_min = 0.02, spec.scale_max = 0.3;
+  auto s = make_scene<float>(spec);
+  RenderOptions opt = s.options;
+  const Run vec = run_scene(s, opt);
+  opt.skips.force_scalar = true;
+  const Run sca = run_scene(s, opt);
+  CHECK(same_bits(vec.out.n_contrib, sca.out.n_contrib));
+  auto max_diff = [](const auto& a, const auto& b) {
+    double m = 0, scale = 0;
+    for (index_t i = 0; i < a.size(); ++i) {
+      m = std::max(m, double(std::abs(a.data()[i] - b.data()[i])));
+      scale = std::max(scale, double(std::abs(b.data()[i])));
+    }
+    return m / std::max(scale, 1.0);
+  };
+  CHECK(max_diff(vec.out.image, sca.out.image) < 1e-5);
+  CHECK(max_diff(vec.out.depth, sca.out.depth) < 1e-5);
+  CHECK(max_diff(vec.grads.means, sca.grads.means) < 1e-4);
+  CHECK(max_diff(vec.grads.scales, sca.grads.scales) < 1e-4);
+  CHECK(max_diff(vec.grads.opacities, sca.grads.opacities) < 1e-4);
+  CHECK(max_diff(vec.grads.sh, sca.grads.sh) < 1e-4);
+}
+
+TEST_CASE("render: extreme Gaussians give finite outputs and gradients", "[raster][render]") {
+  // One scene with each hazard: tiny and huge scales, behind the camera, on the near plane, at the camera centre,
+  // needle-thin, opacity 0 and 1, and hundreds of Gaussians on one pixel.
+  SceneSpec spec;
+  spec.n = 300;
+  spec.width = 24, spec.height = 20;
+  spec.sh_degree = 3;
+  auto s = make_scene<float>(spec);
+  s.camera.world_to_camera = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};
+  s.camera.cx = 12, s.camera.cy = 10;
+  for (index_t i = 0; i < spec.n; ++i) {
+    s.means(i, 0) = 0.001f * float(i % 7), s.means(i, 1) = 0.001f * float(i % 5), s.means(i, 2) = 1.0f + 0.01f * float(i);
+  }
+  const float scales[] = {1e-7f, 1e3f, 1e-7f, 1e3f};
+  for (int i = 0; i < 4; ++i) s.scales(i, 0) = s.scales(i, 1) = s.scales(i, 2) = scales[i];
+  s.scales(4, 0) = 1e3f, s.scales(4, 1) = 1e-7f, s.scales(4, 2) = 1e-7f;  // needle
+  s.means(5, 2) = -2.f;                                                    // behind
+  s.means(6, 2) = 0.01f;                                                   // on the near plane
+  s.means(7, 0) = s.means(7, 1) = s.means(7, 2) = 0.f;                     // camera centre
+  s.means(8, 2) = 0.0100001f, s.scales(8, 0) = 1e3f;                       // huge and just beyond the near plane
+  s.opacities(9) = 0.f;
+  s.opacities(10) = 1.f;
+  s.opacities(11) = 1.f, s.scales(11, 0) = s.scales(11, 1) = 1e3f;
+  const Run r = run_scene(s, s.options);
+  CHECK(all_finite<float>(r.out.image.span()));
+  CHECK(all_finite<float>(r.out.alpha.span()));
+  CHECK(all_finite<float>(r.out.depth.span()));
+  for (auto* t : {&r.grads.means, &r.grads.quats, &r.grads.scales}) CHECK(all_finite<float>(t->span()));
+  CHECK(all_finite<float>(r.grads.opacities.span()));
+  CHECK(all_finite<float>(r.grads.sh.span()));
+  CHECK(all_finite<float>(std::span<const float>(r.grads.camera.world_to_camera.data(), 16)));
+  CHECK(std::isfinite(r.grads.camera.fx));
+  long contributions = 0;
+  for (auto v : r.out.n_contrib.span()) contributions += v;
+  CHECK(contributions > 0);
+}
+
+TEST_CASE("render: stress, 10000 random extreme scenes have no non-finite value", "[raster][render][stress]") {
+  std::mt19937 rng(2024);
+  std::uniform_real_distribution<double> uni(-1, 1), u01(0, 1);
+  RenderWorkspace<float> ws;
+  RenderOutputs<float> out;
+  long bad = 0, scenes = 0, contributions = 0;
+  for (int trial = 0; trial < 10000; ++trial) {
+    SceneSpec spec;
+    spec.n = 6;
+    spec.width = 8 + int(u01(rng) * 12), spec.height = 8 + int(u01(rng) * 12);
+    spec.sh_degree = trial % 4;
+    spec.features = trial % 2;
+    spec.antialiased = trial % 3 == 0;
+    spec.seed = unsigned(trial);
+    auto s = make_scene<float>(spec);
+    s.camera.fx = s.camera.fy = float(spec.width) * float(std::exp(2 * uni(rng)));
+    for (index_t i = 0; i < spec.n; ++i) {
+      for (int k = 0; k < 3; ++k) s.scales(i, k) = float(std::pow(10.0, -7 + 10 * u01(rng)));
+      for (int k = 0; k < 3; ++k) s.means(i, k) = float(uni(rng) * std::pow(10.0, 3 * u01(rng) - 1.5));
+      s.means(i, 2) -= float(spec.distance) * float(u01(rng) < 0.3);  // some near or behind the camera
+      const double r = u01(rng);
+      s.opacities(i) = r < 0.1 ? 0.f : r < 0.2 ? 1.f : float(u01(rng));
+      if (u01(rng) < 0.1) s.quats(i, 0) = 1e-20f, s.quats(i, 1) = s.quats(i, 2) = 0, s.quats(i, 3) = 1e-20f;
+    }
+    render_forward(s.inputs(), s.camera, s.options, ws, out);
+    Cotangents<float> cot(s.camera, spec.features, unsigned(trial));
+    Grads<float> g(s);
+    auto views = g.views();
+    render_backward(s.inputs(), s.camera, s.options, ws, cot.views(), views);
+    ++scenes;
+    for (auto v : out.n_contrib.span()) contributions += v;
+    const bool ok = all_finite<float>(out.image.span()) && all_finite<float>(out.alpha.span()) &&
+                    all_finite<float>(out.depth.span()) && all_finite<float>(out.features.span()) &&
+                    all_finite<float>(g.means.span()) && all_finite<float>(g.quats.span()) &&
+                    all_finite<float>(g.scales.span()) && all_finite<float>(g.opacities.span()) &&
+                    all_finite<float>(g.sh.span()) && all_finite<float>(g.features.span()) &&
+                    all_finite<float>(std::span<const float>(g.camera.world_to_camera.data(), 16)) &&
+                    std::isfinite(g.camera.fx) && std::isfinite(g.camera.fy) && std::isfinite(g.camera.cx) &&
+                    std::isfinite(g.camera.cy);
+    if (!ok) {
+      ++bad;
+      if (bad <= 3) WARN("non-finite value in scene " << trial);
+    }
+  }
+  CHECK(scenes == 10000);
+  CHECK(contributions > 10000);  // the scenes do draw something
+  CHECK(bad == 0);
+}
+
+TEST_CASE("render: bad input gets a clear error", "[raster][render]") {
+  SceneSpec spec;
+  spec.n = 5;
+  auto s = make_scene<float>(spec);
+  RenderWorkspace<float> ws;
+  RenderOutputs<float> out;
+  auto expect_error = [&](Scene<float>& scene, const std::string& fragment) {
+    try {
+      render_forward(scene.inputs(), scene.camera, scene.options, ws, out);
+      FAIL("no error; expected one mentioning '" << fragment << "'");
+    } catch (const Error& e) {
+      INFO(e.what());
+      CHECK(std::string(e.what()).find(fragment) != std::string::npos);
+    }
+  };
+  {
+    auto t = s;
+    for (int k = 0; k < 4; ++k) t.quats(2, k) = 0;
+    expect_error(t, "quaternion 2");
+  }
+  {
+    auto t = s;
+    t.means(1, 0) = std::numeric_limits<float>::quiet_NaN();
+    expect_error(t, "means has a non-finite value");
+  }
+  {
+    auto t = s;
+    t.scales(3, 1) = std::numeric_limits<float>::infinity();
+    expect_error(t, "scales");
+  }
+  {
+    auto t = s;
+    t.opacities(0) = 1.5f;
+    expect_error(t, "opacity 0 is 1.5");
+  }
+  {
+    auto t = s;
+    t.options.sh_degree = 3;
+    expect_error(t, "needs 16 coefficients");
+  }
+  {
+    auto t = s;
+    t.camera.world_to_camera[14] = 1;
+    expect_error(t, "bottom row");
+  }
+  {
+    auto t = s;
+    t.camera.fx = 0;
+    expect_error(t, "focal");
+  }
+  {
+    auto t = s;
+    t.camera.cy = std::numeric_limits<float>::quiet_NaN();
+    expect_error(t, "intrinsics");
+  }
+  {
+    auto t = s;
+    t.camera.width = 0;
+    expect_error(t, "image size");
+  }
+  {
+    auto t = s;
+    t.quats.resize({4, 4});
+    expect_error(t, "quats must be [5, 4]");
+  }
+}

@@ -1,0 +1,61 @@
+#include <catch2/catch.hpp>
+
+#include <cmath>
+#include <limits>
+#include <random>
+#include <vector>
+
+#include "flexsplat/raster/sh.hpp"
+#include "flexsplat/testing/gradcheck.hpp"
+
+using namespace flexsplat;
+using namespace flexsplat::raster;
+
+TEST_CASE("sh: float64 gradient check of coefficients and direction for degrees 0-3", "[raster][sh]") {
+  for (int degree = 0; degree <= 3; ++degree) {
+    std::mt19937 rng(7 + degree);
+    std::normal_distribution<double> normal;
+    std::vector<double> coeffs(16 * 3), dir(3), d_coeffs(coeffs.size()), d_dir(3);
+    for (auto& c : coeffs) c = normal(rng);
+    for (auto& d : dir) d = 2 * normal(rng);
+    auto forward = [&](std::span<double> out) { sh_forward(degree, 3, coeffs.data(), dir.data(), out.data()); };
+    auto backward = [&](std::span<const double> d_out) {
+      sh_backward(degree, 3, coeffs.data(), dir.data(), d_out.data(), d_coeffs.data(), d_dir.data());
+    };
+    const std::size_t used = std::size_t(sh_coeff_count(degree) * 3);
+    auto result = testing::check_gradients({{"coeffs", {coeffs.data(), used}, {d_coeffs.data(), used}},
+                                            {"dir", dir, d_dir}},
+                                           3, forward, backward);
+    INFO("degree " << degree << ": " << result.summary());
+    CHECK(result.ok());
+  }
+}
+
+TEST_CASE("sh: bands above the requested degree are never read", "[raster][sh]") {
+  std::vector<double> coeffs(16 * 3, std::numeric_limits<double>::quiet_NaN());
+  for (int i = 0; i < 4 * 3; ++i) coeffs[i] = 0.1 * (i + 1);
+  const double dir[3] = {0.3, -0.2, 0.9};
+  double out[3], d_out[3] = {1, 1, 1}, d_dir[3] = {0, 0, 0};
+  std::vector<double> d_coeffs(coeffs.size(), 0.0);
+  sh_forward(1, 3, coeffs.data(), dir, out);
+  sh_backward(1, 3, coeffs.data(), dir, d_out, d_coeffs.data(), d_dir);
+  for (double v : out) CHECK(std::isfinite(v));
+  for (double v : d_dir) CHECK(std::isfinite(v));
+  for (int i = 12; i < 48; ++i) CHECK(d_coeffs[i] == 0.0);
+}
+
+TEST_CASE("sh: degree 0 is the constant band and a zero direction stays finite", "[raster][sh]") {
+  const double coeffs[3] = {1.0, -2.0, 0.5};
+  const double zero[3] = {0, 0, 0};
+  double out[3];
+  sh_forward(0, 3, coeffs, zero, out);
+  CHECK(out[0] == Approx(sh_c0));
+  CHECK(out[1] == Approx(-2 * sh_c0));
+  std::vector<double> c3(48, 0.5);
+  double o3[3], d_dir[3] = {0, 0, 0}, d_out[3] = {1, 1, 1};
+  std::vector<double> dc(48, 0.0);
+  sh_forward(3, 3, c3.data(), zero, o3);
+  sh_backward(3, 3, c3.data(), zero, d_out, dc.data(), d_dir);
+  for (double v : o3) CHECK(std::isfinite(v));
+  for (double v : d_dir) CHECK(v == 0.0);
+}
