@@ -9,3 +9,6 @@
 #include "flexsplat/io/safetensors.hpp"
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/core/gemm.hpp"
+#include "flexsplat/image/resample.hpp"
+#include "flexsplat/geometry/preprocess.hpp"
+#include "flexsplat/geometry/preprocess_reference.hpp"
