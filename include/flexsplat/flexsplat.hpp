@@ -9,3 +9,8 @@
 #include "flexsplat/io/safetensors.hpp"
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/core/gemm.hpp"
+#include "flexsplat/export/gaussian_set.hpp"
+#include "flexsplat/export/gltf.hpp"
+#include "flexsplat/export/ply.hpp"
+#include "flexsplat/export/file.hpp"
+#include "flexsplat/export/cameras_json.hpp"
