@@ -4,10 +4,12 @@
 // can compare both.
 #include <cpuid.h>
 
+#include <cmath>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
 #include <string>
+#include <type_traits>
 
 #include <xsimd/xsimd.hpp>
 
@@ -123,6 +125,53 @@ inline bool enabled() {
   }();
   return on;
 }
+
+// Lane helpers: one kernel body serves the scalar path (plain T, one lane) and the SIMD path (batch<T>).
+template <class V>
+struct lane_count {
+  static constexpr std::size_t value = 1;
+};
+template <class T, class A>
+struct lane_count<xsimd::batch<T, A>> {
+  static constexpr std::size_t value = xsimd::batch<T, A>::size;
+};
+template <class T>
+inline T lane_select(bool c, T a, T b) { return c ? a : b; }
+template <class T, class A>
+inline xsimd::batch<T, A> lane_select(const xsimd::batch_bool<T, A>& c, const xsimd::batch<T, A>& a,
+                                      const xsimd::batch<T, A>& b) {
+  return xsimd::select(c, a, b);
+}
+inline bool lane_any(bool c) { return c; }
+inline bool lane_all(bool c) { return c; }
+inline bool lane_not(bool c) { return !c; }
+template <class T, class A>
+inline bool lane_any(const xsimd::batch_bool<T, A>& c) { return xsimd::any(c); }
+template <class T, class A>
+inline bool lane_all(const xsimd::batch_bool<T, A>& c) { return xsimd::all(c); }
+template <class T, class A>
+inline xsimd::batch_bool<T, A> lane_not(const xsimd::batch_bool<T, A>& c) { return !c; }
+template <class T>
+inline T lane_sum(T v) { return v; }
+template <class T, class A>
+inline T lane_sum(const xsimd::batch<T, A>& v) { return xsimd::hadd(v); }
+template <class T>
+inline T lane_exp(T v) { return std::exp(v); }
+template <class T, class A>
+inline xsimd::batch<T, A> lane_exp(const xsimd::batch<T, A>& v) { return xsimd::exp(v); }
+template <class T>
+inline T lane_min(T a, T b) { return a < b ? a : b; }
+template <class T, class A>
+inline xsimd::batch<T, A> lane_min(const xsimd::batch<T, A>& a, const xsimd::batch<T, A>& b) { return xsimd::min(a, b); }
+template <class V, class T>
+inline V lane_load(const T* p) {
+  if constexpr (std::is_same_v<V, T>) return *p;
+  else return V::load_unaligned(p);
+}
+template <class T>
+inline void lane_store(T* p, T v) { *p = v; }
+template <class T, class A>
+inline void lane_store(T* p, const xsimd::batch<T, A>& v) { v.store_unaligned(p); }
 
 }  // namespace simd
 }  // namespace v0

@@ -1,0 +1,36 @@
+#pragma once
+// Every threshold of the rasterizer, shared by the forward and backward passes (gsplat conventions).
+#include <cstdint>
+
+namespace flexsplat {
+inline namespace v0 {
+namespace raster {
+
+inline constexpr int tile_size = 16;              // tiles are tile_size x tile_size pixels
+inline constexpr double pixel_centre_offset = 0.5;  // pixel (x, y) samples at (x + 0.5, y + 0.5)
+inline constexpr double default_eps2d = 0.3;      // isotropic blur added to every projected covariance
+inline constexpr double default_near = 0.01;      // Gaussians whose camera z is below this are culled
+inline constexpr double default_far = 1e10;
+inline constexpr double fov_clamp_margin = 0.3;   // the Jacobian clamps x/z to 1.3x the half field of view
+inline constexpr double alpha_threshold = 1.0 / 255.0;  // a Gaussian with alpha below this is skipped
+inline constexpr double max_alpha = 0.99;               // alpha = min(max_alpha, o * exp(-sigma))
+inline constexpr double transmittance_stop = 1e-4;      // a pixel stops before T would fall to this
+inline constexpr double sh_color_offset = 0.5;          // colour = SH + 0.5, clamped at 0
+inline constexpr int max_sh_degree = 3;
+
+// Relative and absolute slack of the culling tests: they may keep a few extra pairs that the per-pixel test
+// then rejects, but never drop a pair whose float alpha reaches alpha_threshold.
+inline constexpr double cull_slack_relative = 1e-3;
+inline constexpr double cull_slack_absolute = 1e-3;
+
+// Real spherical-harmonics constants of the 3DGS papers, bands 0 to 3.
+inline constexpr double sh_c0 = 0.28209479177387814;
+inline constexpr double sh_c1 = 0.4886025119029199;
+inline constexpr double sh_c2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
+                                    -1.0925484305920792, 0.5462742152960396};
+inline constexpr double sh_c3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+                                    -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
+
+}  // namespace raster
+}  // namespace v0
+}  // namespace flexsplat

@@ -1,0 +1,240 @@
+#pragma once
+// Tile intersection: opacity-aware pixel extent of each projected Gaussian, an exact ellipse-versus-tile test,
+// front-to-back ordering by camera depth (stable radix sort, ties by Gaussian index), and per-tile ranges.
+// Every test is conservative: a (Gaussian, pixel) pair whose alpha can reach alpha_threshold is never dropped.
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <type_traits>
+#include <vector>
+
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/tensor.hpp"
+#include "flexsplat/raster/constants.hpp"
+#include "flexsplat/raster/project.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace raster {
+
+// Which optional skips run; each leaves the output unchanged (the benchmark measures what each one saves).
+struct RasterSkips {
+  bool opacity_aware_extent = true;  // off: extent of an opacity-1 Gaussian
+  bool exact_tile_test = true;       // off: every tile of the bounding rectangle
+  bool early_exit = true;            // off: pixel batches keep looping (masked) after every pixel terminated
+};
+
+struct TileGrid {
+  int width = 0, height = 0, tiles_x = 0, tiles_y = 0;
+  TileGrid() = default;
+  TileGrid(int w, int h) : width(w), height(h), tiles_x((w + tile_size - 1) / tile_size), tiles_y((h + tile_size - 1) / tile_size) {}
+  index_t count() const { return index_t(tiles_x) * tiles_y; }
+};
+
+// Squared Mahalanobis radius inside which o * exp(-sigma) can reach alpha_threshold (with slack).
+inline double cull_radius2(double opacity, bool opacity_aware) {
+  const double o = opacity_aware ? opacity : 1.0;
+  const double r2 = 2.0 * std::log(o / alpha_threshold);
+  return r2 * (1.0 + cull_slack_relative) + cull_slack_absolute;
+}
+
+// Minimum of d^T Q d over the rectangle [x0, x1] x [y0, y1] of pixel centres (d = p - mean) versus r2.
+inline bool ellipse_touches_rect(double u, double v, double qa, double qb, double qc, double r2, double x0, double x1,
+                                 double y0, double y1) {
+  if (u >= x0 && u <= x1 && v >= y0 && v <= y1) return true;
+  auto f = [&](double dx, double dy) { return qa * dx * dx + 2.0 * qb * dx * dy + qc * dy * dy; };
+  double best = INFINITY;
+  // Vertical edges: fixed dx, the best dy minimises qc dy^2 + 2 qb dx dy.
+  for (double x : {x0, x1}) {
+    const double dx = x - u;
+    const double dy = std::clamp(-qb * dx / qc, y0 - v, y1 - v);
+    best = std::min(best, f(dx, dy));
+  }
+  for (double y : {y0, y1}) {
+    const double dy = y - v;
+    const double dx = std::clamp(-qb * dy / qa, x0 - u, x1 - u);
+    best = std::min(best, f(dx, dy));
+  }
+  return best <= r2;
+}
+
+// Inclusive tile rectangle of one Gaussian; false when it touches no pixel.
+struct TileRect {
+  int x0 = 0, y0 = 0, x1 = -1, y1 = -1;
+  bool empty() const { return x1 < x0 || y1 < y0; }
+};
+
+template <class T>
+bool gaussian_tile_rect(T u, T v, const T cov[3], T opacity, const TileGrid& grid, bool opacity_aware, TileRect& rect,
+                        double& r2_out) {
+  const double r2 = cull_radius2(double(opacity), opacity_aware);
+  r2_out = r2;
+  if (!(r2 > 0)) return false;
+  const double rx = std::sqrt(r2 * double(cov[0])) * (1.0 + cull_slack_relative) + cull_slack_absolute;
+  const double ry = std::sqrt(r2 * double(cov[2])) * (1.0 + cull_slack_relative) + cull_slack_absolute;
+  // Pixel px is in range when |px + 0.5 - u| <= rx.
+  const double px0 = std::ceil(double(u) - rx - pixel_centre_offset), px1 = std::floor(double(u) + rx - pixel_centre_offset);
+  const double py0 = std::ceil(double(v) - ry - pixel_centre_offset), py1 = std::floor(double(v) + ry - pixel_centre_offset);
+  if (!(px1 >= 0 && py1 >= 0 && px0 <= grid.width - 1 && py0 <= grid.height - 1)) return false;
+  const int ix0 = int(std::max(0.0, px0)), ix1 = int(std::min<double>(grid.width - 1, px1));
+  const int iy0 = int(std::max(0.0, py0)), iy1 = int(std::min<double>(grid.height - 1, py1));
+  if (ix1 < ix0 || iy1 < iy0) return false;
+  rect = {ix0 / tile_size, iy0 / tile_size, ix1 / tile_size, iy1 / tile_size};
+  return true;
+}
+
+// Whether the Gaussian can touch a pixel centre of tile (tx, ty).
+template <class T>
+bool gaussian_touches_tile(T u, T v, const T conic[3], double r2, const TileGrid& grid, int tx, int ty) {
+  const double x0 = tx * tile_size + pixel_centre_offset;
+  const double x1 = std::min(grid.width, (tx + 1) * tile_size) - 1 + pixel_centre_offset;
+  const double y0 = ty * tile_size + pixel_centre_offset;
+  const double y1 = std::min(grid.height, (ty + 1) * tile_size) - 1 + pixel_centre_offset;
+  return ellipse_touches_rect(double(u), double(v), double(conic[0]), double(conic[1]), double(conic[2]), r2, x0, x1,
+                              y0, y1);
+}
+
+// Stable LSD radix sort of non-negative floating-point keys carrying int32 values (ties keep input order).
+template <class T>
+void radix_sort_positive(std::vector<T>& keys, std::vector<std::int32_t>& values, std::vector<T>& key_tmp,
+                         std::vector<std::int32_t>& value_tmp) {
+  using U = std::conditional_t<sizeof(T) == 4, std::uint32_t, std::uint64_t>;
+  const std::size_t n = keys.size();
+  key_tmp.resize(n);
+  value_tmp.resize(n);
+  std::size_t counts[256];
+  for (unsigned shift = 0; shift < sizeof(U) * 8; shift += 8) {
+    std::fill(counts, counts + 256, std::size_t(0));
+    for (std::size_t i = 0; i < n; ++i) {
+      U bits;
+      std::memcpy(&bits, &keys[i], sizeof(U));
+      ++counts[(bits >> shift) & 0xff];
+    }
+    if (n == 0 || *std::max_element(counts, counts + 256) == n) continue;  // this digit is the same everywhere
+    std::size_t sum = 0;
+    for (auto& c : counts) {
+      const std::size_t k = c;
+      c = sum;
+      sum += k;
+    }
+    for (std::size_t i = 0; i < n; ++i) {
+      U bits;
+      std::memcpy(&bits, &keys[i], sizeof(U));
+      const std::size_t dst = counts[(bits >> shift) & 0xff]++;
+      key_tmp[dst] = keys[i];
+      value_tmp[dst] = values[i];
+    }
+    keys.swap(key_tmp);
+    values.swap(value_tmp);
+  }
+}
+
+// Result of the intersection stage: tile t owns entries [tile_offsets[t], tile_offsets[t+1]) of tile_entries,
+// each an emission index e (Gaussian isect_gaussian[e]); the entries of one tile are front to back.
+// Emission indices of one Gaussian are contiguous (gaussian_offsets), so per-entry gradients reduce per Gaussian
+// in a fixed order.
+struct TileIntersections {
+  TileGrid grid;
+  std::vector<std::int32_t> order;             // visible Gaussians front to back
+  std::vector<std::int64_t> gaussian_offsets;  // [N] first emission of each Gaussian
+  std::vector<std::int64_t> gaussian_counts;   // [N] emissions of each Gaussian (0 when culled)
+  std::vector<std::int32_t> isect_gaussian;    // [E] Gaussian of each emission
+  std::vector<std::int32_t> isect_tile;        // [E] tile of each emission
+  std::vector<std::int64_t> tile_offsets;      // [tiles+1]
+  std::vector<std::int32_t> tile_entries;      // [E] emission indices sorted by (tile, depth)
+  std::int64_t max_tile_entries = 0;
+  // Scratch
+  std::vector<double> depth_keys_d, depth_tmp_d;
+  std::vector<float> depth_keys_f, depth_tmp_f;
+  std::vector<std::int32_t> order_tmp;
+  std::vector<std::int64_t> tile_cursor;
+  std::vector<TileRect> rects;
+  std::vector<double> radius2;
+};
+
+// Builds the per-tile lists of the visible Gaussians (visible[g] != 0, proj[g] filled by project_forward_one).
+template <class T>
+void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>* proj, const TileGrid& grid,
+                     const RasterSkips& skips, TileIntersections& out) {
+  out.grid = grid;
+  out.rects.assign(std::size_t(n), TileRect{});
+  out.radius2.assign(std::size_t(n), 0.0);
+  out.gaussian_counts.assign(std::size_t(n), 0);
+  parallel_for(n, [&](index_t begin, index_t end, int) {
+    for (index_t g = begin; g < end; ++g) {
+      if (!visible[g]) continue;
+      const Projection<T>& p = proj[g];
+      TileRect rect;
+      double r2 = 0;
+      if (!gaussian_tile_rect(p.u, p.v, p.cov, p.opacity, grid, skips.opacity_aware_extent, rect, r2)) continue;
+      out.rects[g] = rect;
+      out.radius2[g] = r2;
+      std::int64_t count = 0;
+      if (!skips.exact_tile_test) {
+        count = std::int64_t(rect.x1 - rect.x0 + 1) * (rect.y1 - rect.y0 + 1);
+      } else {
+        for (int ty = rect.y0; ty <= rect.y1; ++ty)
+          for (int tx = rect.x0; tx <= rect.x1; ++tx) count += gaussian_touches_tile(p.u, p.v, p.conic, r2, grid, tx, ty);
+      }
+      out.gaussian_counts[g] = count;
+    }
+  });
+  // Front-to-back order of the Gaussians that touch at least one tile.
+  auto sort_by_depth = [&](auto& keys, auto& tmp) {
+    keys.clear();
+    out.order.clear();
+    for (index_t g = 0; g < n; ++g)
+      if (out.gaussian_counts[g] > 0) {
+        keys.push_back(static_cast<std::remove_reference_t<decltype(keys[0])>>(proj[g].z));
+        out.order.push_back(std::int32_t(g));
+      }
+    radix_sort_positive(keys, out.order, tmp, out.order_tmp);
+  };
+  if constexpr (sizeof(T) == 4) sort_by_depth(out.depth_keys_f, out.depth_tmp_f);
+  else sort_by_depth(out.depth_keys_d, out.depth_tmp_d);
+  out.gaussian_offsets.assign(std::size_t(n), 0);
+  std::int64_t total = 0;
+  for (std::int32_t g : out.order) {
+    out.gaussian_offsets[g] = total;
+    total += out.gaussian_counts[g];
+  }
+  require(total < (std::int64_t(1) << 31), "raster: ", total, " tile intersections exceed the 2^31 limit");
+  out.isect_gaussian.resize(std::size_t(total));
+  out.isect_tile.resize(std::size_t(total));
+  const index_t visible_count = index_t(out.order.size());
+  parallel_for(visible_count, [&](index_t begin, index_t end, int) {
+    for (index_t i = begin; i < end; ++i) {
+      const std::int32_t g = out.order[i];
+      const Projection<T>& p = proj[g];
+      const TileRect& rect = out.rects[g];
+      std::int64_t e = out.gaussian_offsets[g];
+      for (int ty = rect.y0; ty <= rect.y1; ++ty)
+        for (int tx = rect.x0; tx <= rect.x1; ++tx) {
+          if (skips.exact_tile_test && !gaussian_touches_tile(p.u, p.v, p.conic, out.radius2[g], grid, tx, ty)) continue;
+          out.isect_gaussian[e] = g;
+          out.isect_tile[e] = std::int32_t(ty * grid.tiles_x + tx);
+          ++e;
+        }
+    }
+  });
+  // Stable counting sort of the emissions by tile: within a tile, emission order is depth order.
+  const index_t tiles = grid.count();
+  out.tile_offsets.assign(std::size_t(tiles) + 1, 0);
+  for (std::int64_t e = 0; e < total; ++e) ++out.tile_offsets[out.isect_tile[e] + 1];
+  for (index_t t = 0; t < tiles; ++t) out.tile_offsets[t + 1] += out.tile_offsets[t];
+  out.max_tile_entries = 0;
+  for (index_t t = 0; t < tiles; ++t)
+    out.max_tile_entries = std::max(out.max_tile_entries, out.tile_offsets[t + 1] - out.tile_offsets[t]);
+  out.tile_entries.resize(std::size_t(total));
+  out.tile_cursor.assign(std::size_t(tiles), 0);
+  for (std::int64_t e = 0; e < total; ++e) {
+    const std::int32_t t = out.isect_tile[e];
+    out.tile_entries[out.tile_offsets[t] + out.tile_cursor[t]++] = std::int32_t(e);
+  }
+}
+
+}  // namespace raster
+}  // namespace v0
+}  // namespace flexsplat
