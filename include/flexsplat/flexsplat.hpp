@@ -21,3 +21,4 @@
 #include "flexsplat/raster/rasterize.hpp"
 #include "flexsplat/raster/render.hpp"
 #include "flexsplat/raster/reference.hpp"
+#include "flexsplat/export/render_set.hpp"
