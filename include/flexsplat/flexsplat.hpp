@@ -15,3 +15,6 @@
 #include "flexsplat/nn/attention.hpp"
 #include "flexsplat/nn/conv.hpp"
 #include "flexsplat/nn/interpolate.hpp"
+#include "flexsplat/decoder/constants.hpp"
+#include "flexsplat/decoder/deform_core.hpp"
+#include "flexsplat/decoder/reference.hpp"
