@@ -18,3 +18,7 @@
 #include "flexsplat/decoder/constants.hpp"
 #include "flexsplat/decoder/deform_core.hpp"
 #include "flexsplat/decoder/reference.hpp"
+#include "flexsplat/decoder/splat_head.hpp"
+#include "flexsplat/decoder/gaussians.hpp"
+#include "flexsplat/decoder/init.hpp"
+#include "flexsplat/decoder/deformable_attention.hpp"
