@@ -22,3 +22,5 @@
 #include "flexsplat/decoder/gaussians.hpp"
 #include "flexsplat/decoder/init.hpp"
 #include "flexsplat/decoder/deformable_attention.hpp"
+#include "flexsplat/decoder/self_attention.hpp"
+#include "flexsplat/decoder/decoder.hpp"
