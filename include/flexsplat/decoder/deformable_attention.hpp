@@ -1,0 +1,287 @@
+#pragma once
+// Multi-view deformable cross-attention (FlexSplat eq. 3). Each query's current centre is projected into every view;
+// around that reference point a linear layer of the query places `points` sampling offsets per head and view (in
+// feature-map pixels, as Deformable DETR), another gives attention logits with one softmax per head over all views x
+// points. Views that see the centre behind the camera are masked before the softmax; a query no view sees gets a zero
+// update. Value and output projections as in Deformable DETR.
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <random>
+#include <vector>
+
+#include "flexsplat/decoder/deform_core.hpp"
+#include "flexsplat/decoder/gaussians.hpp"
+#include "flexsplat/decoder/init.hpp"
+#include "flexsplat/nn/linear.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace decoder {
+
+struct MVDeformConfig {
+  index_t dim = 256;        // query width C
+  index_t value_dim = 128;  // fused feature channels C_f
+  index_t heads = 8;
+  index_t points = 4;
+  index_t max_views = 4;  // parameter slots; view v of a run uses slot v
+};
+
+// Offsets of every tensor in the module's flat parameter block. Offset/logit rows are ordered (view, head, point[, xy])
+// so a run with V views uses the first rows only.
+struct MVDeformParamLayout {
+  index_t value_w, value_b, offset_w, offset_b, logit_w, logit_b, out_w, out_b, size;
+  explicit MVDeformParamLayout(const MVDeformConfig& c) {
+    const index_t slots = c.max_views * c.heads * c.points;
+    index_t at = 0;
+    auto take = [&](index_t n) { const index_t o = at; at += n; return o; };
+    value_w = take(c.dim * c.value_dim);
+    value_b = take(c.dim);
+    offset_w = take(2 * slots * c.dim);
+    offset_b = take(2 * slots);
+    logit_w = take(slots * c.dim);
+    logit_b = take(slots);
+    out_w = take(c.dim * c.dim);
+    out_b = take(c.dim);
+    size = at;
+  }
+};
+
+// Deformable DETR's initialisation: zero offset weights with biases on a ring of directions per head (growing with
+// the point index), zero logit weights and biases, Xavier-uniform value/output projections with zero biases.
+template <class T>
+void mv_deform_init(T* params, const MVDeformConfig& c, std::mt19937_64& rng) {
+  const MVDeformParamLayout L(c);
+  std::fill(params, params + L.size, T(0));
+  xavier_uniform(params + L.value_w, c.dim, c.value_dim, rng);
+  xavier_uniform(params + L.out_w, c.dim, c.dim, rng);
+  for (index_t v = 0; v < c.max_views; ++v)
+    for (index_t h = 0; h < c.heads; ++h) {
+      const double angle = 2.0 * 3.14159265358979323846 * static_cast<double>(h) / static_cast<double>(c.heads);
+      const double cx = std::cos(angle), cy = std::sin(angle), m = std::max(std::abs(cx), std::abs(cy));
+      for (index_t p = 0; p < c.points; ++p) {
+        const index_t row = ((v * c.heads + h) * c.points + p) * 2;
+        params[L.offset_b + row] = static_cast<T>(cx / m * static_cast<double>(p + 1));
+        params[L.offset_b + row + 1] = static_cast<T>(cy / m * static_cast<double>(p + 1));
+      }
+    }
+}
+
+// Fused per-view features, NCHW [V, value_dim, feat_h, feat_w].
+template <class T>
+struct FeatureMaps {
+  index_t views = 0, channels = 0, h = 0, w = 0;
+  const T* data = nullptr;
+};
+
+// Everything backward needs; buffers are sized by mv_deform_forward and reused across calls.
+template <class T>
+struct MVDeformCache {
+  index_t n = 0, views = 0;
+  std::vector<T> features_nhwc;  // [V*h*w, value_dim]
+  std::vector<T> value;          // [V*h*w, dim] = [1, S, heads, head_dim]
+  std::vector<T> offsets;        // [N, V*heads*points*2] (linear output, view-major)
+  std::vector<T> logits;         // [N, V*heads*points]
+  std::vector<T> reference;      // [N, V, 2] normalised reference points
+  std::vector<unsigned char> visible;  // [N, V]
+  std::vector<unsigned char> any_visible;  // [N]
+  std::vector<T> locations;      // [N, heads, V, points, 2]
+  std::vector<T> weights;        // [N, heads, V, points]
+  std::vector<T> sampled;        // [N, dim]
+  DeformCoreLayout core;
+};
+
+template <class T>
+void validate_features(const FeatureMaps<T>& f, const MVDeformConfig& c, index_t views) {
+  require(f.data != nullptr, "deformable attention: null feature maps");
+  require(f.h >= 1 && f.w >= 1, "deformable attention: feature maps are ", f.h, "x", f.w, " (zero-size)");
+  require(f.views == views, "deformable attention: ", f.views, " feature maps for ", views, " views");
+  require(f.channels == c.value_dim, "deformable attention: feature maps have ", f.channels, " channels, the module expects ",
+          c.value_dim);
+  require(views >= 1 && views <= c.max_views, "deformable attention: ", views, " views, the module has ", c.max_views,
+          " view slots");
+  require(c.dim % c.heads == 0, "deformable attention: dim ", c.dim, " is not divisible by ", c.heads, " heads");
+}
+
+// Projection of a world point into a view: normalised (x, y) with 0 and 1 at the image edges; false when behind.
+template <class T>
+bool project_normalised(const T* K, const T* E, const T* X, index_t image_w, index_t image_h, T* xy) {
+  const T c0 = E[0] * X[0] + E[1] * X[1] + E[2] * X[2] + E[3];
+  const T c1 = E[4] * X[0] + E[5] * X[1] + E[6] * X[2] + E[7];
+  const T z = E[8] * X[0] + E[9] * X[1] + E[10] * X[2] + E[11];
+  if (!(z > static_cast<T>(near_depth))) return false;
+  xy[0] = (K[0] * c0 / z + K[2]) / static_cast<T>(image_w);
+  xy[1] = (K[4] * c1 / z + K[5]) / static_cast<T>(image_h);
+  return std::isfinite(xy[0]) && std::isfinite(xy[1]);
+}
+
+// out [N, dim] = the attention update for queries x [N, dim] at centres [N, 3].
+template <class T>
+void mv_deform_forward(T* out, MVDeformCache<T>& cache, const T* x, const T* centres, index_t n, const T* params,
+                       const MVDeformConfig& c, const FeatureMaps<T>& f, const ViewGeometry<T>& g) {
+  validate_features(f, c, g.views);
+  const MVDeformParamLayout P(c);
+  const index_t V = g.views, H = c.heads, Pn = c.points, hw = f.h * f.w, S = V * hw;
+  const index_t slots = V * H * Pn;
+  cache.n = n;
+  cache.views = V;
+  // value projection over every pixel of every view
+  cache.features_nhwc.resize(static_cast<std::size_t>(S * c.value_dim));
+  parallel_for(V * c.value_dim, [&](index_t r0, index_t r1, int) {
+    for (index_t r = r0; r < r1; ++r) {
+      const index_t v = r / c.value_dim, ch = r % c.value_dim;
+      const T* src = f.data + r * hw;
+      T* dst = cache.features_nhwc.data() + v * hw * c.value_dim + ch;
+      for (index_t p = 0; p < hw; ++p) dst[p * c.value_dim] = src[p];
+    }
+  });
+  cache.value.resize(static_cast<std::size_t>(S * c.dim));
+  nn::linear_forward(cache.value.data(), cache.features_nhwc.data(), params + P.value_w, params + P.value_b, S,
+                     c.value_dim, c.dim);
+  // offsets and logits for the views in use
+  cache.offsets.resize(static_cast<std::size_t>(n * 2 * slots));
+  cache.logits.resize(static_cast<std::size_t>(n * slots));
+  nn::linear_forward(cache.offsets.data(), x, params + P.offset_w, params + P.offset_b, n, c.dim, 2 * slots);
+  nn::linear_forward(cache.logits.data(), x, params + P.logit_w, params + P.logit_b, n, c.dim, slots);
+  cache.reference.assign(static_cast<std::size_t>(n * V * 2), T(0));
+  cache.visible.assign(static_cast<std::size_t>(n * V), 0);
+  cache.any_visible.assign(static_cast<std::size_t>(n), 0);
+  cache.locations.assign(static_cast<std::size_t>(n * slots * 2), T(0));
+  cache.weights.assign(static_cast<std::size_t>(n * slots), T(0));
+  parallel_for(n, [&](index_t q0, index_t q1, int) {
+    for (index_t q = q0; q < q1; ++q) {
+      for (index_t v = 0; v < V; ++v) {
+        T* ref = &cache.reference[(q * V + v) * 2];
+        const bool vis = project_normalised(g.K + 9 * v, g.world_to_camera + 12 * v, centres + 3 * q, g.image_w, g.image_h, ref);
+        cache.visible[q * V + v] = vis;
+        if (!vis) ref[0] = ref[1] = T(0);
+        cache.any_visible[q] |= vis;
+      }
+      for (index_t h = 0; h < H; ++h) {
+        T max_logit = -std::numeric_limits<T>::infinity();
+        for (index_t v = 0; v < V; ++v)
+          if (cache.visible[q * V + v])
+            for (index_t p = 0; p < Pn; ++p) max_logit = std::max(max_logit, cache.logits[q * slots + (v * H + h) * Pn + p]);
+        T sum = 0;
+        for (index_t v = 0; v < V; ++v)
+          for (index_t p = 0; p < Pn; ++p) {
+            const index_t core = ((q * H + h) * V + v) * Pn + p;  // [N, heads, V, points]
+            const index_t lin = (v * H + h) * Pn + p;             // [V, heads, points]
+            const T* ref = &cache.reference[(q * V + v) * 2];
+            cache.locations[2 * core] = ref[0] + cache.offsets[q * 2 * slots + 2 * lin] / static_cast<T>(f.w);
+            cache.locations[2 * core + 1] = ref[1] + cache.offsets[q * 2 * slots + 2 * lin + 1] / static_cast<T>(f.h);
+            if (!cache.visible[q * V + v]) continue;
+            const T e = std::exp(cache.logits[q * slots + lin] - max_logit);
+            cache.weights[core] = e;
+            sum += e;
+          }
+        if (sum > T(0))
+          for (index_t s = 0; s < V * Pn; ++s) cache.weights[(q * H + h) * V * Pn + s] /= sum;
+      }
+    }
+  });
+  std::vector<index_t> view_hw;
+  for (index_t v = 0; v < V; ++v) {
+    view_hw.push_back(f.h);
+    view_hw.push_back(f.w);
+  }
+  cache.core = make_deform_core_layout(1, n, H, c.dim / H, Pn, view_hw);
+  cache.sampled.resize(static_cast<std::size_t>(n * c.dim));
+  deform_core_forward(cache.sampled.data(), cache.value.data(), cache.locations.data(), cache.weights.data(), cache.core);
+  nn::linear_forward(out, cache.sampled.data(), params + P.out_w, params + P.out_b, n, c.dim, c.dim);
+  for (index_t q = 0; q < n; ++q)
+    if (!cache.any_visible[q]) std::fill(out + q * c.dim, out + (q + 1) * c.dim, T(0));
+}
+
+// Adds into d_x [N, dim], d_centres [N, 3], d_params, d_features (NCHW like the input) and the camera gradients
+// (any may be null except d_params).
+template <class T>
+void mv_deform_backward(T* d_x, T* d_centres, T* d_params, T* d_features, const ViewGeometryGrad<T>& d_geometry,
+                        const T* d_out, const MVDeformCache<T>& cache, const T* x, const T* centres, const T* params,
+                        const MVDeformConfig& c, const FeatureMaps<T>& f, const ViewGeometry<T>& g) {
+  const MVDeformParamLayout P(c);
+  const index_t n = cache.n, V = cache.views, H = c.heads, Pn = c.points, hw = f.h * f.w, S = V * hw;
+  const index_t slots = V * H * Pn;
+  std::vector<T> g_out(d_out, d_out + n * c.dim);
+  for (index_t q = 0; q < n; ++q)
+    if (!cache.any_visible[q]) std::fill(g_out.begin() + q * c.dim, g_out.begin() + (q + 1) * c.dim, T(0));
+  std::vector<T> d_sampled(static_cast<std::size_t>(n * c.dim), T(0));
+  nn::linear_backward(d_sampled.data(), d_params + P.out_w, d_params + P.out_b, g_out.data(), cache.sampled.data(),
+                      params + P.out_w, n, c.dim, c.dim);
+  std::vector<T> d_value(static_cast<std::size_t>(S * c.dim), T(0)), d_loc(cache.locations.size(), T(0)),
+      d_w(cache.weights.size(), T(0));
+  deform_core_backward(d_value.data(), d_loc.data(), d_w.data(), d_sampled.data(), cache.value.data(),
+                       cache.locations.data(), cache.weights.data(), cache.core);
+  // softmax, offsets and reference points
+  std::vector<T> d_logits(static_cast<std::size_t>(n * slots), T(0)), d_offsets(static_cast<std::size_t>(n * 2 * slots), T(0));
+  std::vector<T> d_ref(static_cast<std::size_t>(n * V * 2), T(0));
+  parallel_for(n, [&](index_t q0, index_t q1, int) {
+    for (index_t q = q0; q < q1; ++q)
+      for (index_t h = 0; h < H; ++h) {
+        const index_t base = (q * H + h) * V * Pn;
+        T dot = 0;
+        for (index_t s = 0; s < V * Pn; ++s) dot += cache.weights[base + s] * d_w[base + s];
+        for (index_t v = 0; v < V; ++v)
+          for (index_t p = 0; p < Pn; ++p) {
+            const index_t core = base + v * Pn + p, lin = (v * H + h) * Pn + p;
+            d_logits[q * slots + lin] = cache.weights[core] * (d_w[core] - dot);
+            d_offsets[q * 2 * slots + 2 * lin] = d_loc[2 * core] / static_cast<T>(f.w);
+            d_offsets[q * 2 * slots + 2 * lin + 1] = d_loc[2 * core + 1] / static_cast<T>(f.h);
+            if (cache.visible[q * V + v]) {
+              d_ref[(q * V + v) * 2] += d_loc[2 * core];
+              d_ref[(q * V + v) * 2 + 1] += d_loc[2 * core + 1];
+            }
+          }
+      }
+  });
+  nn::linear_backward(d_x, d_params + P.offset_w, d_params + P.offset_b, d_offsets.data(), x, params + P.offset_w, n,
+                      c.dim, 2 * slots);
+  nn::linear_backward(d_x, d_params + P.logit_w, d_params + P.logit_b, d_logits.data(), x, params + P.logit_w, n, c.dim,
+                      slots);
+  // projection: serial so the shared camera gradients are summed in a fixed order
+  for (index_t q = 0; q < n; ++q)
+    for (index_t v = 0; v < V; ++v) {
+      if (!cache.visible[q * V + v]) continue;
+      const T* K = g.K + 9 * v;
+      const T* E = g.world_to_camera + 12 * v;
+      const T* X = centres + 3 * q;
+      const T cam[3] = {E[0] * X[0] + E[1] * X[1] + E[2] * X[2] + E[3], E[4] * X[0] + E[5] * X[1] + E[6] * X[2] + E[7],
+                        E[8] * X[0] + E[9] * X[1] + E[10] * X[2] + E[11]};
+      const T gx = d_ref[(q * V + v) * 2] / static_cast<T>(g.image_w), gy = d_ref[(q * V + v) * 2 + 1] / static_cast<T>(g.image_h);
+      const T iz = T(1) / cam[2];
+      if (d_geometry.K) {
+        T* dK = d_geometry.K + 9 * v;
+        dK[0] += gx * cam[0] * iz;
+        dK[2] += gx;
+        dK[4] += gy * cam[1] * iz;
+        dK[5] += gy;
+      }
+      const T d_cam[3] = {gx * K[0] * iz, gy * K[4] * iz, -(gx * K[0] * cam[0] + gy * K[4] * cam[1]) * iz * iz};
+      if (d_geometry.world_to_camera) {
+        T* dE = d_geometry.world_to_camera + 12 * v;
+        for (int r = 0; r < 3; ++r) {
+          for (int j = 0; j < 3; ++j) dE[4 * r + j] += d_cam[r] * X[j];
+          dE[4 * r + 3] += d_cam[r];
+        }
+      }
+      if (d_centres)
+        for (int j = 0; j < 3; ++j) d_centres[3 * q + j] += E[j] * d_cam[0] + E[4 + j] * d_cam[1] + E[8 + j] * d_cam[2];
+    }
+  // value projection back to NCHW features
+  std::vector<T> d_nhwc(d_features ? static_cast<std::size_t>(S * c.value_dim) : 0, T(0));
+  nn::linear_backward(d_features ? d_nhwc.data() : static_cast<T*>(nullptr), d_params + P.value_w, d_params + P.value_b,
+                      d_value.data(), cache.features_nhwc.data(), params + P.value_w, S, c.value_dim, c.dim);
+  if (d_features)
+    parallel_for(V * c.value_dim, [&](index_t r0, index_t r1, int) {
+      for (index_t r = r0; r < r1; ++r) {
+        const index_t v = r / c.value_dim, ch = r % c.value_dim;
+        const T* src = d_nhwc.data() + v * hw * c.value_dim + ch;
+        T* dst = d_features + r * hw;
+        for (index_t p = 0; p < hw; ++p) dst[p] += src[p * c.value_dim];
+      }
+    });
+}
+
+}  // namespace decoder
+}  // namespace v0
+}  // namespace flexsplat

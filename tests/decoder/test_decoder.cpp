@@ -1,0 +1,92 @@
+#include <catch2/catch.hpp>
+
+#include <cmath>
+
+#include "decoder_test_util.hpp"
+#include "flexsplat/decoder/decoder.hpp"
+#include "flexsplat/testing/gradcheck.hpp"
+
+using namespace flexsplat;
+
+namespace {
+struct Tiny {
+  decoder::DecoderConfig cfg;
+  TestRig rig;
+  index_t n = 6, fh = 5, fw = 4;
+  std::vector<double> params, features;
+  Tiny(index_t views, bool local) : rig(make_rig(views)) {
+    cfg.dim = 8, cfg.ffn = 12, cfg.heads = 2, cfg.layers = 2, cfg.points = 2, cfg.max_views = 2, cfg.value_dim = 3;
+    cfg.max_queries = 9, cfg.local_attention = local, cfg.window = 4;
+    params.resize(decoder::DecoderParamLayout(cfg).size);
+    decoder::decoder_init(params.data(), cfg, 7);
+    auto noise = random_normal(params.size(), 61, 0.1);
+    for (std::size_t i = 0; i < params.size(); ++i) params[i] += noise[i];
+    features = random_normal(views * cfg.value_dim * fh * fw, 62);
+  }
+  decoder::FeatureMaps<double> maps() const { return {rig.views, cfg.value_dim, fh, fw, features.data()}; }
+};
+
+index_t set_size(index_t n) { return n * 23; }
+void flatten(const decoder::GaussianSet<double>& g, double* p) {
+  for (auto* v : {&g.means, &g.quats, &g.scales, &g.opacities, &g.sh}) p = std::copy(v->begin(), v->end(), p);
+}
+}  // namespace
+
+TEST_CASE("decoder returns every layer's Gaussians, finite", "[decoder][decoder]") {
+  Tiny t(2, false);
+  decoder::DecoderState<double> st;
+  decoder::decoder_forward(st, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry());
+  REQUIRE(st.gaussians.size() == 3);
+  for (const auto& g : st.gaussians) {
+    REQUIRE(g.count == t.n);
+    for (double v : g.means) REQUIRE(std::isfinite(v));
+    for (double v : g.opacities) REQUIRE((v > 0 && v < 1));
+  }
+  CHECK(st.scene_centre.from_axes);
+}
+
+TEST_CASE("decoder passes the float64 gradient check end to end", "[decoder][decoder]") {
+  for (bool local : {false, true}) {
+    Tiny t(2, local);
+    decoder::DecoderState<double> st;
+    std::vector<double> dp(t.params.size()), df(t.features.size()), dK(t.rig.K.size()), dE(t.rig.E.size()),
+        dD(t.rig.depth.size());
+    const index_t per = set_size(t.n), sets = t.cfg.layers + 1;
+    auto result = testing::check_gradients(
+        {{"params", t.params, dp}, {"features", t.features, df}, {"K", t.rig.K, dK}, {"world_to_camera", t.rig.E, dE},
+         {"depth", t.rig.depth, dD}},
+        per * sets,
+        [&](std::span<double> o) {
+          decoder::decoder_forward(st, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry());
+          for (index_t s = 0; s < sets; ++s) flatten(st.gaussians[s], o.data() + s * per);
+        },
+        [&](std::span<const double> g) {
+          std::vector<decoder::GaussianSetGrad<double>> dg;
+          for (index_t s = 0; s < sets; ++s) {
+            const double* p = g.data() + s * per;
+            dg.push_back({p, p + 3 * t.n, p + 7 * t.n, p + 10 * t.n, p + 11 * t.n});
+          }
+          decoder::decoder_backward(dp.data(), df.data(), {dK.data(), dE.data(), dD.data()}, dg, st, t.params.data(), t.cfg,
+                                    t.maps(), t.rig.geometry());
+        },
+        {1e-6, 1e-7, 1e-5, 400});
+    INFO((local ? "local: " : "full: ") << result.summary());
+    CHECK(result.ok());
+  }
+}
+
+TEST_CASE("decoder handles one view, identical cameras and rejects bad budgets", "[decoder][decoder]") {
+  Tiny one(1, false);
+  decoder::DecoderState<double> st;
+  decoder::decoder_forward(st, one.n, one.params.data(), one.cfg, one.maps(), one.rig.geometry());
+  CHECK_FALSE(st.scene_centre.from_axes);
+  for (const auto& g : st.gaussians)
+    for (double v : g.means) REQUIRE(std::isfinite(v));
+  Tiny same(2, true);
+  std::copy(same.rig.E.begin(), same.rig.E.begin() + 12, same.rig.E.begin() + 12);
+  decoder::decoder_forward(st, same.n, same.params.data(), same.cfg, same.maps(), same.rig.geometry());
+  for (const auto& g : st.gaussians)
+    for (double v : g.means) REQUIRE(std::isfinite(v));
+  CHECK_THROWS_WITH(decoder::decoder_forward(st, 10, same.params.data(), same.cfg, same.maps(), same.rig.geometry()),
+                    Catch::Contains("budget 10 is outside [1, 9]"));
+}
