@@ -1,5 +1,6 @@
 #pragma once
-// Exceptions that name the offending file, tensor, shape or value.
+// Exceptions that name the offending file, tensor, shape or value. require() evaluates its message parts eagerly:
+// in hot paths write `if (!cond) fail(...)` so nothing is formatted when the check passes.
 #include <sstream>
 #include <stdexcept>
 #include <string>

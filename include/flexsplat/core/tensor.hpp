@@ -34,8 +34,8 @@ template <std::size_t Rank>
 index_t checked_numel(const Shape<Rank>& shape) {
   index_t n = 1;
   for (index_t extent : shape) {
-    require(extent >= 0, "tensor shape ", shape_string(shape), " has a negative extent");
-    require(extent == 0 || n <= std::numeric_limits<index_t>::max() / extent, "tensor shape ",
+    if (!(extent >= 0)) fail("tensor shape ", shape_string(shape), " has a negative extent");
+    if (!(extent == 0 || n <= std::numeric_limits<index_t>::max() / extent)) fail("tensor shape ",
             shape_string(shape), " overflows the element count");
     n *= extent;
   }
@@ -100,7 +100,7 @@ public:
 
   // Raw span over the elements; only for contiguous views (hot loops run on these).
   std::span<T> span() const {
-    require(is_contiguous(), "tensor view ", shape_string(shape_), " is not contiguous");
+    if (!(is_contiguous())) fail("tensor view ", shape_string(shape_), " is not contiguous");
     return {data_, static_cast<std::size_t>(size())};
   }
 
@@ -120,7 +120,7 @@ public:
 
   // Contiguous range [begin, end) of the first axis.
   TensorView slice(index_t begin, index_t end) const {
-    require(0 <= begin && begin <= end && end <= shape_[0], "slice [", begin, ", ", end, ") out of range for shape ",
+    if (!(0 <= begin && begin <= end && end <= shape_[0])) fail("slice [", begin, ", ", end, ") out of range for shape ",
             shape_string(shape_));
     Shape<Rank> s = shape_;
     s[0] = end - begin;
@@ -129,8 +129,8 @@ public:
 
   template <std::size_t NewRank>
   TensorView<T, NewRank> reshape(const Shape<NewRank>& new_shape) const {
-    require(is_contiguous(), "reshape of a non-contiguous view ", shape_string(shape_));
-    require(checked_numel(new_shape) == size(), "cannot reshape ", shape_string(shape_), " to ",
+    if (!(is_contiguous())) fail("reshape of a non-contiguous view ", shape_string(shape_));
+    if (!(checked_numel(new_shape) == size())) fail("cannot reshape ", shape_string(shape_), " to ",
             shape_string(new_shape));
     return TensorView<T, NewRank>(data_, new_shape);
   }
