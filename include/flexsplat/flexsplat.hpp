@@ -24,3 +24,5 @@
 #include "flexsplat/decoder/deformable_attention.hpp"
 #include "flexsplat/decoder/self_attention.hpp"
 #include "flexsplat/decoder/decoder.hpp"
+#include "flexsplat/decoder/unet.hpp"
+#include "flexsplat/decoder/fusion.hpp"
