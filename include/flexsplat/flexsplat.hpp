@@ -32,6 +32,8 @@
 #include "flexsplat/decoder/deformable_attention.hpp"
 #include "flexsplat/decoder/self_attention.hpp"
 #include "flexsplat/decoder/decoder.hpp"
+#include "flexsplat/decoder/unet.hpp"
+#include "flexsplat/decoder/fusion.hpp"
 #include "flexsplat/raster/constants.hpp"
 #include "flexsplat/raster/sh.hpp"
 #include "flexsplat/raster/project.hpp"

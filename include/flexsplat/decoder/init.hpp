@@ -93,6 +93,14 @@ void xavier_uniform(T* w, index_t fan_out, index_t fan_in, std::mt19937_64& rng,
   for (index_t i = 0; i < fan_out * fan_in; ++i) w[i] = static_cast<T>(u(rng));
 }
 
+// Convolutions: count weights with the given fans (channels x kernel area).
+template <class T>
+void xavier_uniform_fans(T* w, index_t count, index_t fan_out, index_t fan_in, std::mt19937_64& rng) {
+  const double a = std::sqrt(6.0 / static_cast<double>(fan_in + fan_out));
+  std::uniform_real_distribution<double> u(-a, a);
+  for (index_t i = 0; i < count; ++i) w[i] = static_cast<T>(u(rng));
+}
+
 template <class T>
 void normal_init(T* w, index_t n, std::mt19937_64& rng, double stddev) {
   std::normal_distribution<double> d(0.0, stddev);

@@ -1,0 +1,39 @@
+#include <catch2/catch.hpp>
+
+#include "decoder_test_util.hpp"
+#include "flexsplat/decoder/fusion.hpp"
+#include "flexsplat/testing/gradcheck.hpp"
+
+using namespace flexsplat;
+
+TEST_CASE("fusion and RGB head pass the float64 gradient check", "[decoder][fusion]") {
+  decoder::FusionConfig c{3, 2, 4};
+  const index_t V = 2, dh = 3, dw = 4, h = 6, w = 7;
+  std::mt19937_64 rng(5);
+  std::vector<double> params(decoder::FusionParamLayout(c).size);
+  decoder::fusion_init(params.data(), c, rng);
+  auto depth = random_normal(V * 3 * dh * dw, 81), unet = random_normal(V * 2 * h * w, 82);
+  decoder::FusionCache<double> cache;
+  std::vector<double> dd(depth.size()), du(unet.size()), dp(params.size());
+  const index_t nf = V * 4 * h * w, nr = V * 3 * h * w;
+  auto result = testing::check_gradients(
+      {{"depth_features", depth, dd}, {"unet", unet, du}, {"params", params, dp}}, nf + nr,
+      [&](std::span<double> o) {
+        decoder::fusion_forward(o.data(), o.data() + nf, cache, depth.data(), dh, dw, unet.data(), V, h, w, params.data(), c);
+      },
+      [&](std::span<const double> g) {
+        decoder::fusion_backward(dd.data(), du.data(), dp.data(), g.data(), g.data() + nf, cache, depth.data(), params.data(), c);
+      },
+      {1e-6, 1e-7, 1e-5, 200});
+  INFO(result.summary());
+  CHECK(result.ok());
+}
+
+TEST_CASE("fusion rejects zero-size feature maps", "[decoder][fusion]") {
+  decoder::FusionConfig c{3, 2, 4};
+  std::vector<double> params(decoder::FusionParamLayout(c).size), buf(64);
+  decoder::FusionCache<double> cache;
+  CHECK_THROWS_WITH(decoder::fusion_forward(buf.data(), (double*)nullptr, cache, buf.data(), 0, 2, buf.data(), 1, 2, 2,
+                                            params.data(), c),
+                    Catch::Contains("zero-size"));
+}

@@ -1,0 +1,38 @@
+#include <catch2/catch.hpp>
+
+#include "decoder_test_util.hpp"
+#include "flexsplat/decoder/unet.hpp"
+#include "flexsplat/testing/gradcheck.hpp"
+
+using namespace flexsplat;
+
+TEST_CASE("UNet keeps the input resolution (odd sizes too) and passes the float64 gradient check", "[decoder][unet]") {
+  for (auto [h, w] : {std::pair<index_t, index_t>{8, 8}, {7, 5}}) {
+    decoder::UNetConfig c{3, 2, 2};
+    std::mt19937_64 rng(3);
+    std::vector<double> params(decoder::unet_param_count(c));
+    decoder::unet_init(params.data(), c, rng);
+    auto noise = random_normal(params.size(), 71, 0.05);
+    for (std::size_t i = 0; i < params.size(); ++i) params[i] += noise[i];
+    auto images = random_normal(2 * 3 * h * w, 72);
+    decoder::UNetCache<double> cache;
+    std::vector<double> dimg(images.size()), dp(params.size());
+    auto result = testing::check_gradients(
+        {{"images", images, dimg}, {"params", params, dp}}, 2 * 2 * h * w,
+        [&](std::span<double> o) { decoder::unet_forward(o.data(), cache, images.data(), 2, h, w, params.data(), c); },
+        [&](std::span<const double> g) {
+          decoder::unet_backward(dimg.data(), dp.data(), g.data(), cache, images.data(), params.data(), c);
+        },
+        {1e-6, 1e-7, 1e-5, 200});
+    INFO(h << "x" << w << ": " << result.summary());
+    CHECK(result.ok());
+  }
+}
+
+TEST_CASE("UNet rejects zero-size input", "[decoder][unet]") {
+  decoder::UNetConfig c{3, 2, 1};
+  std::vector<double> params(decoder::unet_param_count(c)), out(16);
+  decoder::UNetCache<double> cache;
+  CHECK_THROWS_WITH(decoder::unet_forward(out.data(), cache, out.data(), 1, 0, 4, params.data(), c),
+                    Catch::Contains("0x4 (zero-size)"));
+}
