@@ -1,12 +1,14 @@
 #pragma once
 // Fixed worker pool with static, deterministic partitioning: chunk k of a range always goes to worker k.
+#include <algorithm>
 #include <condition_variable>
 #include <cstdlib>
 #include <exception>
-#include <functional>
+#include <memory>
 #include <mutex>
 #include <string>
 #include <thread>
+#include <type_traits>
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
@@ -46,58 +48,83 @@ public:
 
   int size() const noexcept { return size_; }
 
+  // Index of the calling thread inside a parallel region (0 for the submitting thread), -1 outside any region.
+  static int current_worker() noexcept { return worker_index(); }
+
   // Runs task(worker) on every worker (the caller is worker 0) and waits; the first exception is rethrown.
-  void run_on_all(const std::function<void(int)>& task) {
-    if (size_ == 1 || inside_pool()) {
+  // From inside a region (any pool) it runs task(current worker) alone on the calling thread: nesting never blocks.
+  template <class Task>
+  void run_on_all(Task&& task) {
+    if (worker_index() >= 0) {
+      task(worker_index());
+      return;
+    }
+    if (size_ == 1) {
+      RegionGuard guard(0);
       task(0);
       return;
     }
     std::lock_guard submit(submit_mutex_);  // one parallel region at a time from outside the pool
+    auto trampoline = [](void* context, int worker) { (*static_cast<std::remove_reference_t<Task>*>(context))(worker); };
     {
       std::lock_guard lock(mutex_);
-      task_ = &task;
+      task_context_ = static_cast<void*>(std::addressof(task));
+      task_fn_ = trampoline;
       pending_ = size_ - 1;
       error_ = nullptr;
       ++generation_;
     }
     wake_.notify_all();
     std::exception_ptr mine;
-    inside_pool() = true;
-    try {
-      task(0);
-    } catch (...) {
-      mine = std::current_exception();
+    {
+      RegionGuard guard(0);
+      try {
+        task(0);
+      } catch (...) {
+        mine = std::current_exception();
+      }
     }
-    inside_pool() = false;
     std::unique_lock lock(mutex_);
     done_.wait(lock, [this] { return pending_ == 0; });
-    task_ = nullptr;
+    task_context_ = nullptr;
+    task_fn_ = nullptr;
     if (mine) std::rethrow_exception(mine);
     if (error_) std::rethrow_exception(error_);
   }
 
 private:
-  static bool& inside_pool() {
-    thread_local bool flag = false;
-    return flag;
+  static int& worker_index() {
+    thread_local int index = -1;
+    return index;
   }
+  struct RegionGuard {
+    explicit RegionGuard(int index) { worker_index() = index; }
+    ~RegionGuard() { worker_index() = -1; }
+    RegionGuard(const RegionGuard&) = delete;
+    RegionGuard& operator=(const RegionGuard&) = delete;
+  };
+
   void worker_loop(int index) {
-    inside_pool() = true;
     std::size_t seen = 0;
     for (;;) {
-      const std::function<void(int)>* task = nullptr;
+      void* context = nullptr;
+      void (*fn)(void*, int) = nullptr;
       {
         std::unique_lock lock(mutex_);
         wake_.wait(lock, [&] { return stop_ || generation_ != seen; });
         if (stop_) return;
         seen = generation_;
-        task = task_;
+        context = task_context_;
+        fn = task_fn_;
       }
       std::exception_ptr err;
-      try {
-        (*task)(index);
-      } catch (...) {
-        err = std::current_exception();
+      {
+        RegionGuard guard(index);
+        try {
+          fn(context, index);
+        } catch (...) {
+          err = std::current_exception();
+        }
       }
       std::lock_guard lock(mutex_);
       if (err && !error_) error_ = err;
@@ -109,7 +136,8 @@ private:
   std::vector<std::thread> workers_;
   std::mutex mutex_, submit_mutex_;
   std::condition_variable wake_, done_;
-  const std::function<void(int)>* task_ = nullptr;
+  void* task_context_ = nullptr;
+  void (*task_fn_)(void*, int) = nullptr;
   std::size_t generation_ = 0;
   int pending_ = 0;
   bool stop_ = false;
@@ -122,9 +150,14 @@ inline ThreadPool& global_pool() {
 }
 
 // Calls body(begin, end, worker) on contiguous chunks of [0, n); chunk boundaries depend only on n and the pool size.
+// Inside another parallel region it runs body(0, n, current worker) serially on the calling thread.
 template <class Body>
 void parallel_for(index_t n, Body&& body, ThreadPool& pool = global_pool()) {
   if (n <= 0) return;
+  if (const int self = ThreadPool::current_worker(); self >= 0) {
+    body(index_t{0}, n, self);
+    return;
+  }
   const int workers = static_cast<int>(std::min<index_t>(pool.size(), n));
   if (workers == 1) {
     body(index_t{0}, n, 0);

@@ -2,7 +2,13 @@
 // The one SIMD layer: xsimd batches for the instruction set this translation unit is compiled for, run-time CPU
 // feature detection (cpuid + OS support), and a switch that forces the scalar path (FLEXSPLAT_SIMD=scalar) so tests
 // can compare both.
+#if defined(__x86_64__) || defined(__i386__)
 #include <cpuid.h>
+#endif
+#if defined(__linux__) && defined(__x86_64__)
+#include <sys/syscall.h>
+#include <unistd.h>
+#endif
 
 #include <cstdint>
 #include <cstdlib>
@@ -23,12 +29,37 @@ using batch = xsimd::batch<T, arch>;
 template <class T>
 inline constexpr std::size_t width = batch<T>::size;
 
+// Horizontal reductions (xsimd 8.1 has hadd but no max reduction).
+template <class T>
+T reduce_add(const batch<T>& x) noexcept { return xsimd::hadd(x); }
+
+template <class T>
+T reduce_max(const batch<T>& x) noexcept {
+  alignas(64) T lanes[batch<T>::size];
+  x.store_aligned(lanes);
+  T m = lanes[0];
+  for (std::size_t i = 1; i < batch<T>::size; ++i) m = lanes[i] > m ? lanes[i] : m;
+  return m;
+}
+
 struct CpuFeatures {
   bool sse2 = false, sse41 = false, avx = false, avx2 = false, fma = false;
   bool avx512f = false, avx512bw = false, avx512vl = false, avx512dq = false, avx512bf16 = false;
-  bool amx_tile = false, amx_bf16 = false;
+  bool amx_tile = false, amx_bf16 = false, amx_int8 = false;
   bool os_avx = false, os_avx512 = false, os_amx = false;  // the OS saves the register state
+  bool amx_permitted = false;  // Linux granted this process the AMX tile data state (arch_prctl)
 };
+
+// Linux enables AMX tile data per process on request (ARCH_REQ_XCOMP_PERM for XFEATURE_XTILEDATA); true if granted.
+inline bool request_amx_permission() {
+#if defined(__linux__) && defined(__x86_64__)
+  constexpr long arch_req_xcomp_perm = 0x1023;
+  constexpr long xfeature_xtiledata = 18;
+  return ::syscall(SYS_arch_prctl, arch_req_xcomp_perm, xfeature_xtiledata) == 0;
+#else
+  return false;
+#endif
+}
 
 inline CpuFeatures detect_cpu_features() {
   CpuFeatures f;
@@ -49,7 +80,9 @@ inline CpuFeatures detect_cpu_features() {
   f.os_avx = (xcr0 & 0x6) == 0x6;
   f.os_avx512 = (xcr0 & 0xe6) == 0xe6;
   f.os_amx = (xcr0 & 0x60000) == 0x60000;
+  unsigned max_leaf7_subleaf = 0;
   if (__get_cpuid_count(7, 0, &a, &b, &c, &d)) {
+    max_leaf7_subleaf = a;
     f.avx2 = b >> 5 & 1;
     f.avx512f = b >> 16 & 1;
     f.avx512dq = b >> 17 & 1;
@@ -57,8 +90,9 @@ inline CpuFeatures detect_cpu_features() {
     f.avx512vl = b >> 31 & 1;
     f.amx_bf16 = d >> 22 & 1;
     f.amx_tile = d >> 24 & 1;
+    f.amx_int8 = d >> 25 & 1;
   }
-  if (__get_cpuid_count(7, 1, &a, &b, &c, &d)) f.avx512bf16 = a >> 5 & 1;
+  if (max_leaf7_subleaf >= 1 && __get_cpuid_count(7, 1, &a, &b, &c, &d)) f.avx512bf16 = a >> 5 & 1;
   f.avx = f.avx && f.os_avx;
   f.avx2 = f.avx2 && f.os_avx;
   f.fma = f.fma && f.os_avx;
@@ -67,6 +101,7 @@ inline CpuFeatures detect_cpu_features() {
   f.avx512vl = f.avx512vl && f.os_avx512;
   f.avx512dq = f.avx512dq && f.os_avx512;
   f.avx512bf16 = f.avx512bf16 && f.os_avx512;
+  f.amx_permitted = f.amx_tile && f.os_amx && request_amx_permission();
 #endif
   return f;
 }
@@ -79,7 +114,9 @@ inline const CpuFeatures& cpu_features() {
 inline std::string describe(const CpuFeatures& f) {
   std::string s;
   auto add = [&](bool on, const char* name) {
-    if (on) s += (s.empty() ? "" : " ") + std::string(name);
+    if (!on) return;
+    if (!s.empty()) s += ' ';
+    s += name;
   };
   add(f.sse2, "sse2");
   add(f.sse41, "sse4.1");
@@ -92,6 +129,8 @@ inline std::string describe(const CpuFeatures& f) {
   add(f.avx512bf16, "avx512bf16");
   add(f.amx_tile && f.os_amx, "amx-tile");
   add(f.amx_bf16 && f.os_amx, "amx-bf16");
+  add(f.amx_int8 && f.os_amx, "amx-int8");
+  if (f.amx_tile && f.os_amx) s += f.amx_permitted ? " (amx permitted)" : " (amx not permitted by the OS)";
   return s.empty() ? "none detected" : s;
 }
 

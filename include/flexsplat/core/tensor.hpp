@@ -104,10 +104,10 @@ public:
     return {data_, static_cast<std::size_t>(size())};
   }
 
-  // Slice along the first axis: a rank-1 lower view.
-  auto operator[](index_t i) const {
+  // Slice along the first axis: a view of rank - 1, or a reference to the element for rank 1.
+  decltype(auto) operator[](index_t i) const {
     if constexpr (Rank == 1) {
-      return data_[i * strides_[0]];
+      return (data_[i * strides_[0]]);
     } else {
       Shape<Rank - 1> s{}, st{};
       for (std::size_t k = 1; k < Rank; ++k) {
@@ -183,8 +183,8 @@ public:
   T& operator()(I... idx) noexcept { return view()(idx...); }
   template <class... I>
   const T& operator()(I... idx) const noexcept { return view()(idx...); }
-  auto operator[](index_t i) noexcept { return view()[i]; }
-  auto operator[](index_t i) const noexcept { return view()[i]; }
+  decltype(auto) operator[](index_t i) noexcept { return view()[i]; }
+  decltype(auto) operator[](index_t i) const noexcept { return view()[i]; }
 
   void fill(T value) noexcept { std::fill(storage_.begin(), storage_.end(), value); }
   void resize(const Shape<Rank>& shape) {

@@ -1,0 +1,226 @@
+#pragma once
+// PNG/JPEG reading and PNG writing through stb (implementation in Debian's libstb.so). Images are HWC tensors:
+// uint8 or uint16 as stored, or float in [0, 1]. Straight (non-premultiplied) alpha, as PNG stores it.
+#include <algorithm>
+#include <array>
+#include <atomic>
+#include <cerrno>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+#include <string>
+#include <type_traits>
+#include <vector>
+
+#include <unistd.h>
+
+#include <stb/stb_image.h>
+#include <stb/stb_image_write.h>
+
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/core/tensor.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace image {
+
+struct ImageInfo {
+  int width = 0, height = 0;
+  int channels = 0;   // as stored: 1 grey, 2 grey+alpha, 3 RGB, 4 RGBA
+  int bit_depth = 8;  // 16 only for 16-bit PNG
+};
+
+namespace detail {
+
+template <class... Parts>
+[[noreturn]] void image_error(const std::filesystem::path& path, Parts&&... parts) {
+  fail("image file '", path.string(), "': ", std::forward<Parts>(parts)...);
+}
+
+inline std::vector<unsigned char> read_file_bytes(const std::filesystem::path& path) {
+  std::error_code ec;
+  const auto status = std::filesystem::status(path, ec);
+  if (ec || !std::filesystem::exists(status)) image_error(path, "cannot open: no such file");
+  if (!std::filesystem::is_regular_file(status)) image_error(path, "cannot open: not a regular file");
+  std::ifstream in(path, std::ios::binary);
+  if (!in) image_error(path, "cannot open: ", std::strerror(errno));
+  std::vector<unsigned char> bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  if (in.bad()) image_error(path, "read error");
+  if (bytes.empty()) image_error(path, "file is empty");
+  if (bytes.size() > static_cast<std::size_t>(std::numeric_limits<int>::max()))
+    image_error(path, "file of ", bytes.size(), " bytes is too large to decode");
+  return bytes;
+}
+
+inline ImageInfo probe_bytes(const std::filesystem::path& path, const std::vector<unsigned char>& bytes) {
+  ImageInfo info;
+  const int len = static_cast<int>(bytes.size());
+  if (!stbi_info_from_memory(bytes.data(), len, &info.width, &info.height, &info.channels))
+    image_error(path, "not a readable PNG/JPEG image (", stbi_failure_reason(), ")");
+  info.bit_depth = stbi_is_16_bit_from_memory(bytes.data(), len) ? 16 : 8;
+  return info;
+}
+
+inline void check_channels(const std::filesystem::path& path, int channels) {
+  if (channels < 0 || channels > 4) image_error(path, "requested ", channels, " channels; use 0 (as stored) to 4");
+}
+
+// Decodes at the stored bit depth S (uint8 or uint16) with `channels` (0 = as stored) into an HWC tensor.
+template <class S>
+Tensor<S, 3> decode(const std::filesystem::path& path, const std::vector<unsigned char>& bytes, int channels) {
+  check_channels(path, channels);
+  int w = 0, h = 0, stored = 0;
+  S* pixels = nullptr;
+  if constexpr (std::is_same_v<S, std::uint8_t>)
+    pixels = stbi_load_from_memory(bytes.data(), static_cast<int>(bytes.size()), &w, &h, &stored, channels);
+  else
+    pixels = stbi_load_16_from_memory(bytes.data(), static_cast<int>(bytes.size()), &w, &h, &stored, channels);
+  if (!pixels) image_error(path, "cannot decode (", stbi_failure_reason(), ")");
+  const int c = channels ? channels : stored;
+  Tensor<S, 3> out(Shape<3>{h, w, c});
+  std::copy(pixels, pixels + out.size(), out.data());
+  stbi_image_free(pixels);
+  return out;
+}
+
+inline std::filesystem::path temp_sibling(const std::filesystem::path& path) {
+  static std::atomic<unsigned> counter{0};
+  return path.string() + ".tmp" + std::to_string(::getpid()) + "_" + std::to_string(counter.fetch_add(1));
+}
+
+}  // namespace detail
+
+// Size, stored channels and bit depth without decoding the pixels.
+inline ImageInfo probe(const std::filesystem::path& path) {
+  return detail::probe_bytes(path, detail::read_file_bytes(path));
+}
+
+// 8-bit HWC (16-bit files are reduced to their high byte). channels 0 keeps the stored count; stb expands or drops
+// channels otherwise (grey -> RGB replicates, a missing alpha becomes 255).
+inline Tensor<std::uint8_t, 3> read_u8(const std::filesystem::path& path, int channels = 0) {
+  return detail::decode<std::uint8_t>(path, detail::read_file_bytes(path), channels);
+}
+
+// 16-bit HWC: 16-bit PNG values as stored (e.g. depth maps); 8-bit files are scaled by 257 (255 -> 65535).
+inline Tensor<std::uint16_t, 3> read_u16(const std::filesystem::path& path, int channels = 0) {
+  return detail::decode<std::uint16_t>(path, detail::read_file_bytes(path), channels);
+}
+
+// Float HWC in [0, 1] at the file's own precision: 8-bit values / 255, 16-bit values / 65535.
+template <class T = float>
+Tensor<T, 3> read_float(const std::filesystem::path& path, int channels = 0) {
+  static_assert(std::is_floating_point_v<T>, "read_float needs a floating type");
+  const auto bytes = detail::read_file_bytes(path);
+  const ImageInfo info = detail::probe_bytes(path, bytes);
+  Tensor<T, 3> out;
+  auto convert = [&](const auto& stored, T scale) {
+    out = Tensor<T, 3>(stored.shape());
+    const auto* src = stored.data();
+    T* dst = out.data();
+    for (index_t i = 0; i < out.size(); ++i) dst[i] = static_cast<T>(src[i]) / scale;
+  };
+  if (info.bit_depth == 16) convert(detail::decode<std::uint16_t>(path, bytes, channels), T(65535));
+  else convert(detail::decode<std::uint8_t>(path, bytes, channels), T(255));
+  return out;
+}
+
+// out = rgb * alpha + background * (1 - alpha) for an HWC RGBA (or grey+alpha, expanded) float image.
+template <class T>
+void composite_over(TensorView<const T, 3> rgba, const std::array<T, 3>& background, TensorView<T, 3> rgb) {
+  require(rgba.shape(2) == 4, "composite_over needs 4 channels (RGBA), got shape ", shape_string(rgba.shape()));
+  require(rgb.shape() == Shape<3>{rgba.shape(0), rgba.shape(1), 3}, "composite_over output has shape ",
+          shape_string(rgb.shape()), ", expected [", rgba.shape(0), ", ", rgba.shape(1), ", 3]");
+  for (index_t y = 0; y < rgba.shape(0); ++y)
+    for (index_t x = 0; x < rgba.shape(1); ++x) {
+      const T a = rgba(y, x, 3);
+      for (index_t c = 0; c < 3; ++c) rgb(y, x, c) = rgba(y, x, c) * a + background[c] * (T(1) - a);
+    }
+}
+
+// Reads any PNG/JPEG as float RGB in [0, 1]: alpha (if stored) is composited over background, grey is replicated.
+template <class T = float>
+Tensor<T, 3> read_rgb(const std::filesystem::path& path, const std::array<T, 3>& background = {T(1), T(1), T(1)}) {
+  Tensor<T, 3> rgba = read_float<T>(path, 4);
+  Tensor<T, 3> rgb(Shape<3>{rgba.shape(0), rgba.shape(1), 3});
+  composite_over<T>(rgba.view(), background, rgb.view());
+  return rgb;
+}
+
+// Depth map stored as 16-bit PNG: value * scale, 0 stays 0 (no surface). Returns HW.
+template <class T = float>
+Tensor<T, 2> read_depth_png(const std::filesystem::path& path, T scale) {
+  const auto bytes = detail::read_file_bytes(path);
+  const ImageInfo info = detail::probe_bytes(path, bytes);
+  if (info.bit_depth != 16 || info.channels != 1)
+    detail::image_error(path, "a depth map must be a 16-bit single-channel PNG, found ", info.bit_depth, "-bit with ",
+                        info.channels, " channels");
+  const auto raw = detail::decode<std::uint16_t>(path, bytes, 1);
+  Tensor<T, 2> depth(Shape<2>{raw.shape(0), raw.shape(1)});
+  for (index_t i = 0; i < depth.size(); ++i) depth.data()[i] = static_cast<T>(raw.data()[i]) * scale;
+  return depth;
+}
+
+// 8-bit PNG from an HWC view with 1 to 4 channels, written atomically (temp file + rename).
+inline void write_png(const std::filesystem::path& path, TensorView<const std::uint8_t, 3> image) {
+  const index_t h = image.shape(0), w = image.shape(1), c = image.shape(2);
+  require(c >= 1 && c <= 4, "write_png '", path.string(), "': ", c, " channels, expected 1 to 4");
+  require(h >= 1 && w >= 1 && h <= (1 << 24) && w <= (1 << 24), "write_png '", path.string(), "': bad size ",
+          shape_string(image.shape()));
+  const auto contiguous = copy_of(image);
+  std::vector<unsigned char> encoded;
+  auto sink = [](void* context, void* data, int size) {
+    auto* out = static_cast<std::vector<unsigned char>*>(context);
+    out->insert(out->end(), static_cast<unsigned char*>(data), static_cast<unsigned char*>(data) + size);
+  };
+  if (!stbi_write_png_to_func(sink, &encoded, static_cast<int>(w), static_cast<int>(h), static_cast<int>(c),
+                              contiguous.data(), static_cast<int>(w * c)))
+    fail("write_png '", path.string(), "': encoding failed");
+  const auto tmp = detail::temp_sibling(path);
+  {
+    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
+    require(static_cast<bool>(out), "write_png '", path.string(), "': cannot create '", tmp.string(), "'");
+    out.write(reinterpret_cast<const char*>(encoded.data()), static_cast<std::streamsize>(encoded.size()));
+    out.flush();
+    if (!out) {
+      out.close();
+      std::error_code ignored;
+      std::filesystem::remove(tmp, ignored);
+      fail("write_png '", path.string(), "': writing '", tmp.string(), "' failed");
+    }
+  }
+  std::error_code ec;
+  std::filesystem::rename(tmp, path, ec);
+  if (ec) {
+    std::error_code ignored;
+    std::filesystem::remove(tmp, ignored);
+    fail("write_png '", path.string(), "': cannot rename '", tmp.string(), "': ", ec.message());
+  }
+}
+
+// Float HWC in [0, 1]: clamped and rounded to the nearest 8-bit value; NaN is an error.
+template <class T>
+void write_png(const std::filesystem::path& path, TensorView<const T, 3> image) {
+  static_assert(std::is_floating_point_v<T>, "write_png takes uint8 or floating images");
+  Tensor<std::uint8_t, 3> bytes(image.shape());
+  index_t n = 0;
+  for (index_t y = 0; y < image.shape(0); ++y)
+    for (index_t x = 0; x < image.shape(1); ++x)
+      for (index_t c = 0; c < image.shape(2); ++c, ++n) {
+        const T v = image(y, x, c);
+        require(!std::isnan(v), "write_png '", path.string(), "': NaN at pixel (", x, ", ", y, ") channel ", c);
+        bytes.data()[n] = static_cast<std::uint8_t>(std::lround(std::clamp(v, T(0), T(1)) * T(255)));
+      }
+  write_png(path, TensorView<const std::uint8_t, 3>(bytes.view()));
+}
+
+template <class T>
+void write_png(const std::filesystem::path& path, const Tensor<T, 3>& image) {
+  write_png(path, TensorView<const T, 3>(image.view()));
+}
+
+}  // namespace image
+}  // namespace v0
+}  // namespace flexsplat
