@@ -15,10 +15,8 @@
 //
 // Input buffers are interleaved 8-bit (see resample.hpp): channels 1 = Pillow "L", 2 = "LA", 3 = "RGB",
 // 4 = "RGBA" (straight alpha). The file overload decodes PNG so that the buffer holds what Pillow 9.4's PNG plugin
-// would give (mode chosen from the IHDR colour type and bit depth); other formats go through stb_image, whose JPEG
-// decoder is not libjpeg's (values may differ by a few units).
-#include <stb/stb_image.h>
-
+// would give (mode chosen from the IHDR colour type and bit depth; pixels decoded by image/image_io.hpp, i.e. stb);
+// JPEG goes through stb too, whose decoder is not libjpeg's (values may differ by a few units).
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -33,6 +31,7 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
+#include "flexsplat/image/image_io.hpp"
 #include "flexsplat/image/resample.hpp"
 
 namespace flexsplat {
@@ -264,51 +263,42 @@ inline int pillow_png_channels(const PngHeader& h) {
   return 0;
 }
 
-inline InterleavedImage decode_image_bytes_like_pillow(std::span<const std::uint8_t> bytes, const std::string& name) {
-  require(!bytes.empty(), "image '", name, "': file is empty");
-  require(bytes.size() <= static_cast<std::size_t>(INT32_MAX), "image '", name, "': file too large for stb_image");
-  const int len = static_cast<int>(bytes.size());
-  int w = 0, h = 0, comp = 0;
-  if (!stbi_info_from_memory(bytes.data(), len, &w, &h, &comp))
-    fail("image '", name, "': cannot decode (", stbi_failure_reason(), ")");
+// Decodes through image/image_io.hpp (stb); the PNG header picks the channel layout Pillow's mode implies.
+inline InterleavedImage decode_image_like_pillow(const std::string& path) {
+  const image::ImageInfo info = image::probe(path);  // names the file if it is missing, empty or not an image
+  std::vector<std::uint8_t> head(33, 0);
+  {
+    std::ifstream in(path, std::ios::binary);
+    in.read(reinterpret_cast<char*>(head.data()), static_cast<std::streamsize>(head.size()));
+    head.resize(static_cast<std::size_t>(std::max<std::streamsize>(in.gcount(), 0)));
+  }
   PngHeader png;
-  int channels = comp;
-  const bool is_png = parse_png_header(bytes, png);
+  const bool is_png = parse_png_header(head, png);
+  int channels = info.channels;
   if (is_png) {
     channels = pillow_png_channels(png);
-    require(channels != 0, "image '", name, "': PNG colour type ", png.color_type, " is not valid");
+    require(channels != 0, "image file '", path, "': PNG colour type ", png.color_type, " is not valid");
   }
+  require(channels >= 1 && channels <= 4, "image file '", path, "': unsupported channel count ", channels);
   InterleavedImage out;
+  out.width = info.width;
+  out.height = info.height;
+  out.channels = channels;
+  out.pixels.resize(static_cast<std::size_t>(info.width) * static_cast<std::size_t>(info.height) *
+                    static_cast<std::size_t>(channels));
   if (is_png && png.color_type == 0 && png.bit_depth == 16) {
     // Pillow opens 16-bit grey as mode "I"; convert("RGB") clips each value to [0, 255].
-    std::unique_ptr<stbi_us, void (*)(void*)> data(stbi_load_16_from_memory(bytes.data(), len, &w, &h, &comp, 1),
-                                                   stbi_image_free);
-    if (!data) fail("image '", name, "': cannot decode (", stbi_failure_reason(), ")");
-    out.width = w;
-    out.height = h;
-    out.channels = 1;
-    out.pixels.resize(static_cast<std::size_t>(w) * static_cast<std::size_t>(h));
+    const Tensor<std::uint16_t, 3> grey = image::read_u16(path, 1);
+    require(grey.size() == static_cast<index_t>(out.pixels.size()), "image file '", path, "': decoded size changed");
     for (std::size_t i = 0; i < out.pixels.size(); ++i)
-      out.pixels[i] = static_cast<std::uint8_t>(std::min<stbi_us>(data.get()[i], 255));
+      out.pixels[i] = static_cast<std::uint8_t>(std::min<std::uint16_t>(grey.data()[i], 255));
     return out;
   }
-  require(channels >= 1 && channels <= 4, "image '", name, "': unsupported channel count ", channels);
-  std::unique_ptr<stbi_uc, void (*)(void*)> data(stbi_load_from_memory(bytes.data(), len, &w, &h, &comp, channels),
-                                                 stbi_image_free);
-  if (!data) fail("image '", name, "': cannot decode (", stbi_failure_reason(), ")");
-  out.width = w;
-  out.height = h;
-  out.channels = channels;
-  const std::size_t n = static_cast<std::size_t>(w) * static_cast<std::size_t>(h) * static_cast<std::size_t>(channels);
-  out.pixels.assign(data.get(), data.get() + n);
+  const Tensor<std::uint8_t, 3> decoded = image::read_u8(path, channels);
+  require(decoded.size() == static_cast<index_t>(out.pixels.size()), "image file '", path,
+          "': decoded size changed");
+  std::copy(decoded.data(), decoded.data() + decoded.size(), out.pixels.begin());
   return out;
-}
-
-inline InterleavedImage decode_image_like_pillow(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  require(static_cast<bool>(in), "image '", path, "': cannot open");
-  const std::vector<std::uint8_t> bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  return decode_image_bytes_like_pillow(bytes, path);
 }
 
 // load_and_preprocess_images(image_path_list, mode) on files.

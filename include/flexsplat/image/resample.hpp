@@ -20,6 +20,7 @@
 #include <cstdint>
 #include <optional>
 #include <span>
+#include <type_traits>
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
@@ -341,6 +342,21 @@ struct InterpolateScaleFactors {
 
 namespace detail {
 
+// acc + a * b, fused exactly when the build's instruction set has FMA, so the scalar and SIMD paths (and the
+// compiler's own contraction of either) can never round differently.
+template <class V>
+inline V mul_add(V a, V b, V acc) {
+#if defined(__FMA__)
+  if constexpr (std::is_floating_point_v<V>)
+    return std::fma(a, b, acc);
+  else
+    return xsimd::fma(a, b, acc);
+#else
+  const V product = a * b;
+  return acc + product;
+#endif
+}
+
 template <class T>
 inline void antialias_width_pass(const T* src, index_t planes_rows, index_t in_w, const AntialiasAxisWeights<T>& k,
                                  T* dst, index_t out_w) {
@@ -357,7 +373,7 @@ inline void antialias_width_pass(const T* src, index_t planes_rows, index_t in_w
         const T* p = in_row + k.first[static_cast<std::size_t>(x)];
         const T* w = &k.weights[static_cast<std::size_t>(x * k.max_taps)];
         T acc = p[0] * w[0];
-        for (index_t j = 1; j < count; ++j) acc += p[j] * w[j];
+        for (index_t j = 1; j < count; ++j) acc = mul_add(p[j], w[j], acc);
         out_row[x] = acc;
       }
     }
@@ -384,13 +400,13 @@ inline void antialias_height_pass(const T* src, index_t planes, index_t in_h, in
         constexpr index_t lanes = static_cast<index_t>(B::size);
         for (; x + lanes <= width; x += lanes) {
           B acc = B::load_unaligned(base + x) * B(w[0]);
-          for (index_t j = 1; j < count; ++j) acc += B::load_unaligned(base + j * width + x) * B(w[j]);
+          for (index_t j = 1; j < count; ++j) acc = mul_add(B::load_unaligned(base + j * width + x), B(w[j]), acc);
           acc.store_unaligned(out_row + x);
         }
       }
       for (; x < width; ++x) {
         T acc = base[x] * w[0];
-        for (index_t j = 1; j < count; ++j) acc += base[j * width + x] * w[j];
+        for (index_t j = 1; j < count; ++j) acc = mul_add(base[j * width + x], w[j], acc);
         out_row[x] = acc;
       }
     }

@@ -3,6 +3,7 @@
 // random cotangent, gradient buffers seeded with junk to check that backward accumulates (+=), and index
 // subsampling for large tensors. The seed is printed and can be set with FLEXSPLAT_GRADCHECK_SEED.
 #include <algorithm>
+#include <cerrno>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -55,7 +56,14 @@ struct GradCheckResult {
 };
 
 inline std::uint64_t gradcheck_seed(std::uint64_t fallback = 20261121) {
-  if (const char* env = std::getenv("FLEXSPLAT_GRADCHECK_SEED"); env && *env) return std::strtoull(env, nullptr, 10);
+  if (const char* env = std::getenv("FLEXSPLAT_GRADCHECK_SEED"); env && *env) {
+    char* end = nullptr;
+    errno = 0;
+    const unsigned long long seed = std::strtoull(env, &end, 10);
+    require(errno == 0 && end && *end == '\0' && env[0] != '-', "FLEXSPLAT_GRADCHECK_SEED='", env,
+            "' is not an unsigned integer");
+    return seed;
+  }
   return fallback;
 }
 
