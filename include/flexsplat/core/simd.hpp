@@ -31,9 +31,15 @@ using batch = xsimd::batch<T, arch>;
 template <class T>
 inline constexpr std::size_t width = batch<T>::size;
 
-// Horizontal reductions (xsimd 8.1 has hadd but no max reduction).
+// Horizontal reductions in lane order (xsimd 8.1 has no max reduction; its AVX-512 hadd trips GCC 12 warnings).
 template <class T>
-T reduce_add(const batch<T>& x) noexcept { return xsimd::hadd(x); }
+T reduce_add(const batch<T>& x) noexcept {
+  alignas(64) T lanes[batch<T>::size];
+  x.store_aligned(lanes);
+  T s = lanes[0];
+  for (std::size_t i = 1; i < batch<T>::size; ++i) s += lanes[i];
+  return s;
+}
 
 template <class T>
 T reduce_max(const batch<T>& x) noexcept {
