@@ -1,12 +1,17 @@
-// Decoder forward timing and peak memory: N_G in {10K, 20K}, 4 views, 128x128 fused feature maps (C_f 128), C 256,
-// full vs local self-attention, and the error of local against full. Usage: decoder [N_G...] (default 10000 20000).
+// Decoder forward: time (wall and process CPU) and memory per part for N_G Gaussians, 4 views, 128x128 fused feature
+// maps (C_f 128), C 256, FFN 1024, L 3, full vs local self-attention, and the error of local against full.
+// Usage: decoder [--local-only] [--window W] [--reps R] [N_G...]   (default 10000 20000; threads: FLEXSPLAT_NUM_THREADS)
 #include <sys/resource.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
+#include <ctime>
 #include <random>
+#include <string>
 #include <vector>
 
 #include "flexsplat/decoder/decoder.hpp"
@@ -14,18 +19,19 @@
 using namespace flexsplat;
 
 namespace {
-double now() { return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count(); }
 double peak_rss_mb() {
   rusage u{};
   getrusage(RUSAGE_SELF, &u);
   return static_cast<double>(u.ru_maxrss) / 1024.0;
 }
+double mb(std::size_t bytes) { return static_cast<double>(bytes) / (1024.0 * 1024.0); }
 
 struct Rig {
   index_t views = 4, image = 512, depth = 128;
   std::vector<float> K, E, D;
 };
 
+// Four cameras on a ring looking at the origin, depth maps of a bumpy sphere-ish surface.
 Rig make_rig() {
   Rig r;
   for (index_t v = 0; v < r.views; ++v) {
@@ -49,19 +55,45 @@ Rig make_rig() {
   }
   return r;
 }
+
+struct Diff {
+  double max_abs = 0, ref_max_abs = 0, rms = 0, ref_rms = 0;
+};
+Diff compare(const std::vector<float>& a, const std::vector<float>& ref) {
+  Diff d;
+  for (std::size_t i = 0; i < a.size(); ++i) {
+    const double e = static_cast<double>(a[i]) - static_cast<double>(ref[i]);
+    d.max_abs = std::max(d.max_abs, std::abs(e));
+    d.ref_max_abs = std::max(d.ref_max_abs, std::abs(static_cast<double>(ref[i])));
+    d.rms += e * e;
+    d.ref_rms += static_cast<double>(ref[i]) * static_cast<double>(ref[i]);
+  }
+  d.rms = std::sqrt(d.rms / static_cast<double>(a.size()));
+  d.ref_rms = std::sqrt(d.ref_rms / static_cast<double>(a.size()));
+  return d;
+}
 }  // namespace
 
 int main(int argc, char** argv) {
   std::vector<index_t> budgets;
-  for (int i = 1; i < argc; ++i) budgets.push_back(std::atoll(argv[i]));
+  bool local_only = false;
+  index_t window = 512;
+  int reps = 1;
+  for (int i = 1; i < argc; ++i) {
+    if (!std::strcmp(argv[i], "--local-only")) local_only = true;
+    else if (!std::strcmp(argv[i], "--window") && i + 1 < argc) window = std::atoll(argv[++i]);
+    else if (!std::strcmp(argv[i], "--reps") && i + 1 < argc) reps = std::max(1, std::atoi(argv[++i]));
+    else budgets.push_back(std::atoll(argv[i]));
+  }
   if (budgets.empty()) budgets = {10000, 20000};
-  std::printf("threads %d, simd %s (%s)\n", global_pool().size(), simd::compiled_arch_name(),
-              simd::enabled() ? "on" : "off: FLEXSPLAT_SIMD=scalar");
+  std::printf("threads %d, simd %s (%s), window %lld, reps %d\n", global_pool().size(), simd::compiled_arch_name(),
+              simd::enabled() ? "on" : "off: FLEXSPLAT_SIMD=scalar", static_cast<long long>(window), reps);
   const Rig rig = make_rig();
   const decoder::ViewGeometry<float> geo{rig.views, rig.image, rig.image, rig.depth, rig.depth, rig.K.data(), rig.E.data(),
                                          rig.D.data()};
   const index_t fh = 128, fw = 128;
   decoder::DecoderConfig cfg;
+  cfg.window = window;
   std::vector<float> features(static_cast<std::size_t>(rig.views * cfg.value_dim * fh * fw));
   std::mt19937 rng(3);
   std::normal_distribution<float> normal(0.f, 1.f);
@@ -72,62 +104,52 @@ int main(int argc, char** argv) {
   std::printf("parameters %zu (%.1f MB float32)\n", params.size(), params.size() * 4.0 / 1e6);
 
   for (index_t n : budgets) {
-    std::vector<float> full_means;
+    std::vector<float> full_means, full_sa;
     for (bool local : {false, true}) {
+      if (!local && local_only) continue;
       cfg.local_attention = local;
-      decoder::DecoderState<float> st;
-      decoder::decoder_forward(st, std::min<index_t>(n, 256), params.data(), cfg, maps, geo);  // warm-up
-      // Per-part timing: run the same stages by hand once, then the whole forward.
-      const double t0 = now();
-      decoder::decoder_forward(st, n, params.data(), cfg, maps, geo);
-      const double t_total = now() - t0;
-      // Parts on the first layer's inputs.
-      const auto& k = st.layers[0];
-      std::vector<float> out(static_cast<std::size_t>(n * cfg.dim));
-      decoder::MVDeformCache<float> dc;
-      double t = now();
-      decoder::mv_deform_forward(out.data(), dc, k.x_in.data(), st.gaussians[0].means.data(), n,
-                                 params.data() + decoder::DecoderParamLayout(cfg).layer[0].deform, cfg.deform(), maps, geo);
-      const double t_deform = now() - t;
-      decoder::SelfAttentionCache<float> sc;
-      t = now();
-      decoder::self_attention_forward(out.data(), sc, k.x1.data(), st.gaussians[0].means.data(), n,
-                                      params.data() + decoder::DecoderParamLayout(cfg).layer[0].attn, cfg.self_attention());
-      const double t_attn = now() - t;
-      std::vector<float> hidden(static_cast<std::size_t>(n * cfg.ffn));
-      const auto& o = decoder::DecoderParamLayout(cfg).layer[0];
-      t = now();
-      nn::linear_forward(hidden.data(), k.x2.data(), params.data() + o.ffn_w1, params.data() + o.ffn_b1, n, cfg.dim, cfg.ffn);
-      decoder::detail::gelu_parallel_forward(hidden.data(), hidden.data(), n * cfg.ffn);
-      nn::linear_forward(out.data(), hidden.data(), params.data() + o.ffn_w2, params.data() + o.ffn_b2, n, cfg.ffn, cfg.dim);
-      const double t_ffn = now() - t;
-      std::printf("N_G %6lld  %-5s  forward %.3f s  | per layer: deform-attn %.3f s  self-attn %.3f s  ffn %.3f s  | peak RSS %.0f MB\n",
-                  static_cast<long long>(n), local ? "local" : "full", t_total, t_deform, t_attn, t_ffn, peak_rss_mb());
-      const auto& means = st.gaussians.back().means;
+      decoder::DecoderWorkspace<float> ws;
+      ws.reserve(cfg, n, rig.views, fh, fw, rig.depth * rig.depth);
+      decoder::decoder_forward(ws, n, params.data(), cfg, maps, geo);  // warm-up: touches every page once
+      decoder::DecoderProfile prof;
+      ws.profile = &prof;
+      const auto w0 = std::chrono::steady_clock::now();
+      const std::clock_t c0 = std::clock();
+      for (int r = 0; r < reps; ++r) decoder::decoder_forward(ws, n, params.data(), cfg, maps, geo);
+      const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count() / reps;
+      const double cpu = static_cast<double>(std::clock() - c0) / CLOCKS_PER_SEC / reps;
+      ws.profile = nullptr;
+      std::size_t deform_bytes = 0, attn_bytes = 0;
+      for (const auto& k : ws.layers) deform_bytes += k.deform.capacity_bytes(), attn_bytes += k.attention.capacity_bytes();
+      std::printf("N_G %6lld %-5s forward wall %.3f s cpu %.3f s | workspace fwd %.0f MB (deform %.0f, self-attn %.0f) + bwd %.0f MB | peak RSS %.0f MB\n",
+                  static_cast<long long>(n), local ? "local" : "full", wall, cpu,
+                  mb(ws.capacity_bytes() - ws.grad.capacity_bytes()), mb(deform_bytes), mb(attn_bytes),
+                  mb(ws.grad.capacity_bytes()), peak_rss_mb());
+      for (int p = 0; p < decoder::DecoderProfile::part_count; ++p)
+        std::printf("    %-16s wall %.3f s  cpu %.3f s  (all %lld layers)\n", decoder::DecoderProfile::names[p],
+                    prof.wall[p] / reps, prof.cpu[p] / reps, static_cast<long long>(cfg.layers));
+      // Self-attention output of layer 0 on the same inputs, for the local-vs-full error.
+      const auto& k = ws.layers[0];
+      std::vector<float> sa(static_cast<std::size_t>(n * cfg.dim));
+      {
+        decoder::SelfAttentionCache<float> sc;
+        decoder::self_attention_forward(sa.data(), sc, k.x1.data(), ws.gaussians[0].means.data(), n,
+                                        params.data() + decoder::decoder_layer_offsets(cfg, 0).attn, cfg.self_attention());
+      }
       if (!local) {
-        full_means = means;
-      } else {
-        double max_err = 0, max_ref = 0;
-        for (std::size_t i = 0; i < means.size(); ++i) {
-          max_err = std::max(max_err, static_cast<double>(std::abs(means[i] - full_means[i])));
-          max_ref = std::max(max_ref, static_cast<double>(std::abs(full_means[i])));
-        }
-        // Error of the self-attention output itself on identical inputs.
-        decoder::SelfAttentionConfig full_cfg = cfg.self_attention();
-        full_cfg.local = false;
-        std::vector<float> full_out(out.size());
-        decoder::SelfAttentionCache<float> fc;
-        decoder::self_attention_forward(full_out.data(), fc, k.x1.data(), st.gaussians[0].means.data(), n,
-                                        params.data() + o.attn, full_cfg);
-        decoder::self_attention_forward(out.data(), sc, k.x1.data(), st.gaussians[0].means.data(), n,
-                                        params.data() + o.attn, cfg.self_attention());
-        double sa_err = 0, sa_ref = 0;
-        for (std::size_t i = 0; i < out.size(); ++i) {
-          sa_err = std::max(sa_err, static_cast<double>(std::abs(out[i] - full_out[i])));
-          sa_ref = std::max(sa_ref, static_cast<double>(std::abs(full_out[i])));
-        }
-        std::printf("N_G %6lld  local vs full: self-attn output max abs err %.3e (max abs %.3e); final means max abs err %.3e (max abs %.3e)\n",
-                    static_cast<long long>(n), sa_err, sa_ref, max_err, max_ref);
+        full_means = ws.gaussians.back().means;
+        full_sa = sa;
+      } else if (!full_means.empty()) {
+        // Full attention on the local run's layer-0 input, so both see identical queries.
+        decoder::SelfAttentionConfig fc = cfg.self_attention();
+        fc.local = false;
+        decoder::SelfAttentionCache<float> sc;
+        decoder::self_attention_forward(full_sa.data(), sc, k.x1.data(), ws.gaussians[0].means.data(), n,
+                                        params.data() + decoder::decoder_layer_offsets(cfg, 0).attn, fc);
+        const Diff a = compare(sa, full_sa), m = compare(ws.gaussians.back().means, full_means);
+        std::printf("N_G %6lld local vs full: layer-0 self-attn output max abs err %.3e rms err %.3e (full: max abs %.3e rms %.3e); "
+                    "final means max abs err %.3e rms err %.3e (max abs %.3e)\n",
+                    static_cast<long long>(n), a.max_abs, a.rms, a.ref_max_abs, a.ref_rms, m.max_abs, m.rms, m.ref_max_abs);
       }
     }
   }

@@ -5,12 +5,15 @@
 // (DecoderParamLayout gives the offsets); backward adds into a parallel gradient block and reaches the fused features,
 // depth maps and cameras.
 #include <algorithm>
+#include <chrono>
+#include <ctime>
 #include <random>
 #include <vector>
 
 #include "flexsplat/decoder/deformable_attention.hpp"
 #include "flexsplat/decoder/gaussians.hpp"
 #include "flexsplat/decoder/init.hpp"
+#include "flexsplat/decoder/kernels.hpp"
 #include "flexsplat/decoder/self_attention.hpp"
 #include "flexsplat/decoder/splat_head.hpp"
 #include "flexsplat/nn/activations.hpp"
@@ -35,6 +38,30 @@ inline index_t default_gaussian_budget(index_t views) { return views <= 1 ? 1000
 struct DecoderLayerOffsets {
   index_t deform, ln1_g, ln1_b, attn, ln2_g, ln2_b, ffn_w1, ffn_b1, ffn_w2, ffn_b2, ln3_g, ln3_b, head_w, head_b;
 };
+
+// Offsets of layer l computed directly (no allocation): the layers follow the initial head, all of equal size.
+inline DecoderLayerOffsets decoder_layer_offsets(const DecoderConfig& c, index_t l) {
+  const index_t deform = MVDeformParamLayout(c.deform()).size, attn = SelfAttentionParamLayout(c.self_attention()).size;
+  const index_t layer_size = deform + attn + 6 * c.dim + 2 * c.ffn * c.dim + c.ffn + c.dim + splat_values * c.dim + splat_values;
+  index_t at = c.max_queries * c.dim + splat_values * c.dim + splat_values + l * layer_size;
+  auto take = [&](index_t n) { const index_t o = at; at += n; return o; };
+  DecoderLayerOffsets o;
+  o.deform = take(deform);
+  o.ln1_g = take(c.dim);
+  o.ln1_b = take(c.dim);
+  o.attn = take(attn);
+  o.ln2_g = take(c.dim);
+  o.ln2_b = take(c.dim);
+  o.ffn_w1 = take(c.ffn * c.dim);
+  o.ffn_b1 = take(c.ffn);
+  o.ffn_w2 = take(c.dim * c.ffn);
+  o.ffn_b2 = take(c.dim);
+  o.ln3_g = take(c.dim);
+  o.ln3_b = take(c.dim);
+  o.head_w = take(splat_values * c.dim);
+  o.head_b = take(splat_values);
+  return o;
+}
 
 struct DecoderParamLayout {
   index_t embeddings, init_head_w, init_head_b, size;
@@ -87,173 +114,319 @@ void decoder_init(T* params, const DecoderConfig& c, std::uint64_t seed) {
   }
 }
 
-template <class T>
-struct DecoderLayerCache {
-  std::vector<T> x_in, mv_out, r1, mean1, rstd1, x1, sa_out, r2, mean2, rstd2, x2, hidden_pre, hidden, ffn_out, r3,
-      mean3, rstd3, x3, delta;
-  MVDeformCache<T> deform;
-  SelfAttentionCache<T> attention;
+// Wall-clock and process CPU seconds per part of decoder_forward, summed over layers (CPU time includes every
+// worker thread, so cpu / wall ~ the parallel speed-up; on a shared machine cpu is the steadier number).
+struct DecoderProfile {
+  enum Part { setup, deform, self_attention, ffn, norm, heads, part_count };
+  static constexpr const char* names[part_count] = {"setup", "deform-attn", "self-attn", "ffn", "norm+residual",
+                                                     "heads+gaussians"};
+  double wall[part_count] = {}, cpu[part_count] = {};
+  void clear() { *this = DecoderProfile{}; }
+  double total_wall() const {
+    double t = 0;
+    for (double w : wall) t += w;
+    return t;
+  }
+  double total_cpu() const {
+    double t = 0;
+    for (double c : cpu) t += c;
+    return t;
+  }
 };
 
-// Forward results and everything backward needs. gaussians[0] is the initial estimate, gaussians[l + 1] layer l's.
+namespace detail {
+// Charges the time between construction and destruction to one part of a profile (no-op without a profile).
+class ProfileScope {
+public:
+  ProfileScope(DecoderProfile* p, DecoderProfile::Part part) : profile_(p), part_(part) {
+    if (profile_) wall0_ = std::chrono::steady_clock::now(), cpu0_ = std::clock();
+  }
+  ~ProfileScope() {
+    if (!profile_) return;
+    profile_->wall[part_] += std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0_).count();
+    profile_->cpu[part_] += static_cast<double>(std::clock() - cpu0_) / CLOCKS_PER_SEC;
+  }
+  ProfileScope(const ProfileScope&) = delete;
+  ProfileScope& operator=(const ProfileScope&) = delete;
+
+private:
+  DecoderProfile* profile_;
+  DecoderProfile::Part part_;
+  std::chrono::steady_clock::time_point wall0_{};
+  std::clock_t cpu0_ = 0;
+};
+
 template <class T>
-struct DecoderState {
+std::size_t capacity_bytes_of(const std::vector<T>& v) {
+  return v.capacity() * sizeof(T);
+}
+}  // namespace detail
+
+// One layer's forward cache. The layer input is the previous layer's x3 (or the query embeddings).
+template <class T>
+struct DecoderLayerCache {
+  std::vector<T> r1, mean1, rstd1, x1, r2, mean2, rstd2, x2, hidden_pre, hidden, r3, mean3, rstd3, x3, delta;
+  MVDeformCache<T> deform;
+  SelfAttentionCache<T> attention;
+  void resize(const DecoderConfig& c, index_t n, index_t views, index_t feat_h, index_t feat_w, int workers) {
+    const auto nc = static_cast<std::size_t>(n * c.dim), z = static_cast<std::size_t>(n);
+    for (auto* v : {&r1, &x1, &r2, &x2, &r3, &x3}) v->resize(nc);
+    for (auto* v : {&mean1, &rstd1, &mean2, &rstd2, &mean3, &rstd3}) v->resize(z);
+    hidden_pre.resize(static_cast<std::size_t>(n * c.ffn));
+    hidden.resize(static_cast<std::size_t>(n * c.ffn));
+    delta.resize(static_cast<std::size_t>(n * splat_values));
+    deform.resize(n, views, feat_h, feat_w, c.deform());
+    attention.resize(n, c.self_attention(), workers);
+  }
+  std::size_t capacity_bytes() const {
+    std::size_t b = deform.capacity_bytes() + attention.capacity_bytes();
+    for (auto* v : {&r1, &mean1, &rstd1, &x1, &r2, &mean2, &rstd2, &x2, &hidden_pre, &hidden, &r3, &mean3, &rstd3, &x3, &delta})
+      b += detail::capacity_bytes_of(*v);
+    return b;
+  }
+};
+
+// Backward temporaries shared by all layers.
+template <class T>
+struct DecoderGradScratch {
+  std::vector<T> d_state, d_prev_state, d_centres, d_means, d_x, d_delta, d_r, d_tmp, d_hidden, d_hidden_pre;
+  MVDeformGradScratch<T> deform;
+  SelfAttentionGradScratch<T> attention;
+  void resize(const DecoderConfig& c, index_t n, index_t views, index_t feat_h, index_t feat_w) {
+    const auto z = static_cast<std::size_t>(n), nc = static_cast<std::size_t>(n * c.dim);
+    for (auto* v : {&d_state, &d_prev_state, &d_delta}) v->resize(z * splat_values);
+    for (auto* v : {&d_centres, &d_means}) v->resize(3 * z);
+    for (auto* v : {&d_x, &d_r, &d_tmp}) v->resize(nc);
+    for (auto* v : {&d_hidden, &d_hidden_pre}) v->resize(static_cast<std::size_t>(n * c.ffn));
+    deform.resize(n, views, feat_h, feat_w, c.deform());
+    attention.resize(n, c.self_attention());
+  }
+  std::size_t capacity_bytes() const {
+    std::size_t b = deform.capacity_bytes() + attention.capacity_bytes();
+    for (auto* v : {&d_state, &d_prev_state, &d_centres, &d_means, &d_x, &d_delta, &d_r, &d_tmp, &d_hidden, &d_hidden_pre})
+      b += detail::capacity_bytes_of(*v);
+    return b;
+  }
+};
+
+// Every buffer of decoder_forward / decoder_backward: the forward results (gaussians[0] is the initial estimate,
+// gaussians[l + 1] layer l's), the per-layer caches backward needs, and the backward temporaries. reserve() sizes it
+// once for a budget, view count and feature-map size; later calls with sizes up to those do not allocate.
+template <class T>
+struct DecoderWorkspace {
   index_t n = 0;
   Anchors anchors;
   SceneCentre scene_centre;
   std::vector<T> base_depth;
   std::vector<unsigned char> depth_used;
+  std::vector<double> median_scratch;
   std::vector<std::vector<T>> states;  // [layers + 1][N, 24]
   std::vector<GaussianSet<T>> gaussians;
   std::vector<DecoderLayerCache<T>> layers;
+  DecoderGradScratch<T> grad;
+  DecoderProfile* profile = nullptr;  // set to collect per-part timings of decoder_forward
+
+  void resize_forward(const DecoderConfig& c, index_t n_queries, index_t views, index_t feat_h, index_t feat_w,
+                      index_t depth_pixels) {
+    n = n_queries;
+    const auto z = static_cast<std::size_t>(n_queries), sets = static_cast<std::size_t>(c.layers + 1);
+    anchors.view.resize(z);
+    anchors.pixel.resize(2 * z);
+    base_depth.resize(z);
+    depth_used.resize(z);
+    if (median_scratch.capacity() < static_cast<std::size_t>(depth_pixels))
+      median_scratch.reserve(static_cast<std::size_t>(depth_pixels));
+    states.resize(sets);
+    for (auto& st : states) st.resize(z * splat_values);
+    gaussians.resize(sets);
+    for (auto& g : gaussians) g.resize(n_queries);
+    layers.resize(static_cast<std::size_t>(c.layers));
+    for (auto& k : layers) k.resize(c, n_queries, views, feat_h, feat_w, global_pool().size());
+  }
+  // Sizes everything (forward and backward) for up to n_queries Gaussians.
+  void reserve(const DecoderConfig& c, index_t n_queries, index_t views, index_t feat_h, index_t feat_w,
+               index_t depth_pixels = 0) {
+    resize_forward(c, n_queries, views, feat_h, feat_w, depth_pixels);
+    grad.resize(c, n_queries, views, feat_h, feat_w);
+  }
+  std::size_t capacity_bytes() const {
+    std::size_t b = anchors.view.capacity() * sizeof(index_t) + anchors.pixel.capacity() * sizeof(double) +
+                    detail::capacity_bytes_of(base_depth) + depth_used.capacity() +
+                    detail::capacity_bytes_of(median_scratch) + grad.capacity_bytes();
+    for (const auto& st : states) b += detail::capacity_bytes_of(st);
+    for (const auto& g : gaussians)
+      for (auto* v : {&g.means, &g.quats, &g.scales, &g.opacities, &g.sh}) b += detail::capacity_bytes_of(*v);
+    for (const auto& k : layers) b += k.capacity_bytes();
+    return b;
+  }
 };
 
+// The name the first version used.
+template <class T>
+using DecoderState = DecoderWorkspace<T>;
+
 namespace detail {
-template <class T>
-void gelu_parallel_forward(T* out, const T* in, index_t n) {
-  parallel_for((n + 4095) / 4096, [&](index_t b0, index_t b1, int) {
-    const index_t i0 = b0 * 4096, i1 = std::min(n, b1 * 4096);
-    nn::gelu_forward(out + i0, in + i0, i1 - i0);
-  });
-}
-template <class T>
-void gelu_parallel_backward(T* d_in, const T* d_out, const T* in, index_t n) {
-  parallel_for((n + 4095) / 4096, [&](index_t b0, index_t b1, int) {
-    const index_t i0 = b0 * 4096, i1 = std::min(n, b1 * 4096);
-    nn::gelu_backward(d_in + i0, d_out + i0, in + i0, i1 - i0);
-  });
-}
+// out = a + b elementwise, parallel.
 template <class T>
 void add(T* out, const T* a, const T* b, index_t n) {
-  for (index_t i = 0; i < n; ++i) out[i] = a[i] + b[i];
+  parallel_for((n + 16383) / 16384, [&](index_t b0, index_t b1, int) {
+    const index_t i1 = std::min(n, b1 * 16384);
+    for (index_t i = b0 * 16384; i < i1; ++i) out[i] = a[i] + b[i];
+  });
+}
+template <class T>
+void add_inplace(T* out, const T* a, index_t n) {
+  add(out, out, a, n);
+}
+template <class T>
+void gelu_parallel_forward(T* out, const T* in, index_t n) {
+  kernels::gelu_forward(out, in, n);
 }
 }  // namespace detail
 
 // Runs the decoder for n_queries Gaussians on fused features [V, value_dim, h, w] and the views' geometry.
+// ws: a workspace (reserve() it to avoid the first call's allocations); results are in ws.gaussians.
 template <class T>
-void decoder_forward(DecoderState<T>& st, index_t n_queries, const T* params, const DecoderConfig& c,
+void decoder_forward(DecoderWorkspace<T>& ws, index_t n_queries, const T* params, const DecoderConfig& c,
                      const FeatureMaps<T>& features, const ViewGeometry<T>& g) {
   validate_geometry(g);
   validate_features(features, c.deform(), g.views);
   require(n_queries >= 1 && n_queries <= c.max_queries, "decoder: Gaussian budget ", n_queries, " is outside [1, ",
           c.max_queries, "]");
-  const DecoderParamLayout L(c);
   const index_t n = n_queries, C = c.dim;
-  st.n = n;
-  st.anchors = make_anchors(n, g.views, g.image_w, g.image_h);
-  st.scene_centre = scene_centre_from_axes(g);
-  const T centre[3] = {static_cast<T>(st.scene_centre.centre[0]), static_cast<T>(st.scene_centre.centre[1]),
-                       static_cast<T>(st.scene_centre.centre[2])};
-  st.base_depth.resize(static_cast<std::size_t>(n));
-  st.depth_used.resize(static_cast<std::size_t>(n));
-  anchor_depths(st.base_depth.data(), st.depth_used.data(), g, st.anchors, centre);
-  st.states.assign(static_cast<std::size_t>(c.layers + 1), std::vector<T>(static_cast<std::size_t>(n * splat_values)));
-  st.gaussians.resize(static_cast<std::size_t>(c.layers + 1));
-  st.layers.resize(static_cast<std::size_t>(c.layers));
-  const T* x = params + L.embeddings;
-  splat_head_forward(st.states[0].data(), x, params + L.init_head_w, params + L.init_head_b, n, C, true);
-  gaussians_forward(st.gaussians[0], st.states[0].data(), st.base_depth.data(), st.anchors, g);
-  const std::size_t nc = static_cast<std::size_t>(n * C);
+  const T eps = static_cast<T>(layernorm_eps);
+  DecoderProfile* prof = ws.profile;
+  const T* embeddings = params;  // the query table starts the block
+  {
+    detail::ProfileScope t(prof, DecoderProfile::setup);
+    ws.resize_forward(c, n, g.views, features.h, features.w, g.depth_w * g.depth_h);
+    make_anchors(ws.anchors, n, g.views, g.image_w, g.image_h);
+    ws.scene_centre = scene_centre_from_axes(g, static_cast<const T*>(nullptr), &ws.median_scratch);
+    const T centre[3] = {static_cast<T>(ws.scene_centre.centre[0]), static_cast<T>(ws.scene_centre.centre[1]),
+                         static_cast<T>(ws.scene_centre.centre[2])};
+    anchor_depths(ws.base_depth.data(), ws.depth_used.data(), g, ws.anchors, centre);
+    const index_t init_w = c.max_queries * c.dim;
+    splat_head_forward(ws.states[0].data(), embeddings, params + init_w, params + init_w + splat_values * c.dim, n, C, true);
+    gaussians_forward(ws.gaussians[0], ws.states[0].data(), ws.base_depth.data(), ws.anchors, g);
+  }
+  const T* x = embeddings;
   for (index_t l = 0; l < c.layers; ++l) {
-    const auto& o = L.layer[l];
-    auto& k = st.layers[l];
-    const T* centres = st.gaussians[l].means.data();
-    k.x_in.assign(x, x + n * C);
-    for (auto* v : {&k.mv_out, &k.r1, &k.x1, &k.sa_out, &k.r2, &k.x2, &k.ffn_out, &k.r3, &k.x3}) v->resize(nc);
-    for (auto* v : {&k.mean1, &k.rstd1, &k.mean2, &k.rstd2, &k.mean3, &k.rstd3}) v->resize(static_cast<std::size_t>(n));
-    k.hidden_pre.resize(static_cast<std::size_t>(n * c.ffn));
-    k.hidden.resize(static_cast<std::size_t>(n * c.ffn));
-    k.delta.resize(static_cast<std::size_t>(n * splat_values));
-    mv_deform_forward(k.mv_out.data(), k.deform, k.x_in.data(), centres, n, params + o.deform, c.deform(), features, g);
-    detail::add(k.r1.data(), k.x_in.data(), k.mv_out.data(), n * C);
-    nn::layernorm_forward(k.x1.data(), k.r1.data(), params + o.ln1_g, params + o.ln1_b, n, C, static_cast<T>(layernorm_eps),
-                          {k.mean1.data(), k.rstd1.data()});
-    self_attention_forward(k.sa_out.data(), k.attention, k.x1.data(), centres, n, params + o.attn, c.self_attention());
-    detail::add(k.r2.data(), k.x1.data(), k.sa_out.data(), n * C);
-    nn::layernorm_forward(k.x2.data(), k.r2.data(), params + o.ln2_g, params + o.ln2_b, n, C, static_cast<T>(layernorm_eps),
-                          {k.mean2.data(), k.rstd2.data()});
-    nn::linear_forward(k.hidden_pre.data(), k.x2.data(), params + o.ffn_w1, params + o.ffn_b1, n, C, c.ffn);
-    detail::gelu_parallel_forward(k.hidden.data(), k.hidden_pre.data(), n * c.ffn);
-    nn::linear_forward(k.ffn_out.data(), k.hidden.data(), params + o.ffn_w2, params + o.ffn_b2, n, c.ffn, C);
-    detail::add(k.r3.data(), k.x2.data(), k.ffn_out.data(), n * C);
-    nn::layernorm_forward(k.x3.data(), k.r3.data(), params + o.ln3_g, params + o.ln3_b, n, C, static_cast<T>(layernorm_eps),
-                          {k.mean3.data(), k.rstd3.data()});
-    splat_head_forward(k.delta.data(), k.x3.data(), params + o.head_w, params + o.head_b, n, C, false);
-    compose_forward(st.states[l + 1].data(), st.states[l].data(), k.delta.data(), n);
-    gaussians_forward(st.gaussians[l + 1], st.states[l + 1].data(), st.base_depth.data(), st.anchors, g);
+    const DecoderLayerOffsets o = decoder_layer_offsets(c, l);
+    auto& k = ws.layers[static_cast<std::size_t>(l)];
+    const T* centres = ws.gaussians[static_cast<std::size_t>(l)].means.data();
+    {
+      detail::ProfileScope t(prof, DecoderProfile::deform);
+      mv_deform_forward(k.r1.data(), k.deform, x, centres, n, params + o.deform, c.deform(), features, g);
+    }
+    {
+      detail::ProfileScope t(prof, DecoderProfile::norm);
+      detail::add_inplace(k.r1.data(), x, n * C);
+      nn::layernorm_forward(k.x1.data(), k.r1.data(), params + o.ln1_g, params + o.ln1_b, n, C, eps,
+                            {k.mean1.data(), k.rstd1.data()});
+    }
+    {
+      detail::ProfileScope t(prof, DecoderProfile::self_attention);
+      self_attention_forward(k.r2.data(), k.attention, k.x1.data(), centres, n, params + o.attn, c.self_attention());
+    }
+    {
+      detail::ProfileScope t(prof, DecoderProfile::norm);
+      detail::add_inplace(k.r2.data(), k.x1.data(), n * C);
+      nn::layernorm_forward(k.x2.data(), k.r2.data(), params + o.ln2_g, params + o.ln2_b, n, C, eps,
+                            {k.mean2.data(), k.rstd2.data()});
+    }
+    {
+      detail::ProfileScope t(prof, DecoderProfile::ffn);
+      nn::linear_forward(k.hidden_pre.data(), k.x2.data(), params + o.ffn_w1, params + o.ffn_b1, n, C, c.ffn);
+      kernels::gelu_forward(k.hidden.data(), k.hidden_pre.data(), n * c.ffn);
+      nn::linear_forward(k.r3.data(), k.hidden.data(), params + o.ffn_w2, params + o.ffn_b2, n, c.ffn, C);
+    }
+    {
+      detail::ProfileScope t(prof, DecoderProfile::norm);
+      detail::add_inplace(k.r3.data(), k.x2.data(), n * C);
+      nn::layernorm_forward(k.x3.data(), k.r3.data(), params + o.ln3_g, params + o.ln3_b, n, C, eps,
+                            {k.mean3.data(), k.rstd3.data()});
+    }
+    {
+      detail::ProfileScope t(prof, DecoderProfile::heads);
+      splat_head_forward(k.delta.data(), k.x3.data(), params + o.head_w, params + o.head_b, n, C, false);
+      compose_forward(ws.states[l + 1].data(), ws.states[l].data(), k.delta.data(), n);
+      gaussians_forward(ws.gaussians[l + 1], ws.states[l + 1].data(), ws.base_depth.data(), ws.anchors, g);
+    }
     x = k.x3.data();
   }
 }
 
 // d_gaussians[l] is the loss gradient of gaussians[l] (null members: no gradient). Adds into d_params, d_features
-// (NCHW like the input, may be null) and d_geometry (K, world_to_camera, depth; null members skipped).
+// (NCHW like the input, may be null) and d_geometry (K, world_to_camera, depth; null members skipped). Temporaries
+// live in ws.grad.
 template <class T>
 void decoder_backward(T* d_params, T* d_features, const ViewGeometryGrad<T>& d_geometry,
-                      const std::vector<GaussianSetGrad<T>>& d_gaussians, DecoderState<T>& st, const T* params,
+                      const std::vector<GaussianSetGrad<T>>& d_gaussians, DecoderWorkspace<T>& ws, const T* params,
                       const DecoderConfig& c, const FeatureMaps<T>& features, const ViewGeometry<T>& g) {
   require(static_cast<index_t>(d_gaussians.size()) == c.layers + 1, "decoder_backward: ", d_gaussians.size(),
           " gradient sets for ", c.layers + 1, " Gaussian sets");
-  const DecoderParamLayout L(c);
-  const index_t n = st.n, C = c.dim;
-  const std::size_t nc = static_cast<std::size_t>(n * C);
-  std::vector<T> d_state(static_cast<std::size_t>(n * splat_values), T(0)), d_prev_state(d_state.size());
-  std::vector<T> d_centres(static_cast<std::size_t>(3 * n), T(0)), d_means(d_centres.size());
-  std::vector<T> d_x(nc, T(0));  // gradient of the current layer's output features
+  const index_t n = ws.n, C = c.dim;
+  auto& s = ws.grad;
+  s.resize(c, n, g.views, features.h, features.w);
+  for (auto* v : {&s.d_state, &s.d_centres, &s.d_x}) std::fill(v->begin(), v->end(), T(0));
+  auto zero = [](std::vector<T>& v) { std::fill(v.begin(), v.end(), T(0)); };
   // Loss gradient plus the gradient that later layers' attention sent into these centres.
   auto gaussians_grad = [&](index_t set, std::vector<T>& d_st) {
-    GaussianSetGrad<T> d = d_gaussians[set];
-    if (d.means) std::transform(d.means, d.means + 3 * n, d_centres.begin(), d_means.begin(), std::plus<T>());
-    else d_means = d_centres;
-    d.means = d_means.data();
+    GaussianSetGrad<T> d = d_gaussians[static_cast<std::size_t>(set)];
+    if (d.means) std::transform(d.means, d.means + 3 * n, s.d_centres.begin(), s.d_means.begin(), std::plus<T>());
+    else std::copy(s.d_centres.begin(), s.d_centres.end(), s.d_means.begin());
+    d.means = s.d_means.data();
     gaussians_backward(d_st.data(), {d_geometry.K, d_geometry.world_to_camera, d_geometry.depth}, d,
-                       st.states[set].data(), st.base_depth.data(), st.depth_used.data(), st.anchors, g);
-    std::fill(d_centres.begin(), d_centres.end(), T(0));
+                       ws.states[static_cast<std::size_t>(set)].data(), ws.base_depth.data(), ws.depth_used.data(),
+                       ws.anchors, g);
+    zero(s.d_centres);
   };
-  std::vector<T> d_delta(d_state.size()), d_r(nc), d_tmp(nc), d_hidden(static_cast<std::size_t>(n * c.ffn)),
-      d_hidden_pre(d_hidden.size());
+  const T* embeddings = params;
   for (index_t l = c.layers - 1; l >= 0; --l) {
-    const auto& o = L.layer[l];
-    auto& k = st.layers[l];
-    gaussians_grad(l + 1, d_state);
-    std::fill(d_prev_state.begin(), d_prev_state.end(), T(0));
-    std::fill(d_delta.begin(), d_delta.end(), T(0));
-    compose_backward(d_prev_state.data(), d_delta.data(), d_state.data(), st.states[l].data(), k.delta.data(), n);
-    splat_head_backward(d_x.data(), d_params + o.head_w, d_params + o.head_b, d_delta.data(), k.x3.data(), params + o.head_w,
-                        n, C);
+    const DecoderLayerOffsets o = decoder_layer_offsets(c, l);
+    auto& k = ws.layers[static_cast<std::size_t>(l)];
+    const T* x_in = l == 0 ? embeddings : ws.layers[static_cast<std::size_t>(l - 1)].x3.data();
+    gaussians_grad(l + 1, s.d_state);
+    zero(s.d_prev_state);
+    zero(s.d_delta);
+    compose_backward(s.d_prev_state.data(), s.d_delta.data(), s.d_state.data(), ws.states[l].data(), k.delta.data(), n);
+    splat_head_backward(s.d_x.data(), d_params + o.head_w, d_params + o.head_b, s.d_delta.data(), k.x3.data(),
+                        params + o.head_w, n, C);
     // x3 = LN3(x2 + FFN(x2))
-    std::fill(d_r.begin(), d_r.end(), T(0));
-    nn::layernorm_backward(d_r.data(), d_params + o.ln3_g, d_params + o.ln3_b, d_x.data(), k.r3.data(), params + o.ln3_g,
-                           n, C, {k.mean3.data(), k.rstd3.data()});
-    d_tmp = d_r;  // into x2 through the residual
-    std::fill(d_hidden.begin(), d_hidden.end(), T(0));
-    nn::linear_backward(d_hidden.data(), d_params + o.ffn_w2, d_params + o.ffn_b2, d_r.data(), k.hidden.data(),
+    zero(s.d_r);
+    nn::layernorm_backward(s.d_r.data(), d_params + o.ln3_g, d_params + o.ln3_b, s.d_x.data(), k.r3.data(),
+                           params + o.ln3_g, n, C, {k.mean3.data(), k.rstd3.data()});
+    std::copy(s.d_r.begin(), s.d_r.end(), s.d_tmp.begin());  // into x2 through the residual
+    zero(s.d_hidden);
+    nn::linear_backward(s.d_hidden.data(), d_params + o.ffn_w2, d_params + o.ffn_b2, s.d_r.data(), k.hidden.data(),
                         params + o.ffn_w2, n, c.ffn, C);
-    std::fill(d_hidden_pre.begin(), d_hidden_pre.end(), T(0));
-    detail::gelu_parallel_backward(d_hidden_pre.data(), d_hidden.data(), k.hidden_pre.data(), n * c.ffn);
-    nn::linear_backward(d_tmp.data(), d_params + o.ffn_w1, d_params + o.ffn_b1, d_hidden_pre.data(), k.x2.data(),
+    zero(s.d_hidden_pre);
+    kernels::gelu_backward(s.d_hidden_pre.data(), s.d_hidden.data(), k.hidden_pre.data(), n * c.ffn);
+    nn::linear_backward(s.d_tmp.data(), d_params + o.ffn_w1, d_params + o.ffn_b1, s.d_hidden_pre.data(), k.x2.data(),
                         params + o.ffn_w1, n, C, c.ffn);
     // x2 = LN2(x1 + SA(x1))
-    std::fill(d_r.begin(), d_r.end(), T(0));
-    nn::layernorm_backward(d_r.data(), d_params + o.ln2_g, d_params + o.ln2_b, d_tmp.data(), k.r2.data(), params + o.ln2_g,
-                           n, C, {k.mean2.data(), k.rstd2.data()});
-    d_tmp = d_r;
-    self_attention_backward(d_tmp.data(), d_params + o.attn, d_r.data(), k.attention, k.x1.data(), params + o.attn,
-                            c.self_attention());
+    zero(s.d_r);
+    nn::layernorm_backward(s.d_r.data(), d_params + o.ln2_g, d_params + o.ln2_b, s.d_tmp.data(), k.r2.data(),
+                           params + o.ln2_g, n, C, {k.mean2.data(), k.rstd2.data()});
+    std::copy(s.d_r.begin(), s.d_r.end(), s.d_tmp.begin());
+    self_attention_backward(s.d_tmp.data(), d_params + o.attn, s.d_r.data(), k.attention, k.x1.data(), params + o.attn,
+                            c.self_attention(), s.attention);
     // x1 = LN1(x + MVDA(x, centres))
-    std::fill(d_r.begin(), d_r.end(), T(0));
-    nn::layernorm_backward(d_r.data(), d_params + o.ln1_g, d_params + o.ln1_b, d_tmp.data(), k.r1.data(), params + o.ln1_g,
-                           n, C, {k.mean1.data(), k.rstd1.data()});
-    d_x = d_r;
-    mv_deform_backward(d_x.data(), d_centres.data(), d_params + o.deform, d_features,
-                       ViewGeometryGrad<T>{d_geometry.K, d_geometry.world_to_camera, nullptr}, d_r.data(), k.deform,
-                       k.x_in.data(), st.gaussians[l].means.data(), params + o.deform, c.deform(), features, g);
-    d_state.swap(d_prev_state);
+    zero(s.d_r);
+    nn::layernorm_backward(s.d_r.data(), d_params + o.ln1_g, d_params + o.ln1_b, s.d_tmp.data(), k.r1.data(),
+                           params + o.ln1_g, n, C, {k.mean1.data(), k.rstd1.data()});
+    std::copy(s.d_r.begin(), s.d_r.end(), s.d_x.begin());
+    mv_deform_backward(s.d_x.data(), s.d_centres.data(), d_params + o.deform, d_features,
+                       ViewGeometryGrad<T>{d_geometry.K, d_geometry.world_to_camera, nullptr}, s.d_r.data(), k.deform,
+                       x_in, ws.gaussians[l].means.data(), params + o.deform, c.deform(), features, g, s.deform);
+    s.d_state.swap(s.d_prev_state);
   }
   // The initial estimate: its own loss gradient, the first layer's centre gradient and the composed-state gradient.
-  gaussians_grad(0, d_state);
-  splat_head_backward(d_x.data(), d_params + L.init_head_w, d_params + L.init_head_b, d_state.data(), params + L.embeddings,
-                      params + L.init_head_w, n, C);
-  for (std::size_t i = 0; i < nc; ++i) d_params[L.embeddings + static_cast<index_t>(i)] += d_x[i];
+  gaussians_grad(0, s.d_state);
+  const index_t init_w = c.max_queries * c.dim;
+  splat_head_backward(s.d_x.data(), d_params + init_w, d_params + init_w + splat_values * c.dim, s.d_state.data(),
+                      embeddings, params + init_w, n, C);
+  for (index_t i = 0; i < n * C; ++i) d_params[i] += s.d_x[static_cast<std::size_t>(i)];
 }
 
 }  // namespace decoder

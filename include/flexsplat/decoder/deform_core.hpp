@@ -26,6 +26,25 @@ struct DeformCoreLayout {
   index_t location_count() const { return batch * n_queries * heads * views() * points; }
 };
 
+// Builds and validates a layout in place (reusing its vectors' capacity): `views` views of feat_h x feat_w each.
+inline void set_deform_core_layout(DeformCoreLayout& L, index_t batch, index_t n_queries, index_t heads, index_t head_dim,
+                                   index_t points, index_t views, index_t feat_h, index_t feat_w) {
+  require(batch >= 1 && n_queries >= 0 && heads >= 1 && head_dim >= 1 && points >= 1,
+          "deform_core: batch ", batch, ", queries ", n_queries, ", heads ", heads, ", head_dim ", head_dim, ", points ",
+          points, " must be positive");
+  require(views >= 1 && feat_h >= 1 && feat_w >= 1, "deform_core: ", views, " views of ", feat_h, "x", feat_w,
+          " (zero-size)");
+  L.batch = batch;
+  L.n_queries = n_queries;
+  L.heads = heads;
+  L.head_dim = head_dim;
+  L.points = points;
+  L.height.assign(static_cast<std::size_t>(views), feat_h);
+  L.width.assign(static_cast<std::size_t>(views), feat_w);
+  L.start.resize(static_cast<std::size_t>(views));
+  for (index_t v = 0; v < views; ++v) L.start[static_cast<std::size_t>(v)] = v * feat_h * feat_w;
+}
+
 // Builds and validates a layout; view_hw lists (H, W) per view.
 inline DeformCoreLayout make_deform_core_layout(index_t batch, index_t n_queries, index_t heads, index_t head_dim,
                                                 index_t points, std::span<const index_t> view_hw) {
@@ -91,10 +110,10 @@ BilinearTaps<T> bilinear_taps(T x, T y, index_t h, index_t w) {
 
 namespace detail {
 // y += a * x over n elements.
-template <class T>
+template <class T, bool Simd>
 void axpy(index_t n, T a, const T* x, T* y) {
   index_t i = 0;
-  if (simd::enabled()) {
+  if constexpr (Simd) {
     using B = simd::batch<T>;
     constexpr index_t step = static_cast<index_t>(B::size);
     const B av(a);
@@ -103,11 +122,11 @@ void axpy(index_t n, T a, const T* x, T* y) {
   for (; i < n; ++i) y[i] += a * x[i];
 }
 
-template <class T>
+template <class T, bool Simd>
 T dot(index_t n, const T* x, const T* y) {
   index_t i = 0;
   T s = 0;
-  if (simd::enabled()) {
+  if constexpr (Simd) {
     using B = simd::batch<T>;
     constexpr index_t step = static_cast<index_t>(B::size);
     B acc(T(0));
@@ -119,44 +138,48 @@ T dot(index_t n, const T* x, const T* y) {
 }
 }  // namespace detail
 
-// out is overwritten. Parallel over (batch, query).
-template <class T>
-void deform_core_forward(T* out, const T* value, const T* locations, const T* weights, const DeformCoreLayout& L,
-                         ThreadPool& pool = global_pool()) {
-  const index_t V = L.views(), P = L.points, D = L.head_dim, H = L.heads, S = L.value_len();
-  parallel_for(L.batch * L.n_queries, [&](index_t r0, index_t r1, int) {
-    for (index_t r = r0; r < r1; ++r) {
-      const index_t b = r / L.n_queries;
-      for (index_t h = 0; h < H; ++h) {
-        T* o = out + (r * H + h) * D;
-        std::fill(o, o + D, T(0));
-        const index_t base = (r * H + h) * V * P;
-        for (index_t v = 0; v < V; ++v)
-          for (index_t p = 0; p < P; ++p) {
-            const index_t s = base + v * P + p;
-            const T a = weights[s];
-            if (a == T(0)) continue;
-            const BilinearTaps<T> t = bilinear_taps(locations[2 * s], locations[2 * s + 1], L.height[v], L.width[v]);
-            for (int c = 0; c < 4; ++c)
-              if (t.valid[c])
-                detail::axpy(D, a * t.weight[c], value + ((b * S + L.start[v] + t.pixel[c]) * H + h) * D, o);
-          }
-      }
+// out is overwritten. Parallel over (batch, head, query): each worker sweeps one head at a time, so its working set is
+// one head's slice of the value maps. query_order (may be null: 0..n-1) is a permutation of the queries to visit them in,
+// e.g. along a space-filling curve so that consecutive queries read nearby pixels; the result does not depend on it.
+// Simd selects the batch or the scalar inner loops.
+template <class T, bool Simd>
+void deform_core_forward_impl(T* out, const T* value, const T* locations, const T* weights, const DeformCoreLayout& L,
+                              ThreadPool& pool = global_pool(), const index_t* query_order = nullptr) {
+  const index_t V = L.views(), P = L.points, D = L.head_dim, H = L.heads, S = L.value_len(), nq = L.n_queries;
+  parallel_for(L.batch * H * nq, [&](index_t t0, index_t t1, int) {
+    for (index_t t = t0; t < t1; ++t) {
+      const index_t bh = t / nq, i = t % nq, b = bh / H, h = bh % H;
+      const index_t r = b * nq + (query_order ? query_order[i] : i);
+      T* o = out + (r * H + h) * D;
+      std::fill(o, o + D, T(0));
+      const index_t base = (r * H + h) * V * P;
+      for (index_t v = 0; v < V; ++v)
+        for (index_t p = 0; p < P; ++p) {
+          const index_t s = base + v * P + p;
+          const T a = weights[s];
+          if (a == T(0)) continue;
+          const BilinearTaps<T> tap = bilinear_taps(locations[2 * s], locations[2 * s + 1], L.height[v], L.width[v]);
+          for (int c = 0; c < 4; ++c)
+            if (tap.valid[c])
+              detail::axpy<T, Simd>(D, a * tap.weight[c], value + ((b * S + L.start[v] + tap.pixel[c]) * H + h) * D, o);
+        }
     }
   }, pool);
 }
 
 // Adds into d_value, d_locations, d_weights (each may be null). Parallel over (batch, head): each task owns its slice
-// of every gradient, so the sums are race-free and do not depend on the thread count.
-template <class T>
-void deform_core_backward(T* d_value, T* d_locations, T* d_weights, const T* d_out, const T* value, const T* locations,
-                          const T* weights, const DeformCoreLayout& L, ThreadPool& pool = global_pool()) {
+// of every gradient, so the sums are race-free and do not depend on the thread count. Queries are visited in
+// query_order (null: 0..n-1), which fixes the summation order into d_value.
+template <class T, bool Simd>
+void deform_core_backward_impl(T* d_value, T* d_locations, T* d_weights, const T* d_out, const T* value, const T* locations,
+                               const T* weights, const DeformCoreLayout& L, ThreadPool& pool = global_pool(),
+                               const index_t* query_order = nullptr) {
   const index_t V = L.views(), P = L.points, D = L.head_dim, H = L.heads, S = L.value_len();
   parallel_for(L.batch * H, [&](index_t t0, index_t t1, int) {
     for (index_t task = t0; task < t1; ++task) {
       const index_t b = task / H, h = task % H;
-      for (index_t q = 0; q < L.n_queries; ++q) {
-        const index_t r = b * L.n_queries + q;
+      for (index_t i = 0; i < L.n_queries; ++i) {
+        const index_t r = b * L.n_queries + (query_order ? query_order[i] : i);
         const T* g = d_out + (r * H + h) * D;
         const index_t base = (r * H + h) * V * P;
         for (index_t v = 0; v < V; ++v)
@@ -169,11 +192,11 @@ void deform_core_backward(T* d_value, T* d_locations, T* d_weights, const T* d_o
             for (int c = 0; c < 4; ++c) {
               if (!t.valid[c]) continue;
               const index_t row = ((b * S + L.start[v] + t.pixel[c]) * H + h) * D;
-              const T gv = detail::dot(D, g, value + row);
+              const T gv = detail::dot<T, Simd>(D, g, value + row);
               d_a += t.weight[c] * gv;
               d_x += t.d_weight_dx[c] * gv;
               d_y += t.d_weight_dy[c] * gv;
-              if (d_value) detail::axpy(D, a * t.weight[c], g, d_value + row);
+              if (d_value) detail::axpy<T, Simd>(D, a * t.weight[c], g, d_value + row);
             }
             if (d_weights) d_weights[s] += d_a;
             if (d_locations) {
@@ -184,6 +207,23 @@ void deform_core_backward(T* d_value, T* d_locations, T* d_weights, const T* d_o
       }
     }
   }, pool);
+}
+
+template <class T>
+void deform_core_forward(T* out, const T* value, const T* locations, const T* weights, const DeformCoreLayout& L,
+                         ThreadPool& pool = global_pool(), const index_t* query_order = nullptr) {
+  if (simd::enabled()) deform_core_forward_impl<T, true>(out, value, locations, weights, L, pool, query_order);
+  else deform_core_forward_impl<T, false>(out, value, locations, weights, L, pool, query_order);
+}
+
+template <class T>
+void deform_core_backward(T* d_value, T* d_locations, T* d_weights, const T* d_out, const T* value, const T* locations,
+                          const T* weights, const DeformCoreLayout& L, ThreadPool& pool = global_pool(),
+                          const index_t* query_order = nullptr) {
+  if (simd::enabled())
+    deform_core_backward_impl<T, true>(d_value, d_locations, d_weights, d_out, value, locations, weights, L, pool, query_order);
+  else
+    deform_core_backward_impl<T, false>(d_value, d_locations, d_weights, d_out, value, locations, weights, L, pool, query_order);
 }
 
 }  // namespace decoder

@@ -6,6 +6,7 @@
 // update. Value and output projections as in Deformable DETR.
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <limits>
 #include <random>
 #include <vector>
@@ -13,6 +14,7 @@
 #include "flexsplat/decoder/deform_core.hpp"
 #include "flexsplat/decoder/gaussians.hpp"
 #include "flexsplat/decoder/init.hpp"
+#include "flexsplat/decoder/morton.hpp"
 #include "flexsplat/nn/linear.hpp"
 
 namespace flexsplat {
@@ -74,12 +76,12 @@ struct FeatureMaps {
   const T* data = nullptr;
 };
 
-// Everything backward needs; buffers are sized by mv_deform_forward and reused across calls.
+// Everything backward needs; buffers are sized by resize() (called by mv_deform_forward) and never shrink, so a cache
+// reserved once does not allocate again.
 template <class T>
 struct MVDeformCache {
   index_t n = 0, views = 0;
-  std::vector<T> features_nhwc;  // [V*h*w, value_dim]
-  std::vector<T> value;          // [V*h*w, dim] = [1, S, heads, head_dim]
+  std::vector<T> value;          // [V*h*w, dim] = [1, S, heads, head_dim]: a bilinear tap reads head_dim contiguous values
   std::vector<T> offsets;        // [N, V*heads*points*2] (linear output, view-major)
   std::vector<T> logits;         // [N, V*heads*points]
   std::vector<T> reference;      // [N, V, 2] normalised reference points
@@ -88,7 +90,55 @@ struct MVDeformCache {
   std::vector<T> locations;      // [N, heads, V, points, 2]
   std::vector<T> weights;        // [N, heads, V, points]
   std::vector<T> sampled;        // [N, dim]
+  std::vector<index_t> order, order_tmp;          // [N] queries along a Morton curve of their centres (cache locality)
+  std::vector<std::uint32_t> codes, codes_tmp;    // [N] sort keys
   DeformCoreLayout core;
+  void resize(index_t n_queries, index_t n_views, index_t feat_h, index_t feat_w, const MVDeformConfig& c) {
+    n = n_queries;
+    views = n_views;
+    const auto z = static_cast<std::size_t>(n_queries);
+    const auto slots = static_cast<std::size_t>(n_views * c.heads * c.points);
+    value.resize(static_cast<std::size_t>(n_views * feat_h * feat_w * c.dim));
+    offsets.resize(z * 2 * slots);
+    logits.resize(z * slots);
+    reference.resize(z * static_cast<std::size_t>(n_views) * 2);
+    visible.resize(z * static_cast<std::size_t>(n_views));
+    any_visible.resize(z);
+    locations.resize(z * 2 * slots);
+    weights.resize(z * slots);
+    sampled.resize(z * static_cast<std::size_t>(c.dim));
+    order.resize(z), order_tmp.resize(z), codes.resize(z), codes_tmp.resize(z);
+    core.height.reserve(static_cast<std::size_t>(c.max_views));
+    core.width.reserve(static_cast<std::size_t>(c.max_views));
+    core.start.reserve(static_cast<std::size_t>(c.max_views));
+  }
+  std::size_t capacity_bytes() const {
+    return (value.capacity() + offsets.capacity() + logits.capacity() + reference.capacity() + locations.capacity() +
+            weights.capacity() + sampled.capacity()) * sizeof(T) + visible.capacity() + any_visible.capacity() +
+           (order.capacity() + order_tmp.capacity()) * sizeof(index_t) + (codes.capacity() + codes_tmp.capacity()) * 4 +
+           (core.height.capacity() + core.width.capacity() + core.start.capacity()) * sizeof(index_t);
+  }
+};
+
+// Backward temporaries; one instance can serve every layer.
+template <class T>
+struct MVDeformGradScratch {
+  std::vector<T> g_out, d_sampled, d_value, d_loc, d_w, d_logits, d_offsets, d_ref;
+  void resize(index_t n, index_t views, index_t feat_h, index_t feat_w, const MVDeformConfig& c) {
+    const auto z = static_cast<std::size_t>(n), slots = static_cast<std::size_t>(views * c.heads * c.points);
+    g_out.resize(z * static_cast<std::size_t>(c.dim));
+    d_sampled.resize(z * static_cast<std::size_t>(c.dim));
+    d_value.resize(static_cast<std::size_t>(views * feat_h * feat_w * c.dim));
+    d_loc.resize(z * 2 * slots);
+    d_w.resize(z * slots);
+    d_logits.resize(z * slots);
+    d_offsets.resize(z * 2 * slots);
+    d_ref.resize(z * static_cast<std::size_t>(views) * 2);
+  }
+  std::size_t capacity_bytes() const {
+    return (g_out.capacity() + d_sampled.capacity() + d_value.capacity() + d_loc.capacity() + d_w.capacity() +
+            d_logits.capacity() + d_offsets.capacity() + d_ref.capacity()) * sizeof(T);
+  }
 };
 
 template <class T>
@@ -123,31 +173,22 @@ void mv_deform_forward(T* out, MVDeformCache<T>& cache, const T* x, const T* cen
   const MVDeformParamLayout P(c);
   const index_t V = g.views, H = c.heads, Pn = c.points, hw = f.h * f.w, S = V * hw;
   const index_t slots = V * H * Pn;
-  cache.n = n;
-  cache.views = V;
-  // value projection over every pixel of every view
-  cache.features_nhwc.resize(static_cast<std::size_t>(S * c.value_dim));
-  parallel_for(V * c.value_dim, [&](index_t r0, index_t r1, int) {
-    for (index_t r = r0; r < r1; ++r) {
-      const index_t v = r / c.value_dim, ch = r % c.value_dim;
-      const T* src = f.data + r * hw;
-      T* dst = cache.features_nhwc.data() + v * hw * c.value_dim + ch;
-      for (index_t p = 0; p < hw; ++p) dst[p * c.value_dim] = src[p];
-    }
+  cache.resize(n, V, f.h, f.w, c);
+  // value projection straight from NCHW: value_v [hw, dim] = features_v^T [hw, C_f] W^T + b
+  parallel_for(S, [&](index_t r0, index_t r1, int) {
+    for (index_t r = r0; r < r1; ++r) std::copy(params + P.value_b, params + P.value_b + c.dim, cache.value.data() + r * c.dim);
   });
-  cache.value.resize(static_cast<std::size_t>(S * c.dim));
-  nn::linear_forward(cache.value.data(), cache.features_nhwc.data(), params + P.value_w, params + P.value_b, S,
-                     c.value_dim, c.dim);
+  for (index_t v = 0; v < V; ++v)
+    gemm(Trans::yes, Trans::yes, hw, c.dim, c.value_dim, T(1), f.data + v * c.value_dim * hw, hw, params + P.value_w,
+         c.value_dim, T(1), cache.value.data() + v * hw * c.dim, c.dim);
   // offsets and logits for the views in use
-  cache.offsets.resize(static_cast<std::size_t>(n * 2 * slots));
-  cache.logits.resize(static_cast<std::size_t>(n * slots));
   nn::linear_forward(cache.offsets.data(), x, params + P.offset_w, params + P.offset_b, n, c.dim, 2 * slots);
   nn::linear_forward(cache.logits.data(), x, params + P.logit_w, params + P.logit_b, n, c.dim, slots);
-  cache.reference.assign(static_cast<std::size_t>(n * V * 2), T(0));
-  cache.visible.assign(static_cast<std::size_t>(n * V), 0);
-  cache.any_visible.assign(static_cast<std::size_t>(n), 0);
-  cache.locations.assign(static_cast<std::size_t>(n * slots * 2), T(0));
-  cache.weights.assign(static_cast<std::size_t>(n * slots), T(0));
+  std::fill(cache.reference.begin(), cache.reference.end(), T(0));
+  std::fill(cache.visible.begin(), cache.visible.end(), 0);
+  std::fill(cache.any_visible.begin(), cache.any_visible.end(), 0);
+  std::fill(cache.locations.begin(), cache.locations.end(), T(0));
+  std::fill(cache.weights.begin(), cache.weights.end(), T(0));
   parallel_for(n, [&](index_t q0, index_t q1, int) {
     for (index_t q = q0; q < q1; ++q) {
       for (index_t v = 0; v < V; ++v) {
@@ -180,41 +221,42 @@ void mv_deform_forward(T* out, MVDeformCache<T>& cache, const T* x, const T* cen
       }
     }
   });
-  std::vector<index_t> view_hw;
-  for (index_t v = 0; v < V; ++v) {
-    view_hw.push_back(f.h);
-    view_hw.push_back(f.w);
-  }
-  cache.core = make_deform_core_layout(1, n, H, c.dim / H, Pn, view_hw);
-  cache.sampled.resize(static_cast<std::size_t>(n * c.dim));
-  deform_core_forward(cache.sampled.data(), cache.value.data(), cache.locations.data(), cache.weights.data(), cache.core);
+  set_deform_core_layout(cache.core, 1, n, H, c.dim / H, Pn, V, f.h, f.w);
+  morton_order(cache.order.data(), centres, n, cache.codes.data(), cache.codes_tmp.data(), cache.order_tmp.data());
+  deform_core_forward(cache.sampled.data(), cache.value.data(), cache.locations.data(), cache.weights.data(), cache.core,
+                      global_pool(), cache.order.data());
   nn::linear_forward(out, cache.sampled.data(), params + P.out_w, params + P.out_b, n, c.dim, c.dim);
   for (index_t q = 0; q < n; ++q)
     if (!cache.any_visible[q]) std::fill(out + q * c.dim, out + (q + 1) * c.dim, T(0));
 }
 
 // Adds into d_x [N, dim], d_centres [N, 3], d_params, d_features (NCHW like the input) and the camera gradients
-// (any may be null except d_params).
+// (any may be null except d_params). Temporaries live in gs (sized here, reused across calls).
 template <class T>
 void mv_deform_backward(T* d_x, T* d_centres, T* d_params, T* d_features, const ViewGeometryGrad<T>& d_geometry,
                         const T* d_out, const MVDeformCache<T>& cache, const T* x, const T* centres, const T* params,
-                        const MVDeformConfig& c, const FeatureMaps<T>& f, const ViewGeometry<T>& g) {
+                        const MVDeformConfig& c, const FeatureMaps<T>& f, const ViewGeometry<T>& g,
+                        MVDeformGradScratch<T>& gs) {
   const MVDeformParamLayout P(c);
-  const index_t n = cache.n, V = cache.views, H = c.heads, Pn = c.points, hw = f.h * f.w, S = V * hw;
+  const index_t n = cache.n, V = cache.views, H = c.heads, Pn = c.points, hw = f.h * f.w;
   const index_t slots = V * H * Pn;
-  std::vector<T> g_out(d_out, d_out + n * c.dim);
+  gs.resize(n, V, f.h, f.w, c);
+  std::copy(d_out, d_out + n * c.dim, gs.g_out.begin());
   for (index_t q = 0; q < n; ++q)
-    if (!cache.any_visible[q]) std::fill(g_out.begin() + q * c.dim, g_out.begin() + (q + 1) * c.dim, T(0));
-  std::vector<T> d_sampled(static_cast<std::size_t>(n * c.dim), T(0));
-  nn::linear_backward(d_sampled.data(), d_params + P.out_w, d_params + P.out_b, g_out.data(), cache.sampled.data(),
+    if (!cache.any_visible[q]) std::fill(gs.g_out.begin() + q * c.dim, gs.g_out.begin() + (q + 1) * c.dim, T(0));
+  for (auto* buf : {&gs.d_sampled, &gs.d_value, &gs.d_loc, &gs.d_w, &gs.d_logits, &gs.d_offsets, &gs.d_ref})
+    std::fill(buf->begin(), buf->end(), T(0));
+  nn::linear_backward(gs.d_sampled.data(), d_params + P.out_w, d_params + P.out_b, gs.g_out.data(), cache.sampled.data(),
                       params + P.out_w, n, c.dim, c.dim);
-  std::vector<T> d_value(static_cast<std::size_t>(S * c.dim), T(0)), d_loc(cache.locations.size(), T(0)),
-      d_w(cache.weights.size(), T(0));
-  deform_core_backward(d_value.data(), d_loc.data(), d_w.data(), d_sampled.data(), cache.value.data(),
-                       cache.locations.data(), cache.weights.data(), cache.core);
+  T* const d_value = gs.d_value.data();
+  T* const d_loc = gs.d_loc.data();
+  T* const d_w = gs.d_w.data();
+  T* const d_logits = gs.d_logits.data();
+  T* const d_offsets = gs.d_offsets.data();
+  T* const d_ref = gs.d_ref.data();
+  deform_core_backward(d_value, d_loc, d_w, gs.d_sampled.data(), cache.value.data(), cache.locations.data(),
+                       cache.weights.data(), cache.core, global_pool(), cache.order.data());
   // softmax, offsets and reference points
-  std::vector<T> d_logits(static_cast<std::size_t>(n * slots), T(0)), d_offsets(static_cast<std::size_t>(n * 2 * slots), T(0));
-  std::vector<T> d_ref(static_cast<std::size_t>(n * V * 2), T(0));
   parallel_for(n, [&](index_t q0, index_t q1, int) {
     for (index_t q = q0; q < q1; ++q)
       for (index_t h = 0; h < H; ++h) {
@@ -234,9 +276,9 @@ void mv_deform_backward(T* d_x, T* d_centres, T* d_params, T* d_features, const 
           }
       }
   });
-  nn::linear_backward(d_x, d_params + P.offset_w, d_params + P.offset_b, d_offsets.data(), x, params + P.offset_w, n,
+  nn::linear_backward(d_x, d_params + P.offset_w, d_params + P.offset_b, d_offsets, x, params + P.offset_w, n,
                       c.dim, 2 * slots);
-  nn::linear_backward(d_x, d_params + P.logit_w, d_params + P.logit_b, d_logits.data(), x, params + P.logit_w, n, c.dim,
+  nn::linear_backward(d_x, d_params + P.logit_w, d_params + P.logit_b, d_logits, x, params + P.logit_w, n, c.dim,
                       slots);
   // projection: serial so the shared camera gradients are summed in a fixed order
   for (index_t q = 0; q < n; ++q)
@@ -267,19 +309,27 @@ void mv_deform_backward(T* d_x, T* d_centres, T* d_params, T* d_features, const 
       if (d_centres)
         for (int j = 0; j < 3; ++j) d_centres[3 * q + j] += E[j] * d_cam[0] + E[4 + j] * d_cam[1] + E[8 + j] * d_cam[2];
     }
-  // value projection back to NCHW features
-  std::vector<T> d_nhwc(d_features ? static_cast<std::size_t>(S * c.value_dim) : 0, T(0));
-  nn::linear_backward(d_features ? d_nhwc.data() : static_cast<T*>(nullptr), d_params + P.value_w, d_params + P.value_b,
-                      d_value.data(), cache.features_nhwc.data(), params + P.value_w, S, c.value_dim, c.dim);
-  if (d_features)
-    parallel_for(V * c.value_dim, [&](index_t r0, index_t r1, int) {
-      for (index_t r = r0; r < r1; ++r) {
-        const index_t v = r / c.value_dim, ch = r % c.value_dim;
-        const T* src = d_nhwc.data() + v * hw * c.value_dim + ch;
-        T* dst = d_features + r * hw;
-        for (index_t p = 0; p < hw; ++p) dst[p] += src[p * c.value_dim];
-      }
-    });
+  // value projection, straight back to NCHW: d_features_v [C_f, hw] += W^T d_value_v^T, d_W += d_value_v^T features_v^T
+  for (index_t v = 0; v < V; ++v) {
+    const T* dv = d_value + v * hw * c.dim;
+    const T* fv = f.data + v * c.value_dim * hw;
+    if (d_features)
+      gemm(Trans::yes, Trans::yes, c.value_dim, hw, c.dim, T(1), params + P.value_w, c.value_dim, dv, c.dim, T(1),
+           d_features + v * c.value_dim * hw, hw);
+    gemm(Trans::yes, Trans::yes, c.dim, c.value_dim, hw, T(1), dv, c.dim, fv, hw, T(1), d_params + P.value_w, c.value_dim);
+  }
+  T* db = d_params + P.value_b;
+  for (index_t r = 0; r < V * hw; ++r)
+    for (index_t k = 0; k < c.dim; ++k) db[k] += d_value[r * c.dim + k];
+}
+
+// Convenience form with its own (allocated) temporaries.
+template <class T>
+void mv_deform_backward(T* d_x, T* d_centres, T* d_params, T* d_features, const ViewGeometryGrad<T>& d_geometry,
+                        const T* d_out, const MVDeformCache<T>& cache, const T* x, const T* centres, const T* params,
+                        const MVDeformConfig& c, const FeatureMaps<T>& f, const ViewGeometry<T>& g) {
+  MVDeformGradScratch<T> gs;
+  mv_deform_backward(d_x, d_centres, d_params, d_features, d_geometry, d_out, cache, x, centres, params, c, f, g, gs);
 }
 
 }  // namespace decoder

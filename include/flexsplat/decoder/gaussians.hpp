@@ -55,10 +55,10 @@ struct Anchors {
   std::vector<double> pixel;   // [N, 2] pixel-edge coordinates (a_x, a_y) in the image K refers to
 };
 
-inline Anchors make_anchors(index_t n_queries, index_t views, index_t image_w, index_t image_h) {
+// Fills a in place (its vectors keep their capacity, so a reused Anchors does not allocate).
+inline void make_anchors(Anchors& a, index_t n_queries, index_t views, index_t image_w, index_t image_h) {
   require(n_queries >= 1, "decoder: the Gaussian budget must be positive, got ", n_queries);
   require(views >= 1, "decoder: need at least one view, got ", views);
-  Anchors a;
   a.view.resize(static_cast<std::size_t>(n_queries));
   a.pixel.resize(static_cast<std::size_t>(2 * n_queries));
   for (index_t v = 0; v < views; ++v) {
@@ -72,6 +72,11 @@ inline Anchors make_anchors(index_t n_queries, index_t views, index_t image_w, i
       a.pixel[2 * i + 1] = (static_cast<double>(j / g) + 0.5) / static_cast<double>(g) * static_cast<double>(image_h);
     }
   }
+}
+
+inline Anchors make_anchors(index_t n_queries, index_t views, index_t image_w, index_t image_h) {
+  Anchors a;
+  make_anchors(a, n_queries, views, image_w, image_h);
   return a;
 }
 

@@ -25,34 +25,43 @@ struct SceneCentre {
 // c_v = -R^T t the camera centre and a_v = R^T e_z its viewing direction. When the normal matrix (divided by the weight
 // sum) has an eigenvalue below parallel_axes_eigen_floor the axes do not pin a point down, and the centre becomes the
 // mean of the points at each view's median predicted depth along its axis. weights may be null (all 1).
+// median_scratch (may be null) holds the depth values of the fallback; reserve depth_w * depth_h to avoid allocating.
+namespace detail {
+// Camera centre c = -R^T t and unit viewing direction a = R^T e_z of view v; false for a degenerate rotation.
 template <class T>
-SceneCentre scene_centre_from_axes(const ViewGeometry<T>& g, const T* weights = nullptr) {
+bool camera_axis(const ViewGeometry<T>& g, index_t v, Eigen::Vector3d& c, Eigen::Vector3d& a) {
+  const T* E = g.world_to_camera + 12 * v;
+  Eigen::Matrix3d R;
+  Eigen::Vector3d t;
+  for (int r = 0; r < 3; ++r) {
+    for (int k = 0; k < 3; ++k) R(r, k) = static_cast<double>(E[4 * r + k]);
+    t(r) = static_cast<double>(E[4 * r + 3]);
+  }
+  c = -R.transpose() * t;
+  a = R.row(2).transpose();
+  const double norm = a.norm();
+  if (!(norm > 0 && std::isfinite(norm))) return false;
+  a /= norm;
+  return true;
+}
+}  // namespace detail
+
+template <class T>
+SceneCentre scene_centre_from_axes(const ViewGeometry<T>& g, const T* weights = nullptr,
+                                   std::vector<double>* median_scratch = nullptr) {
   validate_geometry(g);
   Eigen::Matrix3d A = Eigen::Matrix3d::Zero();
   Eigen::Vector3d b = Eigen::Vector3d::Zero();
   double weight_sum = 0;
-  std::vector<Eigen::Vector3d> centres, axes;
   for (index_t v = 0; v < g.views; ++v) {
-    const T* E = g.world_to_camera + 12 * v;
-    Eigen::Matrix3d R;
-    Eigen::Vector3d t;
-    for (int r = 0; r < 3; ++r) {
-      for (int c = 0; c < 3; ++c) R(r, c) = static_cast<double>(E[4 * r + c]);
-      t(r) = static_cast<double>(E[4 * r + 3]);
-    }
-    const Eigen::Vector3d c = -R.transpose() * t;
-    Eigen::Vector3d a = R.row(2).transpose();
-    const double norm = a.norm();
-    require(norm > 0 && std::isfinite(norm), "scene centre: view ", v, " has a degenerate rotation (zero third row)");
-    a /= norm;
+    Eigen::Vector3d c, a;
+    require(detail::camera_axis(g, v, c, a), "scene centre: view ", v, " has a degenerate rotation (zero third row)");
     const double w = weights ? static_cast<double>(weights[v]) : 1.0;
     require(std::isfinite(w) && w >= 0, "scene centre: view ", v, " has weight ", w, " (must be finite and >= 0)");
     const Eigen::Matrix3d P = Eigen::Matrix3d::Identity() - a * a.transpose();
     A += w * P;
     b += w * P * c;
     weight_sum += w;
-    centres.push_back(c);
-    axes.push_back(a);
   }
   require(weight_sum > 0, "scene centre: all view weights are zero");
   SceneCentre out;
@@ -67,8 +76,11 @@ SceneCentre scene_centre_from_axes(const ViewGeometry<T>& g, const T* weights = 
     }
   }
   Eigen::Vector3d mean = Eigen::Vector3d::Zero();
-  std::vector<double> values;
+  std::vector<double> own;
+  std::vector<double>& values = median_scratch ? *median_scratch : own;
   for (index_t v = 0; v < g.views; ++v) {
+    Eigen::Vector3d centre, axis;
+    detail::camera_axis(g, v, centre, axis);
     values.clear();
     const T* D = g.depth + v * g.depth_w * g.depth_h;
     for (index_t i = 0; i < g.depth_w * g.depth_h; ++i)
@@ -78,7 +90,7 @@ SceneCentre scene_centre_from_axes(const ViewGeometry<T>& g, const T* weights = 
       std::nth_element(values.begin(), values.begin() + values.size() / 2, values.end());
       median = values[values.size() / 2];
     }
-    mean += centres[v] + median * axes[v];
+    mean += centre + median * axis;
   }
   mean /= static_cast<double>(g.views);
   for (int i = 0; i < 3; ++i) out.centre[i] = mean(i);

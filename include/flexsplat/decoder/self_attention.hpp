@@ -11,6 +11,8 @@
 #include <vector>
 
 #include "flexsplat/decoder/init.hpp"
+#include "flexsplat/decoder/kernels.hpp"
+#include "flexsplat/decoder/morton.hpp"
 #include "flexsplat/nn/attention.hpp"
 #include "flexsplat/nn/linear.hpp"
 
@@ -48,65 +50,66 @@ void self_attention_init(T* params, const SelfAttentionConfig& c, std::mt19937_6
 template <class T>
 struct SelfAttentionCache {
   index_t n = 0;
-  std::vector<index_t> order;  // local: position in the Morton order -> query index
-  std::vector<T> qkv;          // [N, 3 dim], in attention order
-  std::vector<T> attended;     // [N, dim], in attention order
-  std::vector<T> attended_query_order;  // [N, dim], input of the output projection
-  std::vector<T> lse;          // [heads * N] (per window block)
-  std::vector<T> scratch;
+  std::vector<index_t> order;           // local: position in the Morton order -> query index
+  std::vector<std::uint32_t> codes, codes_tmp;  // local: Morton keys and radix-sort scratch
+  std::vector<index_t> order_tmp;
+  std::vector<T> x_sorted;              // local: [N, dim] input rows in attention order
+  std::vector<T> qkv;                   // [N, 3 dim], in attention order
+  std::vector<T> attended;              // [N, dim], in attention order
+  std::vector<T> attended_query_order;  // local: [N, dim], input of the output projection
+  std::vector<T> lse;                   // [heads * N]
+  std::vector<T> scratch;               // per-worker attention tiles
+  // Sizes every buffer for n queries; never shrinks capacity, so a reserved cache does not allocate again.
+  void resize(index_t n_queries, const SelfAttentionConfig& c, int workers) {
+    n = n_queries;
+    const auto z = static_cast<std::size_t>(n_queries);
+    const auto d = static_cast<std::size_t>(c.dim);
+    qkv.resize(z * 3 * d);
+    attended.resize(z * d);
+    lse.resize(z * static_cast<std::size_t>(c.heads));
+    if (c.local) {
+      order.resize(z), codes.resize(z), codes_tmp.resize(z), order_tmp.resize(z);
+      x_sorted.resize(z * d);
+      attended_query_order.resize(z * d);
+      const kernels::WindowAttentionShape s{n_queries, c.window, c.heads, c.dim / c.heads};
+      scratch.resize(static_cast<std::size_t>(kernels::window_attention_scratch_per_worker(s) * workers));
+    } else {
+      scratch.resize(static_cast<std::size_t>(nn::attention_scratch_per_worker(c.dim / c.heads) * workers));
+    }
+  }
+  std::size_t capacity_bytes() const {
+    return order.capacity() * sizeof(index_t) + (codes.capacity() + codes_tmp.capacity()) * 4 +
+           order_tmp.capacity() * sizeof(index_t) +
+           (x_sorted.capacity() + qkv.capacity() + attended.capacity() + attended_query_order.capacity() + lse.capacity() +
+            scratch.capacity()) * sizeof(T);
+  }
 };
 
-// Morton order of points quantised to a 2^10 grid over their bounding box; ties keep the index order.
+// Backward temporaries; one instance can serve every layer.
 template <class T>
-void morton_order(std::vector<index_t>& order, const T* centres, index_t n) {
-  double lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
-  for (index_t i = 0; i < n; ++i)
-    for (int j = 0; j < 3; ++j) {
-      const double x = static_cast<double>(centres[3 * i + j]);
-      if (!std::isfinite(x)) continue;
-      lo[j] = std::min(lo[j], x);
-      hi[j] = std::max(hi[j], x);
-    }
-  std::vector<std::uint32_t> code(static_cast<std::size_t>(n));
-  for (index_t i = 0; i < n; ++i) {
-    std::uint32_t c = 0;
-    std::uint32_t cell[3];
-    for (int j = 0; j < 3; ++j) {
-      const double x = static_cast<double>(centres[3 * i + j]);
-      const double extent = hi[j] - lo[j];
-      const double t = std::isfinite(x) && extent > 0 ? (x - lo[j]) / extent : 0.0;
-      cell[j] = static_cast<std::uint32_t>(std::clamp(t, 0.0, 1.0) * 1023.0);
-    }
-    for (int bit = 9; bit >= 0; --bit)
-      for (int j = 0; j < 3; ++j) c = (c << 1) | ((cell[j] >> bit) & 1u);
-    code[i] = c;
+struct SelfAttentionGradScratch {
+  std::vector<T> d_att_query_order, d_att, d_qkv, d_x_sorted;
+  void resize(index_t n, const SelfAttentionConfig& c) {
+    const auto z = static_cast<std::size_t>(n), d = static_cast<std::size_t>(c.dim);
+    d_att_query_order.resize(z * d);
+    d_att.resize(c.local ? z * d : 0);
+    d_qkv.resize(z * 3 * d);
+    d_x_sorted.resize(c.local ? z * d : 0);
   }
-  order.resize(static_cast<std::size_t>(n));
-  std::iota(order.begin(), order.end(), index_t{0});
-  std::stable_sort(order.begin(), order.end(), [&](index_t a, index_t b) { return code[a] < code[b]; });
-}
+  std::size_t capacity_bytes() const {
+    return (d_att_query_order.capacity() + d_att.capacity() + d_qkv.capacity() + d_x_sorted.capacity()) * sizeof(T);
+  }
+};
 
 namespace detail {
-// Runs fn(first_query, count) over the attention blocks: the whole set, or full windows plus a shorter last one.
-template <class Fn>
-void for_each_window(index_t n, const SelfAttentionConfig& c, Fn&& fn) {
-  if (!c.local) {
-    fn(index_t{0}, n, index_t{1});
-    return;
-  }
-  const index_t full = n / c.window;
-  if (full > 0) fn(index_t{0}, c.window, full);
-  if (n % c.window) fn(full * c.window, n % c.window, index_t{1});
-}
-
-inline nn::AttentionLayout window_layout(index_t count, index_t windows, const SelfAttentionConfig& c) {
+inline nn::AttentionLayout full_attention_layout(index_t n, const SelfAttentionConfig& c) {
   nn::AttentionLayout L;
-  L.batch = windows;
+  L.batch = 1;
   L.heads = c.heads;
-  L.n_q = L.n_kv = count;
+  L.n_q = L.n_kv = n;
   L.head_dim = c.dim / c.heads;
-  L.q = L.k = L.v = {count * 3 * c.dim, L.head_dim, 3 * c.dim};
-  L.out = {count * c.dim, L.head_dim, c.dim};
+  L.q = L.k = L.v = {n * 3 * c.dim, L.head_dim, 3 * c.dim};
+  L.out = {n * c.dim, L.head_dim, c.dim};
   return L;
 }
 }  // namespace detail
@@ -118,66 +121,80 @@ void self_attention_forward(T* out, SelfAttentionCache<T>& cache, const T* x, co
   require(c.dim % c.heads == 0, "self-attention: dim ", c.dim, " is not divisible by ", c.heads, " heads");
   require(!c.local || c.window >= 1, "self-attention: local window must be positive, got ", c.window);
   const SelfAttentionParamLayout P(c);
-  cache.n = n;
-  cache.qkv.resize(static_cast<std::size_t>(n * 3 * c.dim));
-  nn::linear_forward(cache.qkv.data(), x, params + P.qkv_w, params + P.qkv_b, n, c.dim, 3 * c.dim);
-  if (c.local) {
-    morton_order(cache.order, centres, n);
-    std::vector<T> sorted(cache.qkv.size());
-    for (index_t i = 0; i < n; ++i)
-      std::copy_n(cache.qkv.data() + cache.order[i] * 3 * c.dim, 3 * c.dim, sorted.data() + i * 3 * c.dim);
-    cache.qkv.swap(sorted);
-  }
-  cache.attended.resize(static_cast<std::size_t>(n * c.dim));
-  cache.lse.resize(static_cast<std::size_t>(n * c.heads));
-  cache.scratch.resize(static_cast<std::size_t>(nn::attention_scratch_per_worker(c.dim / c.heads) * global_pool().size()));
+  cache.resize(n, c, global_pool().size());
   const T scale = T(1) / std::sqrt(static_cast<T>(c.dim / c.heads));
-  detail::for_each_window(n, c, [&](index_t first, index_t count, index_t windows) {
-    const T* qkv = cache.qkv.data() + first * 3 * c.dim;
-    nn::attention_forward(cache.attended.data() + first * c.dim, cache.lse.data() + first * c.heads, qkv, qkv + c.dim,
-                          qkv + 2 * c.dim, detail::window_layout(count, windows, c), scale, std::span<T>(cache.scratch));
-  });
-  const T* projected_in = cache.attended.data();
-  if (c.local) {
-    cache.attended_query_order.resize(cache.attended.size());
-    for (index_t i = 0; i < n; ++i)
-      std::copy_n(cache.attended.data() + i * c.dim, c.dim, cache.attended_query_order.data() + cache.order[i] * c.dim);
-    projected_in = cache.attended_query_order.data();
+  if (!c.local) {
+    nn::linear_forward(cache.qkv.data(), x, params + P.qkv_w, params + P.qkv_b, n, c.dim, 3 * c.dim);
+    const T* qkv = cache.qkv.data();
+    nn::attention_forward(cache.attended.data(), cache.lse.data(), qkv, qkv + c.dim, qkv + 2 * c.dim,
+                          detail::full_attention_layout(n, c), scale, std::span<T>(cache.scratch));
+    nn::linear_forward(out, cache.attended.data(), params + P.out_w, params + P.out_b, n, c.dim, c.dim);
+    return;
   }
-  nn::linear_forward(out, projected_in, params + P.out_w, params + P.out_b, n, c.dim, c.dim);
+  morton_order(cache.order.data(), centres, n, cache.codes.data(), cache.codes_tmp.data(), cache.order_tmp.data());
+  parallel_for(n, [&](index_t i0, index_t i1, int) {
+    for (index_t i = i0; i < i1; ++i) std::copy_n(x + cache.order[i] * c.dim, c.dim, cache.x_sorted.data() + i * c.dim);
+  });
+  nn::linear_forward(cache.qkv.data(), cache.x_sorted.data(), params + P.qkv_w, params + P.qkv_b, n, c.dim, 3 * c.dim);
+  const kernels::WindowAttentionShape s{n, c.window, c.heads, c.dim / c.heads};
+  kernels::window_attention_forward(cache.attended.data(), cache.lse.data(), cache.qkv.data(), s, scale,
+                                    std::span<T>(cache.scratch));
+  parallel_for(n, [&](index_t i0, index_t i1, int) {
+    for (index_t i = i0; i < i1; ++i)
+      std::copy_n(cache.attended.data() + i * c.dim, c.dim, cache.attended_query_order.data() + cache.order[i] * c.dim);
+  });
+  nn::linear_forward(out, cache.attended_query_order.data(), params + P.out_w, params + P.out_b, n, c.dim, c.dim);
 }
 
-// Adds into d_x and d_params.
+// Adds into d_x and d_params; temporaries live in g (sized here, reused across calls).
+template <class T>
+void self_attention_backward(T* d_x, T* d_params, const T* d_out, SelfAttentionCache<T>& cache, const T* x,
+                             const T* params, const SelfAttentionConfig& c, SelfAttentionGradScratch<T>& g) {
+  const SelfAttentionParamLayout P(c);
+  const index_t n = cache.n;
+  g.resize(n, c);
+  std::fill(g.d_att_query_order.begin(), g.d_att_query_order.end(), T(0));
+  std::fill(g.d_qkv.begin(), g.d_qkv.end(), T(0));
+  const T scale = T(1) / std::sqrt(static_cast<T>(c.dim / c.heads));
+  if (!c.local) {
+    nn::linear_backward(g.d_att_query_order.data(), d_params + P.out_w, d_params + P.out_b, d_out, cache.attended.data(),
+                        params + P.out_w, n, c.dim, c.dim);
+    T* dq = g.d_qkv.data();
+    const T* qkv = cache.qkv.data();
+    nn::attention_backward(dq, dq + c.dim, dq + 2 * c.dim, g.d_att_query_order.data(), cache.attended.data(),
+                           cache.lse.data(), qkv, qkv + c.dim, qkv + 2 * c.dim, detail::full_attention_layout(n, c), scale,
+                           std::span<T>(cache.scratch));
+    nn::linear_backward(d_x, d_params + P.qkv_w, d_params + P.qkv_b, g.d_qkv.data(), x, params + P.qkv_w, n, c.dim,
+                        3 * c.dim);
+    return;
+  }
+  nn::linear_backward(g.d_att_query_order.data(), d_params + P.out_w, d_params + P.out_b, d_out,
+                      cache.attended_query_order.data(), params + P.out_w, n, c.dim, c.dim);
+  parallel_for(n, [&](index_t i0, index_t i1, int) {
+    for (index_t i = i0; i < i1; ++i)
+      std::copy_n(g.d_att_query_order.data() + cache.order[i] * c.dim, c.dim, g.d_att.data() + i * c.dim);
+  });
+  const kernels::WindowAttentionShape s{n, c.window, c.heads, c.dim / c.heads};
+  kernels::window_attention_backward(g.d_qkv.data(), g.d_att.data(), cache.attended.data(), cache.lse.data(),
+                                     cache.qkv.data(), s, scale, std::span<T>(cache.scratch));
+  std::fill(g.d_x_sorted.begin(), g.d_x_sorted.end(), T(0));
+  nn::linear_backward(g.d_x_sorted.data(), d_params + P.qkv_w, d_params + P.qkv_b, g.d_qkv.data(), cache.x_sorted.data(),
+                      params + P.qkv_w, n, c.dim, 3 * c.dim);
+  parallel_for(n, [&](index_t i0, index_t i1, int) {
+    for (index_t i = i0; i < i1; ++i) {
+      T* dst = d_x + cache.order[i] * c.dim;
+      const T* src = g.d_x_sorted.data() + i * c.dim;
+      for (index_t k = 0; k < c.dim; ++k) dst[k] += src[k];
+    }
+  });
+}
+
+// Convenience form with its own (allocated) temporaries.
 template <class T>
 void self_attention_backward(T* d_x, T* d_params, const T* d_out, SelfAttentionCache<T>& cache, const T* x,
                              const T* params, const SelfAttentionConfig& c) {
-  const SelfAttentionParamLayout P(c);
-  const index_t n = cache.n;
-  std::vector<T> d_att(static_cast<std::size_t>(n * c.dim), T(0));
-  const T* projected_in = c.local ? cache.attended_query_order.data() : cache.attended.data();
-  nn::linear_backward(d_att.data(), d_params + P.out_w, d_params + P.out_b, d_out, projected_in, params + P.out_w, n,
-                      c.dim, c.dim);
-  if (c.local) {
-    std::vector<T> sorted(d_att.size());
-    for (index_t i = 0; i < n; ++i) std::copy_n(d_att.data() + cache.order[i] * c.dim, c.dim, sorted.data() + i * c.dim);
-    d_att.swap(sorted);
-  }
-  std::vector<T> d_qkv(static_cast<std::size_t>(n * 3 * c.dim), T(0));
-  const T scale = T(1) / std::sqrt(static_cast<T>(c.dim / c.heads));
-  detail::for_each_window(n, c, [&](index_t first, index_t count, index_t windows) {
-    const T* qkv = cache.qkv.data() + first * 3 * c.dim;
-    T* dq = d_qkv.data() + first * 3 * c.dim;
-    nn::attention_backward(dq, dq + c.dim, dq + 2 * c.dim, d_att.data() + first * c.dim, cache.attended.data() + first * c.dim,
-                           cache.lse.data() + first * c.heads, qkv, qkv + c.dim, qkv + 2 * c.dim,
-                           detail::window_layout(count, windows, c), scale, std::span<T>(cache.scratch));
-  });
-  if (c.local) {
-    std::vector<T> unsorted(d_qkv.size());
-    for (index_t i = 0; i < n; ++i)
-      std::copy_n(d_qkv.data() + i * 3 * c.dim, 3 * c.dim, unsorted.data() + cache.order[i] * 3 * c.dim);
-    d_qkv.swap(unsorted);
-  }
-  nn::linear_backward(d_x, d_params + P.qkv_w, d_params + P.qkv_b, d_qkv.data(), x, params + P.qkv_w, n, c.dim, 3 * c.dim);
+  SelfAttentionGradScratch<T> g;
+  self_attention_backward(d_x, d_params, d_out, cache, x, params, c, g);
 }
 
 }  // namespace decoder
