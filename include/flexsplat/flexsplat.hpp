@@ -15,3 +15,6 @@
 #include "flexsplat/nn/attention.hpp"
 #include "flexsplat/nn/conv.hpp"
 #include "flexsplat/nn/interpolate.hpp"
+#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/geometry/rope.hpp"
+#include "flexsplat/geometry/block.hpp"
