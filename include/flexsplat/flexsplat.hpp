@@ -18,3 +18,5 @@
 #include "flexsplat/geometry/param_source.hpp"
 #include "flexsplat/geometry/rope.hpp"
 #include "flexsplat/geometry/block.hpp"
+#include "flexsplat/geometry/config.hpp"
+#include "flexsplat/geometry/aggregator.hpp"
