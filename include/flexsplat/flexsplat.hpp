@@ -20,3 +20,6 @@
 #include "flexsplat/geometry/block.hpp"
 #include "flexsplat/geometry/config.hpp"
 #include "flexsplat/geometry/aggregator.hpp"
+#include "flexsplat/image/resample.hpp"
+#include "flexsplat/geometry/preprocess.hpp"
+#include "flexsplat/geometry/preprocess_reference.hpp"
