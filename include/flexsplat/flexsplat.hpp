@@ -23,3 +23,4 @@
 #include "flexsplat/image/resample.hpp"
 #include "flexsplat/geometry/preprocess.hpp"
 #include "flexsplat/geometry/preprocess_reference.hpp"
+#include "flexsplat/geometry/dino.hpp"
