@@ -24,3 +24,4 @@
 #include "flexsplat/geometry/preprocess.hpp"
 #include "flexsplat/geometry/preprocess_reference.hpp"
 #include "flexsplat/geometry/dino.hpp"
+#include "flexsplat/geometry/random_weights.hpp"

@@ -76,8 +76,10 @@ Tensor<T, 2> dino_position_embedding(const DinoConfig& c, const DinoWeights<T>& 
   }
   std::copy(w.pos_embed, w.pos_embed + C, out.data());
   Tensor<T, 3> planar(Shape<3>{C, M, M});
+  // Raw indexing: Tensor::operator() validates its shape on every call, far too slow for per-element loops.
+  T* planar_data = planar.data();
   for (index_t p = 0; p < N; ++p)
-    for (index_t ch = 0; ch < C; ++ch) planar(ch, p / M, p % M) = w.pos_embed[(1 + p) * C + ch];
+    for (index_t ch = 0; ch < C; ++ch) planar_data[ch * N + p] = w.pos_embed[(1 + p) * C + ch];
   Tensor<T, 3> resized;
   if (c.interpolate_offset != 0.0) {
     // DINOv2's legacy path: scale factors (grid + offset) / M, output size floor(M * factor).
@@ -94,8 +96,10 @@ Tensor<T, 2> dino_position_embedding(const DinoConfig& c, const DinoWeights<T>& 
     require(c.interpolate_antialias, "DINO position embedding: only the antialiased bicubic resize is implemented");
     resized = interpolate_bicubic_antialias<T>(planar.view(), gh, gw);
   }
+  const T* resized_data = resized.data();
+  T* out_data = out.data();
   for (index_t p = 0; p < gh * gw; ++p)
-    for (index_t ch = 0; ch < C; ++ch) out(1 + p, ch) = resized(ch, p / gw, p % gw);
+    for (index_t ch = 0; ch < C; ++ch) out_data[(1 + p) * C + ch] = resized_data[ch * gh * gw + p];
   return out;
 }
 
@@ -154,12 +158,13 @@ void dino_forward(T* out, const T* images, index_t frames, index_t image_h, inde
     for (index_t q = 0; q < P; ++q) std::copy(w.patch_bias, w.patch_bias + C, dst + q * C);
     gemm(Trans::no, Trans::yes, P, C, K, T(1), ws.patches.data() + s * P * K, K, w.patch_weight, K, T(1), dst, C);
   }
+  const T* pos_data = pos.data();
   for (index_t s = 0; s < frames; ++s) {
     T* frame = x + s * N * C;
-    for (index_t ch = 0; ch < C; ++ch) frame[ch] = w.cls_token[ch] + pos(0, ch);
+    for (index_t ch = 0; ch < C; ++ch) frame[ch] = w.cls_token[ch] + pos_data[ch];
     if (R > 0) std::copy(w.register_tokens, w.register_tokens + R * C, frame + C);
     for (index_t q = 0; q < P; ++q)
-      for (index_t ch = 0; ch < C; ++ch) frame[(1 + R + q) * C + ch] += pos(1 + q, ch);
+      for (index_t ch = 0; ch < C; ++ch) frame[(1 + R + q) * C + ch] += pos_data[(1 + q) * C + ch];
   }
   const BlockConfig bc = c.block();
   std::span<T> block_ws = ws.block.get(bc, frames * N);
