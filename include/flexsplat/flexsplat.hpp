@@ -23,3 +23,8 @@
 #include "flexsplat/image/resample.hpp"
 #include "flexsplat/geometry/preprocess.hpp"
 #include "flexsplat/geometry/preprocess_reference.hpp"
+#include "flexsplat/geometry/param_check.hpp"
+#include "flexsplat/geometry/pose_encoding.hpp"
+#include "flexsplat/geometry/unproject.hpp"
+#include "flexsplat/geometry/camera_head.hpp"
+#include "flexsplat/geometry/dpt_head.hpp"
