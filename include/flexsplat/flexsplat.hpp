@@ -25,3 +25,8 @@
 #include "flexsplat/geometry/preprocess_reference.hpp"
 #include "flexsplat/geometry/dino.hpp"
 #include "flexsplat/geometry/random_weights.hpp"
+#include "flexsplat/geometry/param_check.hpp"
+#include "flexsplat/geometry/pose_encoding.hpp"
+#include "flexsplat/geometry/unproject.hpp"
+#include "flexsplat/geometry/camera_head.hpp"
+#include "flexsplat/geometry/dpt_head.hpp"

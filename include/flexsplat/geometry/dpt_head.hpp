@@ -19,6 +19,8 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/geometry/param_check.hpp"
+#include "flexsplat/geometry/param_source.hpp"
 #include "flexsplat/nn/conv.hpp"
 #include "flexsplat/nn/interpolate.hpp"
 #include "flexsplat/nn/layernorm.hpp"
@@ -108,42 +110,32 @@ struct DptHeadWeights {
   ConvWeights<T> output_conv1, output_conv2_0, output_conv2_2;
 };
 
-// Every parameter (name relative to the head, e.g. "scratch.layer1_rn.weight") with its shape, in a fixed order.
-template <class Fn>
-void for_each_dpt_head_parameter(const DptHeadConfig& c, Fn&& fn) {
+// Parameter names and shapes as in VGGT's state_dict, each prefixed with `prefix`.
+inline void append_dpt_head_specs(std::vector<TensorSpec>& out, const DptHeadConfig& c,
+                                  const std::string& prefix = "depth_head.") {
   const index_t F = c.features;
   const auto& oc = c.out_channels;
-  fn("norm.weight", std::vector<index_t>{c.dim_in});
-  fn("norm.bias", std::vector<index_t>{c.dim_in});
-  for (int i = 0; i < 4; ++i) {
-    fn("projects." + std::to_string(i) + ".weight", std::vector<index_t>{oc[i], c.dim_in, 1, 1});
-    fn("projects." + std::to_string(i) + ".bias", std::vector<index_t>{oc[i]});
-  }
-  fn("resize_layers.0.weight", std::vector<index_t>{oc[0], oc[0], 4, 4});
-  fn("resize_layers.0.bias", std::vector<index_t>{oc[0]});
-  fn("resize_layers.1.weight", std::vector<index_t>{oc[1], oc[1], 2, 2});
-  fn("resize_layers.1.bias", std::vector<index_t>{oc[1]});
-  fn("resize_layers.3.weight", std::vector<index_t>{oc[3], oc[3], 3, 3});
-  fn("resize_layers.3.bias", std::vector<index_t>{oc[3]});
-  for (int i = 0; i < 4; ++i)
-    fn("scratch.layer" + std::to_string(i + 1) + "_rn.weight", std::vector<index_t>{F, oc[i], 3, 3});
+  auto conv = [&](const std::string& name, std::vector<index_t> shape, bool bias = true) {
+    const index_t o = shape[0];
+    out.push_back({prefix + name + ".weight", std::move(shape)});
+    if (bias) out.push_back({prefix + name + ".bias", {o}});
+  };
+  out.push_back({prefix + "norm.weight", {c.dim_in}});
+  out.push_back({prefix + "norm.bias", {c.dim_in}});
+  for (int i = 0; i < 4; ++i) conv("projects." + std::to_string(i), {oc[i], c.dim_in, 1, 1});
+  conv("resize_layers.0", {oc[0], oc[0], 4, 4});
+  conv("resize_layers.1", {oc[1], oc[1], 2, 2});
+  conv("resize_layers.3", {oc[3], oc[3], 3, 3});
+  for (int i = 0; i < 4; ++i) conv("scratch.layer" + std::to_string(i + 1) + "_rn", {F, oc[i], 3, 3}, false);
   for (int r = 1; r <= 4; ++r) {
     const std::string p = "scratch.refinenet" + std::to_string(r) + ".";
-    fn(p + "out_conv.weight", std::vector<index_t>{F, F, 1, 1});
-    fn(p + "out_conv.bias", std::vector<index_t>{F});
+    conv(p + "out_conv", {F, F, 1, 1});
     for (int u = (r == 4 ? 2 : 1); u <= 2; ++u)
-      for (int k = 1; k <= 2; ++k) {
-        const std::string q = p + "resConfUnit" + std::to_string(u) + ".conv" + std::to_string(k) + ".";
-        fn(q + "weight", std::vector<index_t>{F, F, 3, 3});
-        fn(q + "bias", std::vector<index_t>{F});
-      }
+      for (int k = 1; k <= 2; ++k) conv(p + "resConfUnit" + std::to_string(u) + ".conv" + std::to_string(k), {F, F, 3, 3});
   }
-  fn("scratch.output_conv1.weight", std::vector<index_t>{c.head_features(), F, 3, 3});
-  fn("scratch.output_conv1.bias", std::vector<index_t>{c.head_features()});
-  fn("scratch.output_conv2.0.weight", std::vector<index_t>{DptHeadConfig::head_hidden, c.head_features(), 3, 3});
-  fn("scratch.output_conv2.0.bias", std::vector<index_t>{DptHeadConfig::head_hidden});
-  fn("scratch.output_conv2.2.weight", std::vector<index_t>{c.output_dim, DptHeadConfig::head_hidden, 1, 1});
-  fn("scratch.output_conv2.2.bias", std::vector<index_t>{c.output_dim});
+  conv("scratch.output_conv1", {c.head_features(), F, 3, 3});
+  conv("scratch.output_conv2.0", {DptHeadConfig::head_hidden, c.head_features(), 3, 3});
+  conv("scratch.output_conv2.2", {c.output_dim, DptHeadConfig::head_hidden, 1, 1});
 }
 
 // Binds every pointer through get(name, shape) -> const T* (the name relative to the head), in the order above.
@@ -180,6 +172,19 @@ DptHeadWeights<T> bind_dpt_head_weights(const DptHeadConfig& c, Get&& get) {
   conv(w.output_conv2_0, "scratch.output_conv2.0.", {DptHeadConfig::head_hidden, c.head_features(), 3, 3});
   conv(w.output_conv2_2, "scratch.output_conv2.2.", {c.output_dim, DptHeadConfig::head_hidden, 1, 1});
   return w;
+}
+
+// Checks every parameter first (one error lists all missing, mis-shaped and unexpected `prefix` tensors), then binds.
+template <class T>
+DptHeadWeights<T> load_dpt_head_weights(ParamSource<T>& src, const DptHeadConfig& c,
+                                        const std::string& prefix = "depth_head.") {
+  c.validate();
+  std::vector<TensorSpec> specs;
+  append_dpt_head_specs(specs, c, prefix);
+  check_parameters(src, specs, {prefix}, "DPT head");
+  return bind_dpt_head_weights<T>(c, [&](const std::string& name, const std::vector<index_t>& shape) {
+    return src.get(prefix + name, shape);
+  });
 }
 
 // Spatial sizes of one frame's maps for a patch grid of patch_h x patch_w.
