@@ -30,3 +30,6 @@
 #include "flexsplat/geometry/unproject.hpp"
 #include "flexsplat/geometry/camera_head.hpp"
 #include "flexsplat/geometry/dpt_head.hpp"
+#include "flexsplat/geometry/weights.hpp"
+#include "flexsplat/geometry/vggt.hpp"
+#include "flexsplat/geometry/reference.hpp"

@@ -8,6 +8,9 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/geometry/block.hpp"
+#include "flexsplat/geometry/camera_head.hpp"
+#include "flexsplat/geometry/dpt_head.hpp"
+#include "flexsplat/geometry/pose_encoding.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -143,6 +146,47 @@ inline AggregatorConfig aggregator_config_from_json(const std::string& text) {
     fail("VGGT config is not valid JSON: ", e.what());
   }
   return aggregator_config_from_json(j);
+}
+
+// The whole VGGT as FlexSplat uses it: trunk, camera head and depth head (the point and track heads are never
+// computed). Defaults are VGGT-1B.
+struct VggtConfig {
+  AggregatorConfig aggregator;
+  CameraHeadConfig camera;
+  DptHeadConfig depth;
+  PoseDecodeOptions pose_decode;  // what decoding does with FoV <= 0 or >= pi
+
+  void validate() const {
+    aggregator.validate();
+    camera.validate();
+    depth.validate();
+    require(camera.dim == 2 * aggregator.embed_dim, "VGGT config: camera head dim ", camera.dim, " must be 2 x embed_dim ",
+            aggregator.embed_dim);
+    require(depth.dim_in == 2 * aggregator.embed_dim, "VGGT config: depth head dim_in ", depth.dim_in,
+            " must be 2 x embed_dim ", aggregator.embed_dim);
+    require(depth.patch_size == aggregator.patch_size, "VGGT config: depth head patch_size ", depth.patch_size,
+            " differs from the aggregator's ", aggregator.patch_size);
+    require(depth.output_dim == 2, "VGGT config: the depth head predicts depth + confidence (output_dim 2), got ",
+            depth.output_dim);
+    for (index_t i : depth.intermediate_layer_idx)
+      require(i < aggregator.depth, "VGGT config: depth head reads aggregator output ", i, ", depth is ",
+              aggregator.depth);
+  }
+};
+
+inline VggtConfig vggt_config_from_json(const std::string& text) {
+  nlohmann::json j;
+  try {
+    j = nlohmann::json::parse(text);
+  } catch (const nlohmann::json::exception& e) {
+    fail("VGGT config is not valid JSON: ", e.what());
+  }
+  VggtConfig c;
+  c.aggregator = aggregator_config_from_json(j);
+  c.camera = camera_head_config_from_vggt_json(j);
+  c.depth = dpt_head_config_from_vggt_json(j);
+  c.validate();
+  return c;
 }
 
 }  // namespace geometry
