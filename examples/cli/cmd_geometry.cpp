@@ -18,12 +18,18 @@ int run_geometry(const Args& input) {
   take_option(args, "--mode", mode_name);
   take_option(args, "--config", config_json);  // JSON with the reference-bundle keys; VGGT-1B when absent
   take_option(args, "--prefix", prefix);       // e.g. "param." for a reference bundle
+  std::string fov_policy = "error";
+  take_option(args, "--fov-policy", fov_policy);
+  require(fov_policy == "error" || fov_policy == "clamp", "geometry: --fov-policy must be 'error' or 'clamp', got '",
+          fov_policy, "'");
   require(have_weights, "geometry: --weights model.safetensors is required");
   require(have_out, "geometry: --out pred.safetensors is required");
   require(!args.empty(), "geometry: no input images given");
   for (const auto& a : args) require(a.rfind("--", 0) != 0, "geometry: unknown option '", a, "'");
   const auto mode = parse_vggt_preprocess_mode(mode_name);
-  const geometry::VggtConfig cfg = config_json.empty() ? geometry::VggtConfig{} : geometry::vggt_config_from_json(config_json);
+  geometry::VggtConfig cfg = config_json.empty() ? geometry::VggtConfig{} : geometry::vggt_config_from_json(config_json);
+  cfg.pose_decode.policy =
+      fov_policy == "clamp" ? geometry::DegeneratePosePolicy::clamp : geometry::DegeneratePosePolicy::error;
 
   using Clock = std::chrono::steady_clock;
   const auto start = Clock::now();
@@ -66,7 +72,8 @@ int run_geometry(const Args& input) {
 const RegisterCommand registered(
     "geometry",
     {"VGGT cameras (K, world-to-camera), depth and confidence for images",
-     "--weights model.safetensors [--mode crop|pad] [--config JSON] [--prefix P] IMAGES... --out pred.safetensors",
+     "--weights model.safetensors [--mode crop|pad] [--fov-policy error|clamp] [--config JSON] [--prefix P] IMAGES... "
+     "--out pred.safetensors",
      run_geometry});
 
 }  // namespace
