@@ -1,0 +1,161 @@
+// VGGT-1B (trunk, camera head, depth head) with random in-process weights: time per stage, achieved GFLOP/s next to
+// the SGEMM rate measured in the same run (before and after each image size), and peak RSS.
+//   bench/geometry [--frames S] [--size N]... [--depth D]   (default: 4 frames at 252 and 518, full depth)
+#include <sys/resource.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <map>
+#include <string>
+#include <vector>
+
+#include "flexsplat/core/gemm.hpp"
+#include "flexsplat/core/simd.hpp"
+#include "flexsplat/geometry/random_weights.hpp"
+#include "flexsplat/geometry/vggt.hpp"
+
+using namespace flexsplat;
+using namespace flexsplat::geometry;
+using Clock = std::chrono::steady_clock;
+
+static double seconds_since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+static double peak_rss_gb() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return static_cast<double>(u.ru_maxrss) * 1024.0 / 1e9;  // ru_maxrss is in KiB on Linux
+}
+
+// 2 x multiply-adds of one block over `batch` sequences of `tokens` rows (linear layers + QK^T + PV).
+static double block_flops(const BlockConfig& c, double batch, double tokens) {
+  const double rows = batch * tokens, C = double(c.dim), H = double(c.mlp_hidden());
+  return 2.0 * rows * (3 * C * C + C * C + 2 * C * H) + 4.0 * batch * tokens * tokens * C;
+}
+
+// Convolution FLOPs of the DPT head for one frame (bilinear resizes and activations not counted).
+static double dpt_flops(const DptHeadConfig& c, index_t ph, index_t pw) {
+  const DptGeometry g(ph, pw, c.patch_size);
+  const double P = double(ph * pw), F = double(c.features), Fh = double(c.head_features());
+  const auto& oc = c.out_channels;
+  double f = 0;
+  for (int i = 0; i < 4; ++i) f += 2 * P * double(c.dim_in) * double(oc[i]);
+  f += 2 * P * double(oc[0]) * double(oc[0]) * 16 + 2 * P * double(oc[1]) * double(oc[1]) * 4;
+  f += 2 * double(g.level_size(3)) * double(oc[3]) * double(oc[3]) * 9;
+  for (int i = 0; i < 4; ++i) f += 2 * double(g.level_size(i)) * double(oc[i]) * F * 9;
+  const double conv3 = 2 * F * F * 9, conv1 = 2 * F * F;
+  for (int i = 0; i < 4; ++i) {
+    const double units = i == 3 ? 1 : 2;  // refinenet4 has no skip unit
+    const double up = i == 0 ? double(g.fused_h * g.fused_w) : double(g.level_size(i - 1));
+    f += units * 2 * conv3 * double(g.level_size(i)) + conv1 * up;
+  }
+  f += 2 * double(g.fused_h * g.fused_w) * F * Fh * 9;
+  const double full = double(g.out_h * g.out_w);
+  f += 2 * full * Fh * DptHeadConfig::head_hidden * 9 + 2 * full * DptHeadConfig::head_hidden * double(c.output_dim);
+  return f;
+}
+
+static double sgemm_gflops() {
+  const index_t M = 2048, N = 2048, K = 1024;
+  std::vector<float> a(M * K, 0.5f), b(K * N, 0.25f), c(M * N);
+  gemm(Trans::no, Trans::yes, M, N, K, 1.0f, a.data(), K, b.data(), K, 0.0f, c.data(), N);  // warm-up
+  double best = 0;
+  for (int rep = 0; rep < 3; ++rep) {
+    const auto t0 = Clock::now();
+    gemm(Trans::no, Trans::yes, M, N, K, 1.0f, a.data(), K, b.data(), K, 0.0f, c.data(), N);
+    best = std::max(best, 2.0 * M * N * K / seconds_since(t0) / 1e9);
+  }
+  return best;
+}
+
+int main(int argc, char** argv) {
+  index_t frames = 4, depth_override = -1;
+  std::vector<index_t> sizes;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--frames" && i + 1 < argc) frames = std::atol(argv[++i]);
+    else if (a == "--size" && i + 1 < argc) sizes.push_back(std::atol(argv[++i]));
+    else if (a == "--depth" && i + 1 < argc) depth_override = std::atol(argv[++i]);
+    else {
+      std::fprintf(stderr, "usage: %s [--frames S] [--size N]... [--depth D]\n", argv[0]);
+      return 2;
+    }
+  }
+  if (sizes.empty()) sizes = {252, 518};
+  simd::require_cpu_supports_build();
+  VggtConfig cfg;  // VGGT-1B
+  if (depth_override > 0) {
+    cfg.aggregator.depth = cfg.aggregator.dino.depth = depth_override;
+    for (auto& i : cfg.depth.intermediate_layer_idx) i = std::min(i, depth_override - 1);
+  }
+  std::printf("flexsplat geometry bench: VGGT-1B (%s depth), %lld frames, %d threads, arch %s, cpu: %s\n",
+              depth_override > 0 ? "reduced" : "full", static_cast<long long>(frames), global_pool().size(),
+              simd::compiled_arch_name(), simd::describe(simd::cpu_features()).c_str());
+
+  auto t0 = Clock::now();
+  ParamSource<float> src;
+  const auto specs = vggt_parameter_specs(cfg);
+  add_random_parameters(src, specs, 1234);
+  double params = 0;
+  for (auto& s : specs) {
+    double n = 1;
+    for (auto e : s.shape) n *= double(e);
+    params += n;
+  }
+  const auto weights = load_vggt_weights(src, cfg);
+  const double weight_gb = params * 4 / 1e9;
+  std::printf("random weights: %.0f M parameters (%.2f GB fp32) in %.1f s, RSS %.2f GB\n", params / 1e6, weight_gb,
+              seconds_since(t0), peak_rss_gb());
+  std::fflush(stdout);
+
+  for (index_t size : sizes) {
+    const double sgemm_before = sgemm_gflops();
+    const index_t H = size, W = size, p = cfg.aggregator.patch_size, gh = H / p, gw = W / p, P = gh * gw;
+    std::vector<float> images(frames * 3 * H * W);
+    for (std::size_t i = 0; i < images.size(); ++i) images[i] = float((i * 2654435761u) % 1000) / 1000.0f;
+    // Random weights can give a degenerate camera; clamp instead of failing the timing run.
+    VggtConfig run_cfg = cfg;
+    run_cfg.pose_decode.policy = DegeneratePosePolicy::clamp;
+    VggtWorkspace<float> ws;
+    VggtOptions options;
+    std::map<std::string, Clock::time_point> begin, end;
+    options.progress = [&](const std::string& stage, index_t step, index_t steps) {
+      if (step == 0 || (stage == "aggregator" && step == 1 && !begin.count(stage))) begin[stage] = Clock::now();
+      if (step == steps) end[stage] = Clock::now();
+    };
+    const auto t_start = Clock::now();
+    const auto out = vggt_forward<float>(images.data(), frames, H, W, run_cfg, weights, ws, options);
+    const double t_total = seconds_since(t_start);
+    const double sgemm_after = sgemm_gflops();
+    const double sgemm = std::max(sgemm_before, sgemm_after);
+    begin["aggregator"] = end["dino"];
+
+    const auto& a = cfg.aggregator;
+    std::map<std::string, double> flops;
+    flops["dino"] = 2.0 * frames * P * 3 * p * p * a.embed_dim +
+                    a.dino.depth * block_flops(a.dino.block(), frames, 1 + a.dino.num_register_tokens + P);
+    const double agg_tokens = a.patch_start_idx() + P;
+    flops["aggregator"] = a.depth * (block_flops(a.block(), frames, agg_tokens) + block_flops(a.block(), 1, frames * agg_tokens));
+    flops["camera_head"] = cfg.camera.iterations * cfg.camera.trunk_depth * block_flops(cfg.camera.block(), 1, frames);
+    flops["depth_head"] = frames * dpt_flops(cfg.depth, gh, gw);
+    flops["unproject"] = 0;
+
+    std::printf("\n%lld x %lldx%lld (%lld patches/frame); SGEMM 2048x2048x1024 via core/gemm: %.1f GFLOP/s before, "
+                "%.1f after\n", (long long)frames, (long long)H, (long long)W, (long long)P, sgemm_before, sgemm_after);
+    double f_total = 0;
+    for (const char* stage : {"dino", "aggregator", "camera_head", "depth_head", "unproject"}) {
+      const double t = std::chrono::duration<double>(end[stage] - begin[stage]).count();
+      f_total += flops[stage];
+      std::printf("  %-12s %8.2f s  %9.1f GFLOP  %7.1f GFLOP/s  (%.2f of SGEMM)\n", stage, t, flops[stage] / 1e9,
+                  t > 0 ? flops[stage] / t / 1e9 : 0.0, t > 0 ? flops[stage] / t / 1e9 / sgemm : 0.0);
+    }
+    std::printf("  %-12s %8.2f s  %9.1f GFLOP  %7.1f GFLOP/s  (%.2f of the better SGEMM rate)\n", "end to end", t_total,
+                f_total / 1e9, f_total / t_total / 1e9, f_total / t_total / 1e9 / sgemm);
+    std::printf("  peak RSS %.2f GB = weights %.2f GB + %.2f GB\n", peak_rss_gb(), weight_gb, peak_rss_gb() - weight_gb);
+    std::printf("  depth range [%.3g, %.3g]\n", double(*std::min_element(out.depth.data(), out.depth.data() + out.depth.size())),
+                double(*std::max_element(out.depth.data(), out.depth.data() + out.depth.size())));
+    std::fflush(stdout);
+  }
+  return 0;
+}

@@ -1,0 +1,194 @@
+#pragma once
+// Hyper-parameters of the VGGT geometry trunk (DINOv2 patch embedder + alternating frame/global aggregator).
+// Defaults are VGGT-1B; a reference bundle's `config` metadata JSON can be read into it.
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/geometry/block.hpp"
+#include "flexsplat/geometry/camera_head.hpp"
+#include "flexsplat/geometry/dpt_head.hpp"
+#include "flexsplat/geometry/pose_encoding.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace geometry {
+
+// DINOv2 ViT with register tokens as VGGT builds it (dinov2_vitl14_reg by default).
+struct DinoConfig {
+  index_t img_size = 518;           // pos_embed covers (img_size / patch_size)^2 patches
+  index_t patch_size = 14;
+  index_t embed_dim = 1024;
+  index_t depth = 24;
+  index_t num_heads = 16;
+  double mlp_ratio = 4.0;
+  index_t num_register_tokens = 4;
+  double init_values = 1.0;         // LayerScale present when > 0
+  double norm_eps = 1e-6;           // every LayerNorm of the DINOv2 model
+  bool interpolate_antialias = true;
+  double interpolate_offset = 0.0;  // 0: resize the position grid to an exact size
+
+  index_t pos_grid() const { return img_size / patch_size; }
+  BlockConfig block() const {
+    BlockConfig b;
+    b.dim = embed_dim;
+    b.num_heads = num_heads;
+    b.mlp_ratio = mlp_ratio;
+    b.qk_norm = false;
+    b.layer_scale = init_values > 0;
+    b.norm_eps = norm_eps;
+    return b;
+  }
+  void validate() const {
+    require(patch_size > 0 && img_size >= patch_size, "DINO config: img_size ", img_size, " and patch_size ",
+            patch_size, " must be positive with img_size >= patch_size");
+    require(depth >= 0 && num_register_tokens >= 0, "DINO config: depth ", depth, " and num_register_tokens ",
+            num_register_tokens, " must be non-negative");
+    block().validate("DINO config");
+  }
+};
+
+// The alternating-attention trunk.
+struct AggregatorConfig {
+  index_t patch_size = 14;
+  index_t embed_dim = 1024;
+  index_t depth = 24;               // block pairs: aggregator outputs depth tensors of 2*embed_dim channels
+  index_t num_heads = 16;
+  double mlp_ratio = 4.0;
+  index_t num_register_tokens = 4;
+  bool qk_norm = true;
+  double rope_freq = 100.0;         // <= 0 disables RoPE
+  double init_values = 0.01;        // LayerScale present when > 0
+  double norm_eps = 1e-5;
+  index_t aa_block_size = 1;        // consecutive blocks of one kind before switching
+  std::vector<std::string> aa_order{"frame", "global"};
+  DinoConfig dino;
+
+  index_t patch_start_idx() const { return 1 + num_register_tokens; }
+  BlockConfig block() const {
+    BlockConfig b;
+    b.dim = embed_dim;
+    b.num_heads = num_heads;
+    b.mlp_ratio = mlp_ratio;
+    b.qk_norm = qk_norm;
+    b.layer_scale = init_values > 0;
+    b.norm_eps = norm_eps;
+    b.qk_norm_eps = 1e-5;
+    return b;
+  }
+  void validate() const {
+    block().validate("aggregator config");
+    dino.validate();
+    require(dino.embed_dim == embed_dim, "aggregator config: DINO embed_dim ", dino.embed_dim,
+            " differs from the aggregator's ", embed_dim);
+    require(dino.patch_size == patch_size, "aggregator config: DINO patch_size ", dino.patch_size,
+            " differs from the aggregator's ", patch_size);
+    require(depth >= 1 && aa_block_size >= 1 && depth % aa_block_size == 0, "aggregator config: depth ", depth,
+            " must be a positive multiple of aa_block_size ", aa_block_size);
+    require(rope_freq <= 0 || block().head_dim() % 4 == 0, "aggregator config: 2-D RoPE needs head_dim divisible by 4, got ",
+            block().head_dim());
+    require(!aa_order.empty(), "aggregator config: aa_order is empty");
+    bool frame = false, global = false;
+    for (auto& kind : aa_order) {
+      require(kind == "frame" || kind == "global", "aggregator config: unknown aa_order entry '", kind, "'");
+      frame = frame || kind == "frame";
+      global = global || kind == "global";
+    }
+    require(frame && global && aa_order.size() == 2, "aggregator config: aa_order must hold 'frame' and 'global' once each");
+  }
+};
+
+// Reads the trunk part of a bundle's config JSON (keys as in the reference README: img_size, patch_size, embed_dim,
+// depth, num_heads, dino_depth, dino_heads; optional mlp_ratio, num_register_tokens, qk_norm, rope_freq,
+// init_values, aa_block_size, aa_order). Absent keys keep VGGT-1B's values.
+inline AggregatorConfig aggregator_config_from_json(const nlohmann::json& j) {
+  AggregatorConfig c;
+  try {
+    require(j.is_object(), "config is not a JSON object");
+    auto get_int = [&](const char* key, index_t& v) {
+      if (j.contains(key)) v = j.at(key).get<index_t>();
+    };
+    auto get_double = [&](const char* key, double& v) {
+      if (j.contains(key)) v = j.at(key).get<double>();
+    };
+    get_int("img_size", c.dino.img_size);
+    get_int("patch_size", c.patch_size);
+    get_int("embed_dim", c.embed_dim);
+    get_int("depth", c.depth);
+    get_int("num_heads", c.num_heads);
+    get_double("mlp_ratio", c.mlp_ratio);
+    get_int("num_register_tokens", c.num_register_tokens);
+    if (j.contains("qk_norm")) c.qk_norm = j.at("qk_norm").get<bool>();
+    get_double("rope_freq", c.rope_freq);
+    get_double("init_values", c.init_values);
+    get_int("aa_block_size", c.aa_block_size);
+    if (j.contains("aa_order")) c.aa_order = j.at("aa_order").get<std::vector<std::string>>();
+    c.dino.patch_size = c.patch_size;
+    c.dino.embed_dim = c.embed_dim;
+    c.dino.num_register_tokens = c.num_register_tokens;
+    get_int("dino_depth", c.dino.depth);
+    get_int("dino_heads", c.dino.num_heads);
+    get_double("dino_mlp_ratio", c.dino.mlp_ratio);
+  } catch (const nlohmann::json::exception& e) {
+    fail("VGGT config JSON: ", e.what());
+  }
+  c.validate();
+  return c;
+}
+
+inline AggregatorConfig aggregator_config_from_json(const std::string& text) {
+  nlohmann::json j;
+  try {
+    j = nlohmann::json::parse(text);
+  } catch (const nlohmann::json::exception& e) {
+    fail("VGGT config is not valid JSON: ", e.what());
+  }
+  return aggregator_config_from_json(j);
+}
+
+// The whole VGGT as FlexSplat uses it: trunk, camera head and depth head (the point and track heads are never
+// computed). Defaults are VGGT-1B.
+struct VggtConfig {
+  AggregatorConfig aggregator;
+  CameraHeadConfig camera;
+  DptHeadConfig depth;
+  PoseDecodeOptions pose_decode;  // what decoding does with FoV <= 0 or >= pi
+
+  void validate() const {
+    aggregator.validate();
+    camera.validate();
+    depth.validate();
+    require(camera.dim == 2 * aggregator.embed_dim, "VGGT config: camera head dim ", camera.dim, " must be 2 x embed_dim ",
+            aggregator.embed_dim);
+    require(depth.dim_in == 2 * aggregator.embed_dim, "VGGT config: depth head dim_in ", depth.dim_in,
+            " must be 2 x embed_dim ", aggregator.embed_dim);
+    require(depth.patch_size == aggregator.patch_size, "VGGT config: depth head patch_size ", depth.patch_size,
+            " differs from the aggregator's ", aggregator.patch_size);
+    require(depth.output_dim == 2, "VGGT config: the depth head predicts depth + confidence (output_dim 2), got ",
+            depth.output_dim);
+    for (index_t i : depth.intermediate_layer_idx)
+      require(i < aggregator.depth, "VGGT config: depth head reads aggregator output ", i, ", depth is ",
+              aggregator.depth);
+  }
+};
+
+inline VggtConfig vggt_config_from_json(const std::string& text) {
+  nlohmann::json j;
+  try {
+    j = nlohmann::json::parse(text);
+  } catch (const nlohmann::json::exception& e) {
+    fail("VGGT config is not valid JSON: ", e.what());
+  }
+  VggtConfig c;
+  c.aggregator = aggregator_config_from_json(j);
+  c.camera = camera_head_config_from_vggt_json(j);
+  c.depth = dpt_head_config_from_vggt_json(j);
+  c.validate();
+  return c;
+}
+
+}  // namespace geometry
+}  // namespace v0
+}  // namespace flexsplat

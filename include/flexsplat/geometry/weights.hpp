@@ -1,0 +1,81 @@
+#pragma once
+// VGGT weights: the name/shape table derived from a VggtConfig (names exactly as VGGT's state_dict), one check that
+// lists every missing, mis-shaped or unexpected tensor at once, and binding to the per-module weight structs.
+// Tensors of the point and track heads are ignored (FlexSplat needs cameras and depth only).
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "flexsplat/geometry/aggregator.hpp"
+#include "flexsplat/geometry/camera_head.hpp"
+#include "flexsplat/geometry/config.hpp"
+#include "flexsplat/geometry/dino.hpp"
+#include "flexsplat/geometry/dpt_head.hpp"
+#include "flexsplat/geometry/param_check.hpp"
+#include "flexsplat/geometry/param_source.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace geometry {
+
+inline constexpr const char* vggt_dino_prefix = "aggregator.patch_embed.";
+inline constexpr const char* vggt_depth_prefix = "depth_head.";
+
+// Every tensor the configured model reads, in state_dict order (aggregator, camera head, depth head).
+inline std::vector<TensorSpec> vggt_parameter_specs(const VggtConfig& c) {
+  std::vector<TensorSpec> specs;
+  const std::size_t before_dino = 2;
+  append_aggregator_trunk_specs(specs, c.aggregator);
+  std::vector<TensorSpec> dino;
+  append_dino_specs(dino, vggt_dino_prefix, c.aggregator.dino);
+  specs.insert(specs.begin() + before_dino, dino.begin(), dino.end());
+  append_camera_head_specs(specs, c.camera, "camera_head.");
+  append_dpt_head_specs(specs, c.depth, vggt_depth_prefix);
+  return specs;
+}
+
+// Throws one flexsplat::Error listing every missing, mis-shaped and unexpected aggregator/camera/depth tensor.
+template <class T>
+void check_vggt_parameters(const ParamSource<T>& src, const VggtConfig& c) {
+  check_parameters(src, vggt_parameter_specs(c), {"aggregator.", "camera_head.", "depth_head."}, "VGGT");
+}
+
+template <class T>
+struct VggtWeights {
+  DinoWeights<T> dino;
+  AggregatorWeights<T> aggregator;
+  CameraHeadWeights<T> camera;
+  DptHeadWeights<T> depth;
+};
+
+template <class T>
+VggtWeights<T> load_vggt_weights(ParamSource<T>& src, const VggtConfig& c) {
+  c.validate();
+  check_vggt_parameters(src, c);
+  VggtWeights<T> w;
+  w.dino = load_dino_weights(src, vggt_dino_prefix, c.aggregator.dino);
+  w.aggregator = load_aggregator_trunk_weights(src, c.aggregator);
+  w.camera = load_camera_head_weights(src, c.camera, "camera_head.");
+  w.depth = load_dpt_head_weights(src, c.depth, vggt_depth_prefix);
+  return w;
+}
+
+// A checkpoint on disk (VGGT's model.safetensors, or a reference bundle with prefix "param."), mmapped: F32 tensors
+// are used in place, F16/BF16 converted once. Keeps the mapping alive as long as the weights.
+template <class T>
+struct VggtCheckpoint {
+  ParamSource<T> source;
+  VggtWeights<T> weights;
+
+  static std::unique_ptr<VggtCheckpoint> open(const std::filesystem::path& path, const VggtConfig& c,
+                                              const std::string& prefix = {}) {
+    auto ck = std::make_unique<VggtCheckpoint>();
+    ck->source = ParamSource<T>(safetensors::File::open(path), prefix);
+    ck->weights = load_vggt_weights(ck->source, c);
+    return ck;
+  }
+};
+
+}  // namespace geometry
+}  // namespace v0
+}  // namespace flexsplat
