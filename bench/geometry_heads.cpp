@@ -1,0 +1,156 @@
+// VGGT-1B camera head and DPT depth head with random weights (generated here, nothing downloaded): time per head,
+// achieved GFLOP/s next to the SGEMM rate measured in the same run, peak RSS.
+// Usage: geometry_heads [frames=4] [size=518 ...]   e.g. `build/bench/geometry_heads 4 518 252`
+#include <sys/resource.h>
+
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "flexsplat/core/gemm.hpp"
+#include "flexsplat/core/simd.hpp"
+#include "flexsplat/geometry/camera_head.hpp"
+#include "flexsplat/geometry/dpt_head.hpp"
+
+using namespace flexsplat;
+using namespace flexsplat::geometry;
+
+namespace {
+
+double seconds_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+double peak_rss_mib() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return static_cast<double>(u.ru_maxrss) / 1024.0;
+}
+
+// Random normal weights scaled by 1/sqrt(fan_in); norms and LayerScale near their trained magnitudes.
+void add_random(ParamSource<float>& src, const std::vector<TensorSpec>& specs, unsigned seed) {
+  std::mt19937 rng(seed);
+  std::normal_distribution<float> normal;
+  for (const auto& s : specs) {
+    index_t n = 1;
+    for (index_t e : s.shape) n *= e;
+    std::vector<float> v(static_cast<std::size_t>(n));
+    const bool is_norm_weight = s.name.find("norm") != std::string::npos && s.name.ends_with(".weight");
+    const bool is_gamma = s.name.ends_with("gamma");
+    const index_t fan_in = s.shape.size() >= 2 ? n / s.shape[0] : 1;
+    const float scale = s.shape.size() >= 2 ? 1.0f / std::sqrt(static_cast<float>(fan_in)) : 0.02f;
+    for (auto& x : v) x = is_norm_weight ? 1.0f + 0.02f * normal(rng) : is_gamma ? 0.01f : scale * normal(rng);
+    src.add(s.name, s.shape, std::move(v));
+  }
+}
+
+// Multiply-adds x 2 of one DPT forward for one frame.
+double dpt_flops_per_frame(const DptHeadConfig& c, index_t ph, index_t pw) {
+  const DptGeometry g(ph, pw, c.patch_size);
+  const double P = static_cast<double>(ph * pw), F = static_cast<double>(c.features);
+  auto conv = [](double cin, double cout, double k, double hw) { return 2.0 * cin * cout * k * k * hw; };
+  double f = 0;
+  for (int i = 0; i < 4; ++i) f += 2.0 * static_cast<double>(c.dim_in * c.out_channels[i]) * P;  // projects
+  f += conv(c.out_channels[0], c.out_channels[0], 4, P);                                          // transposed convs
+  f += conv(c.out_channels[1], c.out_channels[1], 2, P);
+  f += conv(c.out_channels[3], c.out_channels[3], 3, static_cast<double>(g.level_size(3)));
+  for (int i = 0; i < 4; ++i) f += conv(c.out_channels[i], F, 3, static_cast<double>(g.level_size(i)));  // layer_rn
+  for (int i = 0; i < 4; ++i) {
+    const double hw = static_cast<double>(g.level_size(i));
+    f += (i == 3 ? 2 : 4) * conv(F, F, 3, hw) + conv(F, F, 1, hw);  // residual units + out_conv (at the low size)
+  }
+  const double fused = static_cast<double>(g.fused_h * g.fused_w), full = static_cast<double>(g.out_h * g.out_w);
+  f += conv(F, static_cast<double>(c.head_features()), 3, fused);
+  f += conv(static_cast<double>(c.head_features()), DptHeadConfig::head_hidden, 3, full);
+  f += conv(DptHeadConfig::head_hidden, static_cast<double>(c.output_dim), 1, full);
+  return f;
+}
+
+double sgemm_gflops() {
+  const index_t n = 2048;
+  std::vector<float> a(n * n, 0.5f), b(n * n, 0.25f), c(n * n);
+  gemm(Trans::no, Trans::no, n, n, n, 1.0f, a.data(), n, b.data(), n, 0.0f, c.data(), n);  // warm-up
+  double best = 1e30;
+  for (int r = 0; r < 3; ++r) {
+    const auto t0 = std::chrono::steady_clock::now();
+    gemm(Trans::no, Trans::no, n, n, n, 1.0f, a.data(), n, b.data(), n, 0.0f, c.data(), n);
+    best = std::min(best, seconds_since(t0));
+  }
+  return 2.0 * static_cast<double>(n * n * n) / best * 1e-9;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  const index_t frames = argc > 1 ? std::atol(argv[1]) : 4;
+  std::vector<index_t> sizes;
+  for (int i = 2; i < argc; ++i) sizes.push_back(std::atol(argv[i]));
+  if (sizes.empty()) sizes = {518, 252};
+  const auto cpu = simd::cpu_features();
+  std::printf("threads %d, simd arch %s, avx512f %d\n", global_pool().size(), simd::arch::name(), int(cpu.avx512f));
+  const double sgemm = sgemm_gflops();
+  std::printf("SGEMM 2048^3: %.1f GFLOP/s\n", sgemm);
+
+  const CameraHeadConfig cam_cfg;  // VGGT-1B
+  const DptHeadConfig dpt_cfg;
+  ParamSource<float> src;
+  std::vector<TensorSpec> specs;
+  append_camera_head_specs(specs, cam_cfg);
+  append_dpt_head_specs(specs, dpt_cfg);
+  auto t0 = std::chrono::steady_clock::now();
+  add_random(src, specs, 1234);
+  const auto cam_w = load_camera_head_weights(src, cam_cfg);
+  const auto dpt_w = load_dpt_head_weights(src, dpt_cfg);
+  index_t n_params = 0;
+  for (auto& s : specs) {
+    index_t n = 1;
+    for (index_t e : s.shape) n *= e;
+    n_params += n;
+  }
+  std::printf("random weights: %.1f M parameters (%.0f MiB) in %.1f s; peak RSS %.0f MiB\n", n_params * 1e-6,
+              n_params * 4.0 / (1 << 20), seconds_since(t0), peak_rss_mib());
+
+  for (index_t size : sizes) {
+    const index_t ph = size / 14, pw = size / 14, tokens = 5 + ph * pw, C = dpt_cfg.dim_in;
+    std::vector<float> layer(static_cast<std::size_t>(frames * tokens * C));
+    std::mt19937 rng(7);
+    std::normal_distribution<float> normal;
+    for (auto& x : layer) x = normal(rng);
+    const std::vector<const float*> layers(24, layer.data());  // every block output shares one random tensor
+
+    std::vector<float> cam_ws(static_cast<std::size_t>(camera_head_workspace_size(cam_cfg, frames)));
+    std::vector<float> enc(cam_cfg.iterations * frames * 9);
+    t0 = std::chrono::steady_clock::now();
+    camera_head_forward<float>(enc.data(), cam_cfg, cam_w, layer.data(), frames, tokens, cam_ws);
+    const double cam_s = seconds_since(t0);
+    // Trunk FLOPs: per iteration, blocks (qkv, proj, mlp) + modulation + branch; attention over frames negligible.
+    const double Cc = static_cast<double>(cam_cfg.dim), S = static_cast<double>(frames);
+    const double cam_flops = cam_cfg.iterations * S *
+                             (cam_cfg.trunk_depth * 2.0 * (3 * Cc * Cc + Cc * Cc + 8 * Cc * Cc) + 2.0 * 3 * Cc * Cc +
+                              2.0 * Cc * Cc / 2);
+
+    std::vector<float> dpt_ws(static_cast<std::size_t>(dpt_head_workspace_size(dpt_cfg, ph, pw)));
+    const index_t full = ph * 14 * pw * 14;
+    std::vector<float> depth(frames * full), conf(frames * full);
+    DptHeadOutputs<float> out{depth.data(), conf.data()};
+    t0 = std::chrono::steady_clock::now();
+    dpt_head_forward<float>(out, dpt_cfg, dpt_w, layers, frames, tokens, 5, ph * 14, pw * 14, dpt_ws);
+    const double dpt_s = seconds_since(t0);
+    const double dpt_flops = dpt_flops_per_frame(dpt_cfg, ph, pw) * static_cast<double>(frames);
+    double finite = 0;
+    for (float d : depth) finite += std::isfinite(d) ? 1 : 0;
+    std::printf("%ld frames at %ldx%ld (patch grid %ldx%ld):\n", long(frames), long(ph * 14), long(pw * 14), long(ph),
+                long(pw));
+    std::printf("  camera head  %8.3f s  %7.1f GFLOP  %6.1f GFLOP/s  (%.2f of SGEMM)\n", cam_s, cam_flops * 1e-9,
+                cam_flops / cam_s * 1e-9, cam_flops / cam_s * 1e-9 / sgemm);
+    std::printf("  DPT head     %8.3f s  %7.1f GFLOP  %6.1f GFLOP/s  (%.2f of SGEMM)  workspace %.0f MiB\n", dpt_s,
+                dpt_flops * 1e-9, dpt_flops / dpt_s * 1e-9, dpt_flops / dpt_s * 1e-9 / sgemm,
+                static_cast<double>(dpt_ws.size()) * 4.0 / (1 << 20));
+    std::printf("  finite depth values %.0f / %ld; peak RSS so far %.0f MiB\n", finite, long(depth.size()),
+                peak_rss_mib());
+  }
+  return 0;
+}
