@@ -145,6 +145,7 @@ struct TileIntersections {
   std::vector<std::int32_t> isect_tile;        // [E] tile of each emission
   std::vector<std::int64_t> tile_offsets;      // [tiles+1]
   std::vector<std::int32_t> tile_entries;      // [E] emission indices sorted by (tile, depth)
+  std::vector<std::int32_t> tile_gaussian;     // [E] Gaussian of each tile_entries element (one indirection less)
   std::int64_t max_tile_entries = 0;
   // Scratch
   std::vector<double> depth_keys_d, depth_tmp_d;
@@ -230,10 +231,13 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
   for (index_t t = 0; t < tiles; ++t)
     out.max_tile_entries = std::max(out.max_tile_entries, out.tile_offsets[t + 1] - out.tile_offsets[t]);
   out.tile_entries.resize(std::size_t(total));
+  out.tile_gaussian.resize(std::size_t(total));
   out.tile_cursor.assign(std::size_t(tiles), 0);
   for (std::int64_t e = 0; e < total; ++e) {
     const std::int32_t t = out.isect_tile[e];
-    out.tile_entries[out.tile_offsets[t] + out.tile_cursor[t]++] = std::int32_t(e);
+    const std::int64_t slot = out.tile_offsets[t] + out.tile_cursor[t]++;
+    out.tile_entries[slot] = std::int32_t(e);
+    out.tile_gaussian[slot] = out.isect_gaussian[e];
   }
 }
 
