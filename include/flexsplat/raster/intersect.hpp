@@ -97,6 +97,12 @@ bool gaussian_touches_tile(T u, T v, const T conic[3], double r2, const TileGrid
                               y0, y1);
 }
 
+// On a single row or column of tiles the exact test rarely rejects anything (a convex extent reaching both ends of
+// the strip crosses every tile of it unless clipping cuts it), so it is run only on wider rectangles.
+inline bool exact_test_worthwhile(const RasterSkips& skips, const TileRect& rect) {
+  return skips.exact_tile_test && rect.x1 > rect.x0 && rect.y1 > rect.y0;
+}
+
 // Stable LSD radix sort of non-negative floating-point keys carrying int32 values (ties keep input order).
 template <class T>
 void radix_sort_positive(std::vector<T>& keys, std::vector<std::int32_t>& values, std::vector<T>& key_tmp,
@@ -175,7 +181,7 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
       out.rects[g] = rect;
       out.radius2[g] = r2;
       std::int64_t count = 0;
-      if (!skips.exact_tile_test) {
+      if (!exact_test_worthwhile(skips, rect)) {
         count = std::int64_t(rect.x1 - rect.x0 + 1) * (rect.y1 - rect.y0 + 1);
       } else {
         for (int ty = rect.y0; ty <= rect.y1; ++ty)
@@ -213,9 +219,10 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
       const Projection<T>& p = proj[g];
       const TileRect& rect = out.rects[g];
       std::int64_t e = out.gaussian_offsets[g];
+      const bool exact = exact_test_worthwhile(skips, rect);
       for (int ty = rect.y0; ty <= rect.y1; ++ty)
         for (int tx = rect.x0; tx <= rect.x1; ++tx) {
-          if (skips.exact_tile_test && !gaussian_touches_tile(p.u, p.v, p.conic, out.radius2[g], grid, tx, ty)) continue;
+          if (exact && !gaussian_touches_tile(p.u, p.v, p.conic, out.radius2[g], grid, tx, ty)) continue;
           out.isect_gaussian[e] = g;
           out.isect_tile[e] = std::int32_t(ty * grid.tiles_x + tx);
           ++e;
