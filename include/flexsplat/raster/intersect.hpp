@@ -1,5 +1,6 @@
 #pragma once
-// Tile intersection: opacity-aware pixel extent of each projected Gaussian, an exact ellipse-versus-tile test,
+// Tile intersection: opacity-aware pixel extent of each projected Gaussian, an exact ellipse-versus-tile test (per
+// tile row: the ellipse's x-range within the row's band),
 // front-to-back ordering by camera depth (stable radix sort, ties by Gaussian index), and per-tile ranges.
 // Every test is conservative: a (Gaussian, pixel) pair whose alpha can reach alpha_threshold is never dropped.
 #include <algorithm>
@@ -97,10 +98,41 @@ bool gaussian_touches_tile(T u, T v, const T conic[3], double r2, const TileGrid
                               y0, y1);
 }
 
-// On a single row or column of tiles the exact test rarely rejects anything (a convex extent reaching both ends of
-// the strip crosses every tile of it unless clipping cuts it), so it is run only on wider rectangles.
-inline bool exact_test_worthwhile(const RasterSkips& skips, const TileRect& rect) {
-  return skips.exact_tile_test && rect.x1 > rect.x0 && rect.y1 > rect.y0;
+// Tile columns of row ty that the extent d^T Q d <= r2 reaches: the x-range of the ellipse within the row's band of
+// pixel-centre heights (chords at the band edges, plus the leftmost/rightmost points when the band holds them).
+// Equivalent to ellipse_touches_rect on every tile of the row (up to the slack) for two square roots per row.
+template <class T>
+bool tile_row_span(T u_, T v_, const T conic[3], double r2, const TileGrid& grid, const TileRect& rect, int ty,
+                   int& tx_first, int& tx_last) {
+  tx_first = rect.x0, tx_last = rect.x1;
+  const double u = double(u_), v = double(v_), qa = double(conic[0]), qb = double(conic[1]), qc = double(conic[2]);
+  const double det = qa * qc - qb * qb;
+  if (!(r2 > 0)) return false;                                  // too transparent to reach the threshold anywhere
+  if (!(det > 0) || !(qa > 0) || !(qc > 0)) return true;  // degenerate conic: keep the whole row
+  const double rx = std::sqrt(r2 * qc / det), ry = std::sqrt(r2 * qa / det);
+  if (!std::isfinite(rx) || !std::isfinite(ry)) return true;
+  const double dy0 = ty * tile_size + pixel_centre_offset - v;
+  const double dy1 = std::min(grid.height, (ty + 1) * tile_size) - 1 + pixel_centre_offset - v;
+  const double slack_y = cull_slack_absolute + cull_slack_relative * ry;
+  if (dy0 > ry + slack_y || dy1 < -ry - slack_y) return false;
+  double lo = INFINITY, hi = -INFINITY;
+  for (double dy : {std::clamp(dy0, -ry, ry), std::clamp(dy1, -ry, ry)}) {
+    const double half_chord = std::sqrt(std::max(0.0, r2 * qa - det * dy * dy));
+    lo = std::min(lo, (-qb * dy - half_chord) / qa);
+    hi = std::max(hi, (-qb * dy + half_chord) / qa);
+  }
+  const double dy_leftmost = qb * rx / qc;  // the leftmost point is (-rx, dy_leftmost), the rightmost its mirror
+  if (dy_leftmost >= dy0 && dy_leftmost <= dy1) lo = -rx;
+  if (-dy_leftmost >= dy0 && -dy_leftmost <= dy1) hi = rx;
+  const double slack = cull_slack_absolute + cull_slack_relative * rx;
+  const double x_lo = u + lo - slack, x_hi = u + hi + slack;
+  if (x_lo > grid.width - pixel_centre_offset || x_hi < pixel_centre_offset) return false;  // beside the image
+  // Tile tx holds the pixel centres [tx * tile_size + 0.5, tx * tile_size + tile_size - 0.5].
+  const double first = std::ceil((x_lo - (tile_size - 1) - pixel_centre_offset) / tile_size);
+  const double last = std::floor((x_hi - pixel_centre_offset) / tile_size);
+  tx_first = int(std::max<double>(rect.x0, first));
+  tx_last = int(std::min<double>(rect.x1, last));
+  return tx_first <= tx_last;
 }
 
 // Stable LSD radix sort of non-negative floating-point keys carrying int32 values (ties keep input order).
@@ -181,11 +213,13 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
       out.rects[g] = rect;
       out.radius2[g] = r2;
       std::int64_t count = 0;
-      if (!exact_test_worthwhile(skips, rect)) {
+      if (!skips.exact_tile_test) {
         count = std::int64_t(rect.x1 - rect.x0 + 1) * (rect.y1 - rect.y0 + 1);
       } else {
-        for (int ty = rect.y0; ty <= rect.y1; ++ty)
-          for (int tx = rect.x0; tx <= rect.x1; ++tx) count += gaussian_touches_tile(p.u, p.v, p.conic, r2, grid, tx, ty);
+        for (int ty = rect.y0; ty <= rect.y1; ++ty) {
+          int tx0 = 0, tx1 = -1;
+          if (tile_row_span(p.u, p.v, p.conic, r2, grid, rect, ty, tx0, tx1)) count += tx1 - tx0 + 1;
+        }
       }
       out.gaussian_counts[g] = count;
     }
@@ -219,14 +253,16 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
       const Projection<T>& p = proj[g];
       const TileRect& rect = out.rects[g];
       std::int64_t e = out.gaussian_offsets[g];
-      const bool exact = exact_test_worthwhile(skips, rect);
-      for (int ty = rect.y0; ty <= rect.y1; ++ty)
-        for (int tx = rect.x0; tx <= rect.x1; ++tx) {
-          if (exact && !gaussian_touches_tile(p.u, p.v, p.conic, out.radius2[g], grid, tx, ty)) continue;
+      const bool exact = skips.exact_tile_test;
+      for (int ty = rect.y0; ty <= rect.y1; ++ty) {
+        int tx0 = rect.x0, tx1 = rect.x1;
+        if (exact && !tile_row_span(p.u, p.v, p.conic, out.radius2[g], grid, rect, ty, tx0, tx1)) continue;
+        for (int tx = tx0; tx <= tx1; ++tx) {
           out.isect_gaussian[e] = g;
           out.isect_tile[e] = std::int32_t(ty * grid.tiles_x + tx);
           ++e;
         }
+      }
     }
   }, pool);
   // Stable counting sort of the emissions by tile: within a tile, emission order is depth order.
