@@ -98,41 +98,66 @@ bool gaussian_touches_tile(T u, T v, const T conic[3], double r2, const TileGrid
                               y0, y1);
 }
 
+// Per-Gaussian constants of the per-row tile test below (computed once, used for every tile row).
+struct EllipseRows {
+  enum State { normal, empty, degenerate } state = normal;
+  double u = 0, v = 0, qb = 0, inv_qa = 0, det = 0, r2qa = 0, rx = 0, ry = 0, dy_leftmost = 0, slack_x = 0, slack_y = 0;
+};
+
+template <class T>
+EllipseRows ellipse_rows(T u, T v, const T conic[3], double r2) {
+  EllipseRows e;
+  const double qa = double(conic[0]), qb = double(conic[1]), qc = double(conic[2]);
+  e.u = double(u), e.v = double(v), e.qb = qb, e.det = qa * qc - qb * qb;
+  if (!(r2 > 0)) {  // too transparent to reach the threshold anywhere
+    e.state = EllipseRows::empty;
+    return e;
+  }
+  e.rx = std::sqrt(r2 * qc / e.det), e.ry = std::sqrt(r2 * qa / e.det);
+  if (!(e.det > 0) || !(qa > 0) || !(qc > 0) || !std::isfinite(e.rx) || !std::isfinite(e.ry)) {
+    e.state = EllipseRows::degenerate;  // keep whole rows
+    return e;
+  }
+  e.inv_qa = 1.0 / qa, e.r2qa = r2 * qa;
+  e.dy_leftmost = qb * e.rx / qc;  // the leftmost point is (-rx, dy_leftmost), the rightmost its mirror
+  e.slack_x = cull_slack_absolute + cull_slack_relative * e.rx;
+  e.slack_y = cull_slack_absolute + cull_slack_relative * e.ry;
+  return e;
+}
+
 // Tile columns of row ty that the extent d^T Q d <= r2 reaches: the x-range of the ellipse within the row's band of
 // pixel-centre heights (chords at the band edges, plus the leftmost/rightmost points when the band holds them).
 // Equivalent to ellipse_touches_rect on every tile of the row (up to the slack) for two square roots per row.
-template <class T>
-bool tile_row_span(T u_, T v_, const T conic[3], double r2, const TileGrid& grid, const TileRect& rect, int ty,
-                   int& tx_first, int& tx_last) {
+inline bool tile_row_span(const EllipseRows& e, const TileGrid& grid, const TileRect& rect, int ty, int& tx_first,
+                          int& tx_last) {
   tx_first = rect.x0, tx_last = rect.x1;
-  const double u = double(u_), v = double(v_), qa = double(conic[0]), qb = double(conic[1]), qc = double(conic[2]);
-  const double det = qa * qc - qb * qb;
-  if (!(r2 > 0)) return false;                                  // too transparent to reach the threshold anywhere
-  if (!(det > 0) || !(qa > 0) || !(qc > 0)) return true;  // degenerate conic: keep the whole row
-  const double rx = std::sqrt(r2 * qc / det), ry = std::sqrt(r2 * qa / det);
-  if (!std::isfinite(rx) || !std::isfinite(ry)) return true;
-  const double dy0 = ty * tile_size + pixel_centre_offset - v;
-  const double dy1 = std::min(grid.height, (ty + 1) * tile_size) - 1 + pixel_centre_offset - v;
-  const double slack_y = cull_slack_absolute + cull_slack_relative * ry;
-  if (dy0 > ry + slack_y || dy1 < -ry - slack_y) return false;
+  if (e.state == EllipseRows::empty) return false;
+  if (e.state == EllipseRows::degenerate) return true;
+  const double dy0 = ty * tile_size + pixel_centre_offset - e.v;
+  const double dy1 = std::min(grid.height, (ty + 1) * tile_size) - 1 + pixel_centre_offset - e.v;
+  if (dy0 > e.ry + e.slack_y || dy1 < -e.ry - e.slack_y) return false;
   double lo = INFINITY, hi = -INFINITY;
-  for (double dy : {std::clamp(dy0, -ry, ry), std::clamp(dy1, -ry, ry)}) {
-    const double half_chord = std::sqrt(std::max(0.0, r2 * qa - det * dy * dy));
-    lo = std::min(lo, (-qb * dy - half_chord) / qa);
-    hi = std::max(hi, (-qb * dy + half_chord) / qa);
+  for (double dy : {std::clamp(dy0, -e.ry, e.ry), std::clamp(dy1, -e.ry, e.ry)}) {
+    const double half_chord = std::sqrt(std::max(0.0, e.r2qa - e.det * dy * dy));
+    lo = std::min(lo, (-e.qb * dy - half_chord) * e.inv_qa);
+    hi = std::max(hi, (-e.qb * dy + half_chord) * e.inv_qa);
   }
-  const double dy_leftmost = qb * rx / qc;  // the leftmost point is (-rx, dy_leftmost), the rightmost its mirror
-  if (dy_leftmost >= dy0 && dy_leftmost <= dy1) lo = -rx;
-  if (-dy_leftmost >= dy0 && -dy_leftmost <= dy1) hi = rx;
-  const double slack = cull_slack_absolute + cull_slack_relative * rx;
-  const double x_lo = u + lo - slack, x_hi = u + hi + slack;
+  if (e.dy_leftmost >= dy0 && e.dy_leftmost <= dy1) lo = -e.rx;
+  if (-e.dy_leftmost >= dy0 && -e.dy_leftmost <= dy1) hi = e.rx;
+  const double x_lo = e.u + lo - e.slack_x, x_hi = e.u + hi + e.slack_x;
   if (x_lo > grid.width - pixel_centre_offset || x_hi < pixel_centre_offset) return false;  // beside the image
   // Tile tx holds the pixel centres [tx * tile_size + 0.5, tx * tile_size + tile_size - 0.5].
-  const double first = std::ceil((x_lo - (tile_size - 1) - pixel_centre_offset) / tile_size);
-  const double last = std::floor((x_hi - pixel_centre_offset) / tile_size);
+  const double first = std::ceil((x_lo - (tile_size - 1) - pixel_centre_offset) * (1.0 / tile_size));
+  const double last = std::floor((x_hi - pixel_centre_offset) * (1.0 / tile_size));
   tx_first = int(std::max<double>(rect.x0, first));
   tx_last = int(std::min<double>(rect.x1, last));
   return tx_first <= tx_last;
+}
+
+template <class T>
+bool tile_row_span(T u, T v, const T conic[3], double r2, const TileGrid& grid, const TileRect& rect, int ty,
+                   int& tx_first, int& tx_last) {
+  return tile_row_span(ellipse_rows(u, v, conic, r2), grid, rect, ty, tx_first, tx_last);
 }
 
 // Stable LSD radix sort of non-negative floating-point keys carrying int32 values (ties keep input order).
@@ -216,9 +241,10 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
       if (!skips.exact_tile_test) {
         count = std::int64_t(rect.x1 - rect.x0 + 1) * (rect.y1 - rect.y0 + 1);
       } else {
+        const EllipseRows rows = ellipse_rows(p.u, p.v, p.conic, r2);
         for (int ty = rect.y0; ty <= rect.y1; ++ty) {
           int tx0 = 0, tx1 = -1;
-          if (tile_row_span(p.u, p.v, p.conic, r2, grid, rect, ty, tx0, tx1)) count += tx1 - tx0 + 1;
+          if (tile_row_span(rows, grid, rect, ty, tx0, tx1)) count += tx1 - tx0 + 1;
         }
       }
       out.gaussian_counts[g] = count;
@@ -254,9 +280,10 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
       const TileRect& rect = out.rects[g];
       std::int64_t e = out.gaussian_offsets[g];
       const bool exact = skips.exact_tile_test;
+      const EllipseRows rows = exact ? ellipse_rows(p.u, p.v, p.conic, out.radius2[g]) : EllipseRows{};
       for (int ty = rect.y0; ty <= rect.y1; ++ty) {
         int tx0 = rect.x0, tx1 = rect.x1;
-        if (exact && !tile_row_span(p.u, p.v, p.conic, out.radius2[g], grid, rect, ty, tx0, tx1)) continue;
+        if (exact && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) continue;
         for (int tx = tx0; tx <= tx1; ++tx) {
           out.isect_gaussian[e] = g;
           out.isect_tile[e] = std::int32_t(ty * grid.tiles_x + tx);

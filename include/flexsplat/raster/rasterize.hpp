@@ -33,7 +33,7 @@ struct BlendState {
 
 // What the blending kernels read of one Gaussian, computed once per render instead of once per tile.
 template <class T>
-struct alignas(64) SplatParams {
+struct SplatParams {
   T u, v, ca, cb, cc, opacity, sigma_max;
   T rx, ry;  // half-extents (pixels) of the region where sigma <= sigma_max can hold in float arithmetic
 };
@@ -56,12 +56,20 @@ struct TileScratch {
 template <class T>
 struct RasterWorkspace {
   std::vector<TileScratch<T>> scratch;  // one per worker
-  std::vector<SplatParams<T>> splats;   // [N] filled by rasterize_forward, reused by rasterize_backward
+  // Per-Gaussian records (SplatParams fields, then the C channels), one or more whole cache lines each so a tile
+  // gather misses once per entry; filled by rasterize_forward, reused by rasterize_backward.
+  std::vector<T> splat_storage;
+  std::size_t splat_offset = 0;  // first record, 64-byte aligned
+  int splat_stride = 0, splat_channels = 0;
+  index_t splat_count = -1;
+  const T* splat_records() const { return splat_storage.data() + splat_offset; }
   std::vector<T> entry_grads;           // [E, 6 + C]
 };
 
 // Kernel parameters of one projected Gaussian. The extent is conservative for the float evaluation of sigma: its
 // rounding error grows with the conic's condition number, so the margin does too.
+inline constexpr int splat_fields = 9;  // u, v, ca, cb, cc, opacity, sigma_max, rx, ry; then the channels
+
 template <class T>
 void splat_params(const Projection<T>& p, SplatParams<T>& s) {
   s.u = p.u, s.v = p.v;
@@ -90,8 +98,8 @@ inline constexpr int cell_columns = tile_size / int(simd::lane_count<V>::value);
 // list of the entries whose extent reaches it; lane_grad_stride > 0 also clears the backward accumulators of covered
 // entries.
 template <class V, class T>
-void gather_tile(const TileIntersections& ti, index_t tile, const SplatParams<T>* splats, const T* channels, int C,
-                 TileScratch<T>& s, int lane_grad_stride) {
+void gather_tile(const TileIntersections& ti, index_t tile, const T* records, int stride, int C, TileScratch<T>& s,
+                 int lane_grad_stride) {
   constexpr int L = int(simd::lane_count<V>::value), cols = cell_columns<V>, cells = tile_size * cols;
   const TileGrid& grid = ti.grid;
   const int x_base = int(tile % grid.tiles_x) * tile_size, y_base = int(tile / grid.tiles_x) * tile_size;
@@ -105,18 +113,14 @@ void gather_tile(const TileIntersections& ti, index_t tile, const SplatParams<T>
   // Copy first (independent loads, prefetched a few entries ahead), then derive the coverage from the copies.
   constexpr std::int64_t prefetch_distance = 8;
   for (std::int64_t k = 0; k < count; ++k) {
-    if (k + prefetch_distance < count) {
-      __builtin_prefetch(&splats[gaussians[k + prefetch_distance]]);
-      __builtin_prefetch(&channels[std::int64_t(gaussians[k + prefetch_distance]) * C]);
-    }
-    const std::int32_t g = gaussians[k];
-    const SplatParams<T>& p = splats[g];
-    s.u[k] = p.u, s.v[k] = p.v;
-    s.ca[k] = p.ca, s.cb[k] = p.cb, s.cc[k] = p.cc;
-    s.opacity[k] = p.opacity;
-    s.sigma_max[k] = p.sigma_max;
-    s.rx[k] = p.rx, s.ry[k] = p.ry;
-    for (int c = 0; c < C; ++c) s.channels[k * C + c] = channels[std::int64_t(g) * C + c];
+    if (k + prefetch_distance < count) __builtin_prefetch(records + std::int64_t(gaussians[k + prefetch_distance]) * stride);
+    const T* p = records + std::int64_t(gaussians[k]) * stride;
+    s.u[k] = p[0], s.v[k] = p[1];
+    s.ca[k] = p[2], s.cb[k] = p[3], s.cc[k] = p[4];
+    s.opacity[k] = p[5];
+    s.sigma_max[k] = p[6];
+    s.rx[k] = p[7], s.ry[k] = p[8];
+    for (int c = 0; c < C; ++c) s.channels[k * C + c] = p[splat_fields + c];
   }
   // Tile-local pixel ranges: values are clamped to +-(tile_size + 8) first (beyond that the range misses the tile),
   // so floor reduces to truncation of a positive value (exact, and cheap without SSE4.1 rounding instructions).
@@ -311,12 +315,26 @@ void for_each_tile(index_t tiles, ThreadPool& pool, Body&& body) {
 
 // Kernel parameters of every Gaussian that has tile entries (the others are never read).
 template <class T>
-void prepare_splats(const TileIntersections& ti, const Projection<T>* proj, RasterWorkspace<T>& ws, ThreadPool& pool) {
+void prepare_splats(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
+                    RasterWorkspace<T>& ws, ThreadPool& pool) {
   const index_t n = index_t(ti.gaussian_counts.size());
-  ws.splats.resize(std::size_t(n));
+  constexpr int line = int(64 / sizeof(T));
+  const int stride = (splat_fields + C + line - 1) / line * line;
+  ws.splat_storage.resize(std::size_t(n * stride + line));
+  const auto address = reinterpret_cast<std::uintptr_t>(ws.splat_storage.data());
+  ws.splat_offset = ((64 - address % 64) % 64) / sizeof(T);
+  ws.splat_stride = stride, ws.splat_channels = C, ws.splat_count = n;
+  T* records = ws.splat_storage.data() + ws.splat_offset;
   parallel_for(n, [&](index_t begin, index_t end, int) {
-    for (index_t g = begin; g < end; ++g)
-      if (ti.gaussian_counts[g] > 0) splat_params(proj[g], ws.splats[g]);
+    for (index_t g = begin; g < end; ++g) {
+      if (ti.gaussian_counts[g] == 0) continue;
+      SplatParams<T> sp;
+      splat_params(proj[g], sp);
+      T* r = records + g * stride;
+      r[0] = sp.u, r[1] = sp.v, r[2] = sp.ca, r[3] = sp.cb, r[4] = sp.cc;
+      r[5] = sp.opacity, r[6] = sp.sigma_max, r[7] = sp.rx, r[8] = sp.ry;
+      for (int c = 0; c < C; ++c) r[splat_fields + c] = channels[g * C + c];
+    }
   }, pool);
 }
 
@@ -334,15 +352,15 @@ void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, c
   state.n_contrib.resize(pixels);
   ws.scratch.resize(std::size_t(pool.size()));
   for (auto& s : ws.scratch) s.reserve(ti.max_tile_entries, C);
-  prepare_splats(ti, proj, ws, pool);
+  prepare_splats(ti, proj, channels, C, ws, pool);
   const bool use_simd = simd::enabled() && !skips.force_scalar;
   detail::for_each_tile(ti.grid.count(), pool, [&](index_t tile, int worker) {
     TileScratch<T>& s = ws.scratch[std::size_t(worker)];
     if (use_simd) {
-      detail::gather_tile<simd::batch<T>, T>(ti, tile, ws.splats.data(), channels, C, s, 0);
+      detail::gather_tile<simd::batch<T>, T>(ti, tile, ws.splat_records(), ws.splat_stride, C, s, 0);
       detail::blend_tile_forward<simd::batch<T>, T>(ti, tile, s, C, background, skips, out_channels, state);
     } else {
-      detail::gather_tile<T, T>(ti, tile, ws.splats.data(), channels, C, s, 0);
+      detail::gather_tile<T, T>(ti, tile, ws.splat_records(), ws.splat_stride, C, s, 0);
       detail::blend_tile_forward<T, T>(ti, tile, s, C, background, skips, out_channels, state);
     }
   });
@@ -359,13 +377,14 @@ void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, 
   ws.entry_grads.resize(ti.isect_gaussian.size() * std::size_t(stride));
   ws.scratch.resize(std::size_t(pool.size()));
   for (auto& s : ws.scratch) s.reserve(ti.max_tile_entries, C);
-  if (ws.splats.size() != ti.gaussian_counts.size()) prepare_splats(ti, proj, ws, pool);
+  if (ws.splat_count != index_t(ti.gaussian_counts.size()) || ws.splat_channels != C)
+    prepare_splats(ti, proj, channels, C, ws, pool);
   const bool use_simd = simd::enabled() && !skips.force_scalar;
   auto run_tile = [&](auto lanes_tag, index_t tile, TileScratch<T>& s) {
     using V = decltype(lanes_tag);
     constexpr int L = int(simd::lane_count<V>::value);
     const std::int64_t begin = ti.tile_offsets[tile], count = ti.tile_offsets[tile + 1] - begin;
-    detail::gather_tile<V, T>(ti, tile, ws.splats.data(), channels, C, s, stride);
+    detail::gather_tile<V, T>(ti, tile, ws.splat_records(), ws.splat_stride, C, s, stride);
     detail::blend_tile_backward<V, T>(ti, tile, s, C, background, state, d_out_channels, d_alpha);
     for (std::int64_t k = 0; k < count; ++k) {
       T* record = &ws.entry_grads[std::size_t(ti.tile_entries[begin + k]) * std::size_t(stride)];
