@@ -214,7 +214,7 @@ struct TileIntersections {
   std::vector<double> depth_keys_d, depth_tmp_d;
   std::vector<float> depth_keys_f, depth_tmp_f;
   std::vector<std::int32_t> order_tmp;
-  std::vector<std::int64_t> tile_cursor;
+  std::vector<std::int64_t> tile_cursor;      // [chunks * tiles]
   std::vector<TileRect> rects;
   std::vector<double> radius2;
 };
@@ -292,23 +292,46 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
       }
     }
   }, pool);
-  // Stable counting sort of the emissions by tile: within a tile, emission order is depth order.
+  // Stable counting sort of the emissions by tile (within a tile, emission order is depth order). Each worker
+  // counts and scatters one contiguous chunk of emissions; chunk w's entries of a tile follow chunk w-1's.
   const index_t tiles = grid.count();
+  const int chunks = int(std::clamp<std::int64_t>(total / 65536, 1, pool.size()));
+  out.tile_cursor.assign(std::size_t(chunks) * std::size_t(tiles), 0);
+  auto chunk_range = [&](int w) { return std::pair{total * w / chunks, total * (w + 1) / chunks}; };
+  parallel_for(chunks, [&](index_t wb, index_t we, int) {
+    for (index_t w = wb; w < we; ++w) {
+      std::int64_t* counts = &out.tile_cursor[std::size_t(w * tiles)];
+      const auto [e0, e1] = chunk_range(int(w));
+      for (std::int64_t e = e0; e < e1; ++e) ++counts[out.isect_tile[e]];
+    }
+  }, pool);
   out.tile_offsets.assign(std::size_t(tiles) + 1, 0);
-  for (std::int64_t e = 0; e < total; ++e) ++out.tile_offsets[out.isect_tile[e] + 1];
-  for (index_t t = 0; t < tiles; ++t) out.tile_offsets[t + 1] += out.tile_offsets[t];
   out.max_tile_entries = 0;
-  for (index_t t = 0; t < tiles; ++t)
-    out.max_tile_entries = std::max(out.max_tile_entries, out.tile_offsets[t + 1] - out.tile_offsets[t]);
+  std::int64_t running = 0;
+  for (index_t t = 0; t < tiles; ++t) {
+    out.tile_offsets[t] = running;
+    for (int w = 0; w < chunks; ++w) {  // counts become each chunk's first slot in the tile
+      std::int64_t& c = out.tile_cursor[std::size_t(w * tiles + t)];
+      const std::int64_t k = c;
+      c = running;
+      running += k;
+    }
+    out.max_tile_entries = std::max(out.max_tile_entries, running - out.tile_offsets[t]);
+  }
+  out.tile_offsets[tiles] = running;
   out.tile_entries.resize(std::size_t(total));
   out.tile_gaussian.resize(std::size_t(total));
-  out.tile_cursor.assign(std::size_t(tiles), 0);
-  for (std::int64_t e = 0; e < total; ++e) {
-    const std::int32_t t = out.isect_tile[e];
-    const std::int64_t slot = out.tile_offsets[t] + out.tile_cursor[t]++;
-    out.tile_entries[slot] = std::int32_t(e);
-    out.tile_gaussian[slot] = out.isect_gaussian[e];
-  }
+  parallel_for(chunks, [&](index_t wb, index_t we, int) {
+    for (index_t w = wb; w < we; ++w) {
+      std::int64_t* cursor = &out.tile_cursor[std::size_t(w * tiles)];
+      const auto [e0, e1] = chunk_range(int(w));
+      for (std::int64_t e = e0; e < e1; ++e) {
+        const std::int64_t slot = cursor[out.isect_tile[e]]++;
+        out.tile_entries[slot] = std::int32_t(e);
+        out.tile_gaussian[slot] = out.isect_gaussian[e];
+      }
+    }
+  }, pool);
 }
 
 }  // namespace raster
