@@ -111,7 +111,7 @@ void gather_tile(const TileIntersections& ti, index_t tile, const T* records, in
     s.lane_grads.resize(std::size_t(count * lane_grad_stride * L));
   const std::int32_t* gaussians = ti.tile_gaussian.data() + begin;
   // Copy first (independent loads, prefetched a few entries ahead), then derive the coverage from the copies.
-  constexpr std::int64_t prefetch_distance = 8;
+  constexpr std::int64_t prefetch_distance = 24;
   for (std::int64_t k = 0; k < count; ++k) {
     if (k + prefetch_distance < count) __builtin_prefetch(records + std::int64_t(gaussians[k + prefetch_distance]) * stride);
     const T* p = records + std::int64_t(gaussians[k]) * stride;
