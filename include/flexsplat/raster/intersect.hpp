@@ -272,10 +272,10 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
   require(total < (std::int64_t(1) << 31), "raster: ", total, " tile intersections exceed the 2^31 limit");
   out.isect_gaussian.resize(std::size_t(total));
   out.isect_tile.resize(std::size_t(total));
-  const index_t visible_count = index_t(out.order.size());
-  parallel_for(visible_count, [&](index_t begin, index_t end, int) {
-    for (index_t i = begin; i < end; ++i) {
-      const std::int32_t g = out.order[i];
+  // In Gaussian order (sequential reads; each Gaussian writes its own slot range wherever depth puts it).
+  parallel_for(n, [&](index_t begin, index_t end, int) {
+    for (index_t g = begin; g < end; ++g) {
+      if (out.gaussian_counts[g] == 0) continue;
       const Projection<T>& p = proj[g];
       const TileRect& rect = out.rects[g];
       std::int64_t e = out.gaussian_offsets[g];
@@ -285,7 +285,7 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
         int tx0 = rect.x0, tx1 = rect.x1;
         if (exact && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) continue;
         for (int tx = tx0; tx <= tx1; ++tx) {
-          out.isect_gaussian[e] = g;
+          out.isect_gaussian[e] = std::int32_t(g);
           out.isect_tile[e] = std::int32_t(ty * grid.tiles_x + tx);
           ++e;
         }
