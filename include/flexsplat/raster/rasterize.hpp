@@ -66,10 +66,10 @@ struct RasterWorkspace {
   std::vector<T> entry_grads;           // [E, 6 + C]
 };
 
-// Kernel parameters of one projected Gaussian. The extent is conservative for the float evaluation of sigma: its
-// rounding error grows with the conic's condition number, so the margin does too.
 inline constexpr int splat_fields = 9;  // u, v, ca, cb, cc, opacity, sigma_max, rx, ry; then the channels
 
+// Kernel parameters of one projected Gaussian. The extent is conservative for the float evaluation of sigma: its
+// rounding error grows with the conic's condition number, so the margin does too.
 template <class T>
 void splat_params(const Projection<T>& p, SplatParams<T>& s) {
   s.u = p.u, s.v = p.v;
@@ -80,13 +80,17 @@ void splat_params(const Projection<T>& p, SplatParams<T>& s) {
   s.sigma_max = T(sigma_max);
   const double a = double(s.ca), b = double(s.cb), c = double(s.cc);
   const double det = a * c - b * b, trace = a + c;
-  const double margin = 1.0 + cull_slack_relative + 1e-6 * trace * trace / det;
+  const double margin = 1.0 + cull_slack_relative + cull_slack_conditioning * trace * trace / det;
   const double r2 = 2.0 * std::max(double(s.sigma_max), 0.0);
   double rx = std::sqrt(r2 * c / det) * margin + cull_slack_absolute;
   double ry = std::sqrt(r2 * a / det) * margin + cull_slack_absolute;
   if (!(det > 0) || !(a > 0) || !(c > 0) || !std::isfinite(rx) || !std::isfinite(ry)) rx = ry = INFINITY;
   // rounded up so that the narrower type stays conservative
-  s.rx = T(rx * (1.0 + 1e-6)), s.ry = T(ry * (1.0 + 1e-6));
+  auto round_up = [](double x) {
+    const T narrow = T(x);
+    return double(narrow) < x ? std::nextafter(narrow, T(INFINITY)) : narrow;
+  };
+  s.rx = round_up(rx), s.ry = round_up(ry);
 }
 
 namespace detail {
