@@ -2,11 +2,13 @@
 // 1 and 2 threads, the error of each float32 configuration against a float64 run of the same scene, and what each
 // skip saves on the target scene. Writes a CSV and an SVG plot of run time against error.
 // Usage: raster [out.csv] [out.svg] [--quick (no 1M)] [--target-only (only the skip table of the target scene)]
+//              [--profile R (only the target scene with all skips, R repetitions: for perf/callgrind)]
 #include <algorithm>
 #include <chrono>
 #include <ctime>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <random>
 #include <string>
 #include <vector>
@@ -190,9 +192,11 @@ int main(int argc, char** argv) {
   simd::require_cpu_supports_build();
   std::string csv_path = "raster_bench.csv", svg_path = "raster_bench.svg";
   bool quick = false, target_only = false;
+  int profile_reps = 0;
   std::vector<std::string> pos;
   for (int i = 1; i < argc; ++i) {
     if (std::string(argv[i]) == "--quick") quick = true;
+    else if (std::string(argv[i]) == "--profile" && i + 1 < argc) profile_reps = std::max(1, std::atoi(argv[++i]));
     else if (std::string(argv[i]) == "--target-only") target_only = true;
     else pos.push_back(argv[i]);
   }
@@ -201,6 +205,17 @@ int main(int argc, char** argv) {
   std::printf("simd arch %s (enabled %d), cpu: %s\n", simd::compiled_arch_name(), int(simd::enabled()),
               simd::describe(simd::cpu_features()).c_str());
   ThreadPool one(1), two(2);
+  if (profile_reps > 0) {
+    const auto target = make_scene<float>(100000, 512, 3);
+    RenderOptions opt;
+    opt.background = {1, 1, 1};
+    opt.pool = &two;
+    const auto r = run(target, opt, profile_reps);
+    std::printf("target scene, all skips, %d reps: fwd %.2f ms (cpu %.2f), bwd %.2f ms (cpu %.2f), %.0f tile entries, "
+                "%.2f contributors/pixel\n", profile_reps, r.forward_ms, r.forward_cpu_ms, r.backward_ms,
+                r.backward_cpu_ms, r.entries, r.contributors_per_pixel);
+    return 0;
+  }
   std::vector<Row> rows;
   const std::vector<index_t> counts = quick ? std::vector<index_t>{10000, 100000} : std::vector<index_t>{10000, 100000, 1000000};
   std::printf("%8s %5s %3s %3s %10s %10s %8s %10s %10s\n", "N", "size", "SH", "thr", "fwd_ms", "bwd_ms", "contrib",

@@ -2,6 +2,10 @@
 // are optimised with Adam through the rasterizer's adjoints on 24 of the 32 views of an object, then evaluated
 // (PSNR, SSIM) on the 8 held-out views. Writes a PNG: held-out view | render | error map.
 // Usage: fit_object [object_dir] [--gaussians N] [--iters N] [--seconds S] [--out file.png] [--half-extent H]
+//                   [--sh-degree D (default 1, raised from 0 after 20% of the budget)]
+//                   [--densify-every N (default 100 iterations, 0: off)]
+// Schedules (position learning rate decay, SH warm-up, densification window) follow the fraction of the time or
+// iteration budget used, whichever is larger.
 #include <stb/stb_image.h>
 #include <stb/stb_image_write.h>
 
@@ -162,8 +166,9 @@ int main(int argc, char** argv) {
   try {
     std::string dir = "../shared/data/objects/spot", out_png = "fit_object.png";
     index_t n = 20000;
-    int iters = 3000;
-    double seconds = 600, half_extent = 1.0;
+    int iters = 1000000, sh_degree_max = 1, densify_every = 100;
+    double seconds = 600, half_extent = 1.0, sh_warmup = 0.2, densify_from = 0.03, densify_until = 0.7;
+    float prune_opacity = 0.01f, split_scale = 0.01f;
     for (int i = 1; i < argc; ++i) {
       const std::string a = argv[i];
       auto next = [&]() -> std::string {
@@ -175,6 +180,8 @@ int main(int argc, char** argv) {
       else if (a == "--seconds") seconds = std::stod(next());
       else if (a == "--out") out_png = next();
       else if (a == "--half-extent") half_extent = std::stod(next());
+      else if (a == "--sh-degree") sh_degree_max = std::stoi(next());
+      else if (a == "--densify-every") densify_every = std::stoi(next());
       else dir = a;
     }
     auto views = load_views(dir);
@@ -184,13 +191,14 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "%s: %zu views (%zu train, %zu held out), look-at point (%.3f, %.3f, %.3f), %lld Gaussians\n",
                  dir.c_str(), views.size(), train.size(), test.size(), centre[0], centre[1], centre[2], (long long)n);
 
-    // Parameters in flat blocks: means, quats, log-scales, opacity logits, SH degree 0 (DC) colours.
+    // Parameters in flat blocks: means, quats, log-scales, opacity logits, SH DC colours and SH band 1.
     std::mt19937 rng(1);
-    std::uniform_real_distribution<float> uni(-1.f, 1.f);
+    std::uniform_real_distribution<float> uni(-1.f, 1.f), u01(0.f, 1.f);
     std::normal_distribution<float> normal;
-    Tensor<float, 2> means({n, 3}), quats({n, 4}), log_scales({n, 3});
+    const index_t K = sh_coeff_count(std::max(sh_degree_max, 0));
+    Tensor<float, 2> means({n, 3}), quats({n, 4}), log_scales({n, 3}), sh_dc({n, 3}), sh_rest({n, std::max<index_t>(K - 1, 1) * 3});
     Tensor<float, 1> logits({n});
-    Tensor<float, 3> sh({n, 1, 3});
+    Tensor<float, 3> sh({n, K, 3});
     const float init_scale = float(half_extent * 0.5 * std::cbrt(1.0 / double(n)));  // a quarter of the mean spacing: few overlaps at the start
     for (index_t i = 0; i < n; ++i) {
       for (int k = 0; k < 3; ++k) means.data()[i * 3 + k] = float(centre[k] + half_extent * uni(rng));
@@ -198,33 +206,117 @@ int main(int argc, char** argv) {
       for (int k = 1; k < 4; ++k) quats.data()[i * 4 + k] = 0.f;
       for (int k = 0; k < 3; ++k) log_scales.data()[i * 3 + k] = std::log(init_scale);
       logits.data()[i] = std::log(0.1f / 0.9f);
-      for (int k = 0; k < 3; ++k) sh.data()[i * 3 + k] = 0.1f * normal(rng);
+      for (int k = 0; k < 3; ++k) sh_dc.data()[i * 3 + k] = 0.1f * normal(rng);
     }
-    Tensor<float, 2> scales({n, 3}), g_means({n, 3}), g_quats({n, 4}), g_scales({n, 3});
+    sh_rest.fill(0);
+    sh.fill(0);
+    Tensor<float, 2> scales({n, 3}), g_means({n, 3}), g_quats({n, 4}), g_scales({n, 3}), g_dc({n, 3}),
+        g_rest({n, sh_rest.shape(1)});
     Tensor<float, 1> opacities({n}), g_opac({n});
-    Tensor<float, 3> g_sh({n, 1, 3});
+    Tensor<float, 3> g_sh({n, K, 3});
     const float extent = float(half_extent);
-    Adam opt_means(std::size_t(n * 3), 1.6e-3f * extent), opt_quats(std::size_t(n * 4), 1e-3f),
-        opt_scales(std::size_t(n * 3), 5e-3f), opt_logits(std::size_t(n), 5e-2f), opt_sh(std::size_t(n * 3), 2.5e-3f);
+    const float means_lr_start = 1.6e-3f * extent, means_lr_end = 1.6e-5f * extent;
+    Adam opt_means(std::size_t(n * 3), means_lr_start), opt_quats(std::size_t(n * 4), 1e-3f),
+        opt_scales(std::size_t(n * 3), 5e-3f), opt_logits(std::size_t(n), 5e-2f), opt_dc(std::size_t(n * 3), 2.5e-3f),
+        opt_rest(std::size_t(sh_rest.size()), 2.5e-3f / 20.f);
     RenderOptions ro;
-    ro.background = {1, 1, 1};
+    ro.background = {1, 1, 1};  // the views are composited on white
     ro.sh_degree = 0;
     RenderWorkspace<float> ws;
     RenderOutputs<float> out;
     auto activate = [&] {
       for (index_t i = 0; i < n * 3; ++i) scales.data()[i] = std::exp(log_scales.data()[i]);
       for (index_t i = 0; i < n; ++i) opacities.data()[i] = 1.f / (1.f + std::exp(-logits.data()[i]));
+      for (index_t i = 0; i < n; ++i) {
+        float* dst = sh.data() + i * K * 3;
+        for (int c = 0; c < 3; ++c) dst[c] = sh_dc.data()[i * 3 + c];
+        for (index_t k = 0; k < (K - 1) * 3; ++k) dst[3 + k] = sh_rest.data()[i * sh_rest.shape(1) + k];
+      }
     };
     auto inputs = [&] {
       return GaussianInputs<float>{means.view(), quats.view(), scales.view(), opacities.view(), sh.view(), {}};
+    };
+    // Budget-preserving densification: accumulated positional gradient norm and visibility per Gaussian.
+    std::vector<double> grad_accum(std::size_t(n), 0.0);
+    std::vector<int> grad_count(std::size_t(n), 0);
+    auto reset_adam = [](Adam& a, index_t i, int width) {
+      for (int k = 0; k < width; ++k) a.m[std::size_t(i * width + k)] = a.v[std::size_t(i * width + k)] = 0.f;
+    };
+    int replaced_total = 0;
+    auto densify = [&] {
+      // Dead: nearly transparent Gaussians. Sources: the largest mean positional gradients (under-reconstructed).
+      std::vector<index_t> dead, sources;
+      for (index_t i = 0; i < n; ++i)
+        if (opacities.data()[i] < prune_opacity) dead.push_back(i);
+      std::vector<std::pair<double, index_t>> ranked;
+      for (index_t i = 0; i < n; ++i)
+        if (grad_count[std::size_t(i)] > 0 && opacities.data()[i] >= prune_opacity)
+          ranked.push_back({grad_accum[std::size_t(i)] / grad_count[std::size_t(i)], i});
+      const std::size_t budget = std::min({dead.size(), ranked.size() / 4, std::size_t(n / 20)});
+      std::partial_sort(ranked.begin(), ranked.begin() + std::ptrdiff_t(budget), ranked.end(),
+                        [](const auto& a, const auto& b) { return a.first > b.first; });
+      std::shuffle(dead.begin(), dead.end(), rng);
+      for (std::size_t j = 0; j < budget; ++j) {
+        const index_t src = ranked[j].second, dst = dead[j];
+        float* ms = means.data() + src * 3;
+        float* md = means.data() + dst * 3;
+        const float* ls = log_scales.data() + src * 3;
+        const float max_scale = std::exp(std::max({ls[0], ls[1], ls[2]}));
+        // Large Gaussians split into two smaller ones sampled from the original; small ones are cloned.
+        const bool split = max_scale > split_scale * extent;
+        float R[9];
+        {
+          const float* q = quats.data() + src * 4;
+          const float len = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+          const float qn[4] = {q[0] / len, q[1] / len, q[2] / len, q[3] / len};
+          quat_to_rotmat(qn, R);
+        }
+        for (int k = 0; k < 4; ++k) quats.data()[dst * 4 + k] = quats.data()[src * 4 + k];
+        for (int k = 0; k < 3; ++k) sh_dc.data()[dst * 3 + k] = sh_dc.data()[src * 3 + k];
+        for (index_t k = 0; k < sh_rest.shape(1); ++k)
+          sh_rest.data()[dst * sh_rest.shape(1) + k] = sh_rest.data()[src * sh_rest.shape(1) + k];
+        logits.data()[dst] = logits.data()[src];
+        const float jitter = split ? 1.f : 0.1f;
+        const float base[3] = {ms[0], ms[1], ms[2]};
+        for (float* m : {md, ms}) {
+          if (m == ms && !split) continue;  // a clone leaves its source in place
+          float local[3];
+          for (int k = 0; k < 3; ++k) local[k] = jitter * std::exp(ls[k]) * normal(rng);
+          for (int r = 0; r < 3; ++r) m[r] = base[r] + R[r * 3] * local[0] + R[r * 3 + 1] * local[1] + R[r * 3 + 2] * local[2];
+        }
+        for (int k = 0; k < 3; ++k)
+          log_scales.data()[dst * 3 + k] = ls[k] - (split ? std::log(1.6f) : 0.f);
+        if (split)
+          for (int k = 0; k < 3; ++k) log_scales.data()[src * 3 + k] -= std::log(1.6f);
+        for (index_t i : {src, dst}) {
+          reset_adam(opt_means, i, 3), reset_adam(opt_quats, i, 4), reset_adam(opt_scales, i, 3);
+          reset_adam(opt_logits, i, 1), reset_adam(opt_dc, i, 3);
+          reset_adam(opt_rest, i, int(sh_rest.shape(1)));
+        }
+      }
+      replaced_total += int(budget);
+      std::fill(grad_accum.begin(), grad_accum.end(), 0.0);
+      std::fill(grad_count.begin(), grad_count.end(), 0);
+      return budget;
     };
     const auto start = std::chrono::steady_clock::now();
     auto elapsed = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(); };
     Tensor<float, 3> d_image;
     double loss_avg = 0;
     int it = 0;
+    std::vector<int> view_order;
+    std::size_t view_cursor = 0;
     for (it = 1; it <= iters && elapsed() < seconds; ++it) {
-      const View& v = views[train[std::size_t(rng() % train.size())]];
+      // Progress by time or by iterations, whichever is further: schedules fit the budget either way.
+      const double progress = std::min(1.0, std::max(elapsed() / seconds, double(it) / iters));
+      if (view_cursor == view_order.size()) {  // random view order, every view once per epoch
+        view_order = train;
+        std::shuffle(view_order.begin(), view_order.end(), rng);
+        view_cursor = 0;
+      }
+      const View& v = views[std::size_t(view_order[view_cursor++])];
+      if (sh_degree_max > 0 && ro.sh_degree == 0 && progress >= sh_warmup) ro.sh_degree = std::min(sh_degree_max, 3);
+      opt_means.lr = float(means_lr_start * std::pow(double(means_lr_end) / means_lr_start, progress));
       activate();
       render_forward(inputs(), v.camera, ro, ws, out);
       const index_t H = v.camera.height, W = v.camera.width;
@@ -242,23 +334,35 @@ int main(int argc, char** argv) {
       g_sh.fill(0);
       GaussianGrads<float> g{g_means.view(), g_quats.view(), g_scales.view(), g_opac.view(), g_sh.view(), {}, nullptr};
       render_backward(inputs(), v.camera, ro, ws, RenderOutputGrads<float>{d_image.view(), {}, {}, {}}, g);
-      // Chain through the activations: scale = exp(log_scale), opacity = sigmoid(logit).
+      // Chain through the activations: scale = exp(log_scale), opacity = sigmoid(logit); split the SH bands.
       for (index_t i = 0; i < n * 3; ++i) g_scales.data()[i] *= scales.data()[i];
       for (index_t i = 0; i < n; ++i) g_opac.data()[i] *= opacities.data()[i] * (1.f - opacities.data()[i]);
+      for (index_t i = 0; i < n; ++i) {
+        const float* src = g_sh.data() + i * K * 3;
+        for (int c = 0; c < 3; ++c) g_dc.data()[i * 3 + c] = src[c];
+        for (index_t k = 0; k < (K - 1) * 3; ++k) g_rest.data()[i * g_rest.shape(1) + k] = src[3 + k];
+        const float* gm = g_means.data() + i * 3;
+        const double norm = std::sqrt(double(gm[0]) * gm[0] + double(gm[1]) * gm[1] + double(gm[2]) * gm[2]);
+        if (norm > 0) grad_accum[std::size_t(i)] += norm, ++grad_count[std::size_t(i)];
+      }
       opt_means.step(means.data(), g_means.data(), std::size_t(n * 3), it);
       opt_quats.step(quats.data(), g_quats.data(), std::size_t(n * 4), it);
       opt_scales.step(log_scales.data(), g_scales.data(), std::size_t(n * 3), it);
       opt_logits.step(logits.data(), g_opac.data(), std::size_t(n), it);
-      opt_sh.step(sh.data(), g_sh.data(), std::size_t(n * 3), it);
+      opt_dc.step(sh_dc.data(), g_dc.data(), std::size_t(n * 3), it);
+      if (ro.sh_degree > 0) opt_rest.step(sh_rest.data(), g_rest.data(), std::size_t(sh_rest.size()), it);
       for (index_t i = 0; i < n; ++i) {  // keep quaternions away from zero length
         float* q = quats.data() + i * 4;
         const float len = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
         if (len < 1e-6f) q[0] = 1.f, q[1] = q[2] = q[3] = 0.f;
       }
+      if (densify_every > 0 && it % densify_every == 0 && progress >= densify_from && progress <= densify_until) {
+        activate();
+        densify();
+      }
       if (it % 10 == 0 || it == iters) {
-        const int bar = 30, filled = int(bar * double(it) / iters);
-        std::fprintf(stderr, "\r[%.*s%*s] %5d/%d  L1 %.4f  %.0f s", filled, "==============================",
-                     bar - filled, "", it, iters, loss_avg, elapsed());
+        std::fprintf(stderr, "\r%6d it  L1 %.4f  SH %d  replaced %d  %.0f s   ", it, loss_avg, ro.sh_degree,
+                     replaced_total, elapsed());
       }
     }
     std::fprintf(stderr, "\n");
@@ -296,9 +400,10 @@ int main(int argc, char** argv) {
           std::fprintf(stderr, "fit_object: could not write %s\n", out_png.c_str());
       }
     }
-    std::printf("%s: %d iterations in %.1f s, %lld Gaussians: held-out mean PSNR %.2f dB, SSIM %.4f (%zu views); wrote %s\n",
-                dir.c_str(), done_iters, elapsed(), (long long)n, psnr_sum / double(test.size()),
-                ssim_sum / double(test.size()), test.size(), out_png.c_str());
+    std::printf("%s: %d iterations in %.1f s, %lld Gaussians (SH degree %d, %d replaced by densification): held-out "
+                "mean PSNR %.2f dB, SSIM %.4f (%zu views); wrote %s\n",
+                dir.c_str(), done_iters, elapsed(), (long long)n, ro.sh_degree, replaced_total,
+                psnr_sum / double(test.size()), ssim_sum / double(test.size()), test.size(), out_png.c_str());
     return 0;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "fit_object: %s\n", e.what());

@@ -35,6 +35,35 @@ TEST_CASE("intersect: exact ellipse-tile test never misses a sampled point insid
   CHECK(rejected > 100);
 }
 
+TEST_CASE("intersect: per-row tile spans agree with the exact ellipse-tile test", "[raster][intersect]") {
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> uni(-1, 1);
+  const TileGrid grid(150, 110);
+  long kept = 0, dropped = 0;
+  for (int trial = 0; trial < 2000; ++trial) {
+    const double l1 = std::exp(5 * uni(rng)), l2 = std::exp(5 * uni(rng)), th = 3.2 * uni(rng);
+    const double c = std::cos(th), s = std::sin(th);
+    const float conic[3] = {float(c * c / l1 + s * s / l2), float(c * s * (1 / l1 - 1 / l2)), float(s * s / l1 + c * c / l2)};
+    const float u = float(75 + 90 * uni(rng)), v = float(55 + 70 * uni(rng));
+    const double r2 = 2 * std::log(255 * (0.505 + 0.495 * uni(rng)));  // opacity in [0.01, 1]: r2 > 0 as in use
+    const TileRect rect{0, 0, grid.tiles_x - 1, grid.tiles_y - 1};
+    for (int ty = 0; ty < grid.tiles_y; ++ty) {
+      int tx0 = 0, tx1 = -1;
+      const bool any = tile_row_span(u, v, conic, r2, grid, rect, ty, tx0, tx1);
+      for (int tx = 0; tx < grid.tiles_x; ++tx) {
+        const bool in_span = any && tx >= tx0 && tx <= tx1;
+        // Never drops a tile the exact test keeps; keeps a tile only if a slightly larger ellipse touches it.
+        if (gaussian_touches_tile(u, v, conic, r2, grid, tx, ty)) CHECK(in_span);
+        if (in_span) CHECK(gaussian_touches_tile(u, v, conic, r2 * 1.01 + 0.01, grid, tx, ty));
+        kept += in_span;
+        dropped += !in_span;
+      }
+    }
+  }
+  CHECK(kept > 1000);
+  CHECK(dropped > 1000);
+}
+
 TEST_CASE("intersect: radix sort is ordered and stable", "[raster][intersect]") {
   std::vector<float> keys = {3.f, 1.f, 2.f, 1.f, 1e-3f, 70000.f, 2.f}, kt;
   std::vector<std::int32_t> values = {0, 1, 2, 3, 4, 5, 6}, vt;

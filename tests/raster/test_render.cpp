@@ -54,7 +54,9 @@ bool all_finite(std::span<const T> v) {
 
 template <class T, std::size_t R>
 bool same_bits(const Tensor<T, R>& a, const Tensor<T, R>& b) {
-  return a.shape() == b.shape() && std::memcmp(a.data(), b.data(), sizeof(T) * std::size_t(a.size())) == 0;
+  // memcmp must not see the null data pointer of an empty tensor
+  return a.shape() == b.shape() &&
+         (a.size() == 0 || std::memcmp(a.data(), b.data(), sizeof(T) * std::size_t(a.size())) == 0);
 }
 
 // Forward + backward of a scene; returns everything for bitwise comparisons.

@@ -22,6 +22,9 @@ inline constexpr int max_sh_degree = 3;
 // then rejects, but never drop a pair whose float alpha reaches alpha_threshold.
 inline constexpr double cull_slack_relative = 1e-3;
 inline constexpr double cull_slack_absolute = 1e-3;
+// Extra relative margin of the per-pixel extents per unit of the conic's condition number (trace^2 / det): float
+// rounding of sigma grows with it, and a pixel whose float sigma passes must stay inside the extent.
+inline constexpr double cull_slack_conditioning = 1e-6;
 
 // Real spherical-harmonics constants of the 3DGS papers, bands 0 to 3.
 inline constexpr double sh_c0 = 0.28209479177387814;

@@ -1,5 +1,6 @@
 #pragma once
-// Tile intersection: opacity-aware pixel extent of each projected Gaussian, an exact ellipse-versus-tile test,
+// Tile intersection: opacity-aware pixel extent of each projected Gaussian, an exact ellipse-versus-tile test (per
+// tile row: the ellipse's x-range within the row's band),
 // front-to-back ordering by camera depth (stable radix sort, ties by Gaussian index), and per-tile ranges.
 // Every test is conservative: a (Gaussian, pixel) pair whose alpha can reach alpha_threshold is never dropped.
 #include <algorithm>
@@ -97,6 +98,68 @@ bool gaussian_touches_tile(T u, T v, const T conic[3], double r2, const TileGrid
                               y0, y1);
 }
 
+// Per-Gaussian constants of the per-row tile test below (computed once, used for every tile row).
+struct EllipseRows {
+  enum State { normal, empty, degenerate } state = normal;
+  double u = 0, v = 0, qb = 0, inv_qa = 0, det = 0, r2qa = 0, rx = 0, ry = 0, dy_leftmost = 0, slack_x = 0, slack_y = 0;
+};
+
+template <class T>
+EllipseRows ellipse_rows(T u, T v, const T conic[3], double r2) {
+  EllipseRows e;
+  const double qa = double(conic[0]), qb = double(conic[1]), qc = double(conic[2]);
+  e.u = double(u), e.v = double(v), e.qb = qb, e.det = qa * qc - qb * qb;
+  if (!(r2 > 0)) {  // too transparent to reach the threshold anywhere
+    e.state = EllipseRows::empty;
+    return e;
+  }
+  e.rx = std::sqrt(r2 * qc / e.det), e.ry = std::sqrt(r2 * qa / e.det);
+  if (!(e.det > 0) || !(qa > 0) || !(qc > 0) || !std::isfinite(e.rx) || !std::isfinite(e.ry)) {
+    e.state = EllipseRows::degenerate;  // keep whole rows
+    return e;
+  }
+  e.inv_qa = 1.0 / qa, e.r2qa = r2 * qa;
+  e.dy_leftmost = qb * e.rx / qc;  // the leftmost point is (-rx, dy_leftmost), the rightmost its mirror
+  e.slack_x = cull_slack_absolute + cull_slack_relative * e.rx;
+  e.slack_y = cull_slack_absolute + cull_slack_relative * e.ry;
+  return e;
+}
+
+// Tile columns of row ty that the extent d^T Q d <= r2 reaches: the x-range of the ellipse within the row's band of
+// pixel-centre heights (chords at the band edges, plus the leftmost/rightmost points when the band holds them).
+// Equivalent to ellipse_touches_rect on every tile of the row (up to the slack) for two square roots per row.
+inline bool tile_row_span(const EllipseRows& e, const TileGrid& grid, const TileRect& rect, int ty, int& tx_first,
+                          int& tx_last) {
+  tx_first = rect.x0, tx_last = rect.x1;
+  if (e.state == EllipseRows::empty) return false;
+  if (e.state == EllipseRows::degenerate) return true;
+  const double dy0 = ty * tile_size + pixel_centre_offset - e.v;
+  const double dy1 = std::min(grid.height, (ty + 1) * tile_size) - 1 + pixel_centre_offset - e.v;
+  if (dy0 > e.ry + e.slack_y || dy1 < -e.ry - e.slack_y) return false;
+  double lo = INFINITY, hi = -INFINITY;
+  for (double dy : {std::clamp(dy0, -e.ry, e.ry), std::clamp(dy1, -e.ry, e.ry)}) {
+    const double half_chord = std::sqrt(std::max(0.0, e.r2qa - e.det * dy * dy));
+    lo = std::min(lo, (-e.qb * dy - half_chord) * e.inv_qa);
+    hi = std::max(hi, (-e.qb * dy + half_chord) * e.inv_qa);
+  }
+  if (e.dy_leftmost >= dy0 && e.dy_leftmost <= dy1) lo = -e.rx;
+  if (-e.dy_leftmost >= dy0 && -e.dy_leftmost <= dy1) hi = e.rx;
+  const double x_lo = e.u + lo - e.slack_x, x_hi = e.u + hi + e.slack_x;
+  if (x_lo > grid.width - pixel_centre_offset || x_hi < pixel_centre_offset) return false;  // beside the image
+  // Tile tx holds the pixel centres [tx * tile_size + 0.5, tx * tile_size + tile_size - 0.5].
+  const double first = std::ceil((x_lo - (tile_size - 1) - pixel_centre_offset) * (1.0 / tile_size));
+  const double last = std::floor((x_hi - pixel_centre_offset) * (1.0 / tile_size));
+  tx_first = int(std::max<double>(rect.x0, first));
+  tx_last = int(std::min<double>(rect.x1, last));
+  return tx_first <= tx_last;
+}
+
+template <class T>
+bool tile_row_span(T u, T v, const T conic[3], double r2, const TileGrid& grid, const TileRect& rect, int ty,
+                   int& tx_first, int& tx_last) {
+  return tile_row_span(ellipse_rows(u, v, conic, r2), grid, rect, ty, tx_first, tx_last);
+}
+
 // Stable LSD radix sort of non-negative floating-point keys carrying int32 values (ties keep input order).
 template <class T>
 void radix_sort_positive(std::vector<T>& keys, std::vector<std::int32_t>& values, std::vector<T>& key_tmp,
@@ -145,12 +208,13 @@ struct TileIntersections {
   std::vector<std::int32_t> isect_tile;        // [E] tile of each emission
   std::vector<std::int64_t> tile_offsets;      // [tiles+1]
   std::vector<std::int32_t> tile_entries;      // [E] emission indices sorted by (tile, depth)
+  std::vector<std::int32_t> tile_gaussian;     // [E] Gaussian of each tile_entries element (one indirection less)
   std::int64_t max_tile_entries = 0;
   // Scratch
   std::vector<double> depth_keys_d, depth_tmp_d;
   std::vector<float> depth_keys_f, depth_tmp_f;
   std::vector<std::int32_t> order_tmp;
-  std::vector<std::int64_t> tile_cursor;
+  std::vector<std::int64_t> tile_cursor;      // [chunks * tiles]
   std::vector<TileRect> rects;
   std::vector<double> radius2;
 };
@@ -177,8 +241,11 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
       if (!skips.exact_tile_test) {
         count = std::int64_t(rect.x1 - rect.x0 + 1) * (rect.y1 - rect.y0 + 1);
       } else {
-        for (int ty = rect.y0; ty <= rect.y1; ++ty)
-          for (int tx = rect.x0; tx <= rect.x1; ++tx) count += gaussian_touches_tile(p.u, p.v, p.conic, r2, grid, tx, ty);
+        const EllipseRows rows = ellipse_rows(p.u, p.v, p.conic, r2);
+        for (int ty = rect.y0; ty <= rect.y1; ++ty) {
+          int tx0 = 0, tx1 = -1;
+          if (tile_row_span(rows, grid, rect, ty, tx0, tx1)) count += tx1 - tx0 + 1;
+        }
       }
       out.gaussian_counts[g] = count;
     }
@@ -205,36 +272,66 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
   require(total < (std::int64_t(1) << 31), "raster: ", total, " tile intersections exceed the 2^31 limit");
   out.isect_gaussian.resize(std::size_t(total));
   out.isect_tile.resize(std::size_t(total));
-  const index_t visible_count = index_t(out.order.size());
-  parallel_for(visible_count, [&](index_t begin, index_t end, int) {
-    for (index_t i = begin; i < end; ++i) {
-      const std::int32_t g = out.order[i];
+  // In Gaussian order (sequential reads; each Gaussian writes its own slot range wherever depth puts it).
+  parallel_for(n, [&](index_t begin, index_t end, int) {
+    for (index_t g = begin; g < end; ++g) {
+      if (out.gaussian_counts[g] == 0) continue;
       const Projection<T>& p = proj[g];
       const TileRect& rect = out.rects[g];
       std::int64_t e = out.gaussian_offsets[g];
-      for (int ty = rect.y0; ty <= rect.y1; ++ty)
-        for (int tx = rect.x0; tx <= rect.x1; ++tx) {
-          if (skips.exact_tile_test && !gaussian_touches_tile(p.u, p.v, p.conic, out.radius2[g], grid, tx, ty)) continue;
-          out.isect_gaussian[e] = g;
+      const bool exact = skips.exact_tile_test;
+      const EllipseRows rows = exact ? ellipse_rows(p.u, p.v, p.conic, out.radius2[g]) : EllipseRows{};
+      for (int ty = rect.y0; ty <= rect.y1; ++ty) {
+        int tx0 = rect.x0, tx1 = rect.x1;
+        if (exact && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) continue;
+        for (int tx = tx0; tx <= tx1; ++tx) {
+          out.isect_gaussian[e] = std::int32_t(g);
           out.isect_tile[e] = std::int32_t(ty * grid.tiles_x + tx);
           ++e;
         }
+      }
     }
   }, pool);
-  // Stable counting sort of the emissions by tile: within a tile, emission order is depth order.
+  // Stable counting sort of the emissions by tile (within a tile, emission order is depth order). Each worker
+  // counts and scatters one contiguous chunk of emissions; chunk w's entries of a tile follow chunk w-1's.
   const index_t tiles = grid.count();
+  const int chunks = int(std::clamp<std::int64_t>(total / 65536, 1, pool.size()));
+  out.tile_cursor.assign(std::size_t(chunks) * std::size_t(tiles), 0);
+  auto chunk_range = [&](int w) { return std::pair{total * w / chunks, total * (w + 1) / chunks}; };
+  parallel_for(chunks, [&](index_t wb, index_t we, int) {
+    for (index_t w = wb; w < we; ++w) {
+      std::int64_t* counts = &out.tile_cursor[std::size_t(w * tiles)];
+      const auto [e0, e1] = chunk_range(int(w));
+      for (std::int64_t e = e0; e < e1; ++e) ++counts[out.isect_tile[e]];
+    }
+  }, pool);
   out.tile_offsets.assign(std::size_t(tiles) + 1, 0);
-  for (std::int64_t e = 0; e < total; ++e) ++out.tile_offsets[out.isect_tile[e] + 1];
-  for (index_t t = 0; t < tiles; ++t) out.tile_offsets[t + 1] += out.tile_offsets[t];
   out.max_tile_entries = 0;
-  for (index_t t = 0; t < tiles; ++t)
-    out.max_tile_entries = std::max(out.max_tile_entries, out.tile_offsets[t + 1] - out.tile_offsets[t]);
-  out.tile_entries.resize(std::size_t(total));
-  out.tile_cursor.assign(std::size_t(tiles), 0);
-  for (std::int64_t e = 0; e < total; ++e) {
-    const std::int32_t t = out.isect_tile[e];
-    out.tile_entries[out.tile_offsets[t] + out.tile_cursor[t]++] = std::int32_t(e);
+  std::int64_t running = 0;
+  for (index_t t = 0; t < tiles; ++t) {
+    out.tile_offsets[t] = running;
+    for (int w = 0; w < chunks; ++w) {  // counts become each chunk's first slot in the tile
+      std::int64_t& c = out.tile_cursor[std::size_t(w * tiles + t)];
+      const std::int64_t k = c;
+      c = running;
+      running += k;
+    }
+    out.max_tile_entries = std::max(out.max_tile_entries, running - out.tile_offsets[t]);
   }
+  out.tile_offsets[tiles] = running;
+  out.tile_entries.resize(std::size_t(total));
+  out.tile_gaussian.resize(std::size_t(total));
+  parallel_for(chunks, [&](index_t wb, index_t we, int) {
+    for (index_t w = wb; w < we; ++w) {
+      std::int64_t* cursor = &out.tile_cursor[std::size_t(w * tiles)];
+      const auto [e0, e1] = chunk_range(int(w));
+      for (std::int64_t e = e0; e < e1; ++e) {
+        const std::int64_t slot = cursor[out.isect_tile[e]]++;
+        out.tile_entries[slot] = std::int32_t(e);
+        out.tile_gaussian[slot] = out.isect_gaussian[e];
+      }
+    }
+  }, pool);
 }
 
 }  // namespace raster

@@ -31,38 +31,129 @@ struct BlendState {
   std::vector<std::int32_t> n_contrib;    // [H*W]
 };
 
-// Tile-local copies of the Gaussians of one tile (structure of arrays) plus per-entry gradient accumulators.
+// What the blending kernels read of one Gaussian, computed once per render instead of once per tile.
+template <class T>
+struct SplatParams {
+  T u, v, ca, cb, cc, opacity, sigma_max;
+  T rx, ry;  // half-extents (pixels) of the region where sigma <= sigma_max can hold in float arithmetic
+};
+
+// Per-worker tile scratch: tile-local copies of the Gaussians (structure of arrays), the lists of entries whose
+// extent covers each cell (one row of L pixels), and per-entry gradient accumulators (one lane group per value).
 template <class T>
 struct TileScratch {
-  std::vector<T> u, v, ca, cb, cc, opacity, sigma_max, channels, grads;
+  std::vector<T> u, v, ca, cb, cc, opacity, sigma_max, rx, ry, channels, lane_grads;
+  std::vector<std::int16_t> cover;             // [count * 4]: first row, last row, first cell column, last
+  std::vector<std::int32_t> cell_offsets, cell_list;  // cell c's list: cell_list[c * count, + cell_offsets[c])
   void reserve(std::int64_t n, int channel_count) {
-    for (auto* a : {&u, &v, &ca, &cb, &cc, &opacity, &sigma_max}) a->resize(std::size_t(n));
-    channels.resize(std::size_t(n * channel_count));
-    grads.resize(std::size_t(n * (entry_grad_fixed + channel_count)));
+    for (auto* a : {&u, &v, &ca, &cb, &cc, &opacity, &sigma_max, &rx, &ry})
+      if (a->size() < std::size_t(n)) a->resize(std::size_t(n));
+    if (channels.size() < std::size_t(n * channel_count)) channels.resize(std::size_t(n * channel_count));
+    if (cover.size() < std::size_t(n * 4)) cover.resize(std::size_t(n * 4));
   }
 };
 
 template <class T>
 struct RasterWorkspace {
   std::vector<TileScratch<T>> scratch;  // one per worker
+  // Per-Gaussian records (SplatParams fields, then the C channels), one or more whole cache lines each so a tile
+  // gather misses once per entry; filled by rasterize_forward, reused by rasterize_backward.
+  std::vector<T> splat_storage;
+  std::size_t splat_offset = 0;  // first record, 64-byte aligned
+  int splat_stride = 0, splat_channels = 0;
+  index_t splat_count = -1;
+  const T* splat_records() const { return splat_storage.data() + splat_offset; }
   std::vector<T> entry_grads;           // [E, 6 + C]
 };
 
+inline constexpr int splat_fields = 9;  // u, v, ca, cb, cc, opacity, sigma_max, rx, ry; then the channels
+
+// Kernel parameters of one projected Gaussian. The extent is conservative for the float evaluation of sigma: its
+// rounding error grows with the conic's condition number, so the margin does too.
+template <class T>
+void splat_params(const Projection<T>& p, SplatParams<T>& s) {
+  s.u = p.u, s.v = p.v;
+  s.ca = p.conic[0], s.cb = p.conic[1], s.cc = p.conic[2];
+  s.opacity = p.opacity;
+  // sigma above this gives alpha < alpha_threshold for certain (slack covers float rounding of exp)
+  const double sigma_max = std::log(double(p.opacity) / alpha_threshold) * (1.0 + cull_slack_relative) + cull_slack_absolute;
+  s.sigma_max = T(sigma_max);
+  const double a = double(s.ca), b = double(s.cb), c = double(s.cc);
+  const double det = a * c - b * b, trace = a + c;
+  const double margin = 1.0 + cull_slack_relative + cull_slack_conditioning * trace * trace / det;
+  const double r2 = 2.0 * std::max(double(s.sigma_max), 0.0);
+  double rx = std::sqrt(r2 * c / det) * margin + cull_slack_absolute;
+  double ry = std::sqrt(r2 * a / det) * margin + cull_slack_absolute;
+  if (!(det > 0) || !(a > 0) || !(c > 0) || !std::isfinite(rx) || !std::isfinite(ry)) rx = ry = INFINITY;
+  // rounded up so that the narrower type stays conservative
+  auto round_up = [](double x) {
+    const T narrow = T(x);
+    return double(narrow) < x ? std::nextafter(narrow, T(INFINITY)) : narrow;
+  };
+  s.rx = round_up(rx), s.ry = round_up(ry);
+}
+
 namespace detail {
 
-template <class T>
-void gather_tile(const TileIntersections& ti, index_t tile, const Projection<T>* proj, const T* channels, int C,
-                 TileScratch<T>& s) {
-  const std::int64_t begin = ti.tile_offsets[tile], end = ti.tile_offsets[tile + 1];
-  for (std::int64_t k = 0; k < end - begin; ++k) {
-    const std::int32_t g = ti.isect_gaussian[ti.tile_entries[begin + k]];
-    const Projection<T>& p = proj[g];
-    s.u[k] = p.u, s.v[k] = p.v;
-    s.ca[k] = p.conic[0], s.cb[k] = p.conic[1], s.cc[k] = p.conic[2];
-    s.opacity[k] = p.opacity;
-    // sigma above this gives alpha < alpha_threshold for certain (slack covers float rounding of exp)
-    s.sigma_max[k] = T(std::log(double(p.opacity) / alpha_threshold) * (1.0 + cull_slack_relative) + cull_slack_absolute);
-    for (int c = 0; c < C; ++c) s.channels[k * C + c] = channels[std::int64_t(g) * C + c];
+template <class V>
+inline constexpr int cell_columns = tile_size / int(simd::lane_count<V>::value);
+
+// Copies the Gaussians of one tile into s and builds, for each cell (row r, column c of L pixels), the front-to-back
+// list of the entries whose extent reaches it; lane_grad_stride > 0 also clears the backward accumulators of covered
+// entries.
+template <class V, class T>
+void gather_tile(const TileIntersections& ti, index_t tile, const T* records, int stride, int C, TileScratch<T>& s,
+                 int lane_grad_stride) {
+  constexpr int L = int(simd::lane_count<V>::value), cols = cell_columns<V>, cells = tile_size * cols;
+  const TileGrid& grid = ti.grid;
+  const int x_base = int(tile % grid.tiles_x) * tile_size, y_base = int(tile / grid.tiles_x) * tile_size;
+  const int width_here = std::min(tile_size, grid.width - x_base), rows_here = std::min(tile_size, grid.height - y_base);
+  const std::int64_t begin = ti.tile_offsets[tile], count = ti.tile_offsets[tile + 1] - begin;
+  s.cell_offsets.assign(cells, 0);
+  if (s.cell_list.size() < std::size_t(count * cells)) s.cell_list.resize(std::size_t(count * cells));
+  if (lane_grad_stride > 0 && s.lane_grads.size() < std::size_t(count * lane_grad_stride * L))
+    s.lane_grads.resize(std::size_t(count * lane_grad_stride * L));
+  const std::int32_t* gaussians = ti.tile_gaussian.data() + begin;
+  // Copy first (independent loads, prefetched a few entries ahead), then derive the coverage from the copies.
+  constexpr std::int64_t prefetch_distance = 24;
+  for (std::int64_t k = 0; k < count; ++k) {
+    if (k + prefetch_distance < count) __builtin_prefetch(records + std::int64_t(gaussians[k + prefetch_distance]) * stride);
+    const T* p = records + std::int64_t(gaussians[k]) * stride;
+    s.u[k] = p[0], s.v[k] = p[1];
+    s.ca[k] = p[2], s.cb[k] = p[3], s.cc[k] = p[4];
+    s.opacity[k] = p[5];
+    s.sigma_max[k] = p[6];
+    s.rx[k] = p[7], s.ry[k] = p[8];
+    for (int c = 0; c < C; ++c) s.channels[k * C + c] = p[splat_fields + c];
+  }
+  // Tile-local pixel ranges: values are clamped to +-(tile_size + 8) first (beyond that the range misses the tile),
+  // so floor reduces to truncation of a positive value (exact, and cheap without SSE4.1 rounding instructions).
+  auto floor_local = [](double x) {
+    constexpr int reach = tile_size + 8;
+    return int(std::min(std::max(x, -double(reach)), double(reach)) + 2 * reach) - 2 * reach;
+  };
+  std::int32_t* lists = s.cell_list.data();
+  std::int32_t* fill = s.cell_offsets.data();  // fill[c]: entries so far in cell c's list (capacity count)
+  for (std::int64_t k = 0; k < count; ++k) {
+    // Pixel x is in range when |x + 0.5 - u| <= rx.
+    const double u = double(s.u[k]) - pixel_centre_offset - x_base, rx = double(s.rx[k]);
+    const double v = double(s.v[k]) - pixel_centre_offset - y_base, ry = double(s.ry[k]);
+    const int x0 = std::max(0, -floor_local(rx - u)), x1 = std::min(width_here - 1, floor_local(u + rx));
+    const int y0 = std::max(0, -floor_local(ry - v)), y1 = std::min(rows_here - 1, floor_local(v + ry));
+    std::int16_t* cover = &s.cover[std::size_t(k) * 4];
+    if (x0 > x1 || y0 > y1) {
+      cover[0] = 1, cover[1] = 0, cover[2] = 1, cover[3] = 0;
+      continue;
+    }
+    cover[0] = std::int16_t(y0), cover[1] = std::int16_t(y1), cover[2] = std::int16_t(x0 / L);
+    cover[3] = std::int16_t(x1 / L);
+    for (int r = y0; r <= y1; ++r)
+      for (int c = x0 / L; c <= x1 / L; ++c) {
+        const int cell = r * cols + c;
+        lists[std::int64_t(cell) * count + fill[cell]++] = std::int32_t(k);
+      }
+    if (lane_grad_stride > 0)
+      std::fill_n(&s.lane_grads[std::size_t(k * lane_grad_stride * L)], lane_grad_stride * L, T(0));
   }
 }
 
@@ -77,7 +168,7 @@ V lane_offsets() {
 template <class V, class T>
 void blend_tile_forward(const TileIntersections& ti, index_t tile, const TileScratch<T>& s, int C, const T* background,
                         const RasterSkips& skips, T* out_channels, BlendState<T>& state) {
-  constexpr int L = int(simd::lane_count<V>::value);
+  constexpr int L = int(simd::lane_count<V>::value), cols = cell_columns<V>;
   static_assert(tile_size % L == 0, "tile rows must split into whole batches");
   const TileGrid& grid = ti.grid;
   const int tx = int(tile % grid.tiles_x), ty = int(tile / grid.tiles_x);
@@ -91,33 +182,35 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const TileScr
   for (int py = ty * tile_size; py < y_end; ++py) {
     const V pyc = V(T(py) + T(pixel_centre_offset));
     for (int bx = tx * tile_size; bx < x_end; bx += L) {
+      const int cell = (py - ty * tile_size) * cols + (bx - tx * tile_size) / L;
+      const std::int32_t* list = s.cell_list.data() + std::int64_t(cell) * count;
+      const std::int32_t list_size = s.cell_offsets[cell];
       const V px = iota + V(T(bx));
       const V pxc = px + V(T(pixel_centre_offset));
       auto done = px >= V(T(grid.width));
       V trans = V(T(1)), n_contrib = V(T(0)), last = V(T(0));
       for (int c = 0; c < C; ++c) acc[c] = V(T(0));
-      if (!simd::lane_all(done)) {
-        for (std::int64_t k = 0; k < count; ++k) {
-          const V dx = V(s.u[k]) - pxc, dy = V(s.v[k]) - pyc;
-          const V sigma = T(0.5) * (V(s.ca[k]) * dx * dx + V(s.cc[k]) * dy * dy) + V(s.cb[k]) * dx * dy;
-          auto maybe = (sigma <= V(s.sigma_max[k])) & simd::lane_not(done);
-          if (!simd::lane_any(maybe)) continue;
-          const V alpha = simd::lane_min(V(T(max_alpha)), V(s.opacity[k]) * simd::lane_exp(-sigma));
-          auto valid = maybe & (sigma >= V(T(0))) & (alpha >= V(T(alpha_threshold)));
-          if (!simd::lane_any(valid)) continue;
-          const V next_T = trans * (V(T(1)) - alpha);
-          const auto stop = valid & (next_T <= V(T(transmittance_stop)));
-          valid = valid & simd::lane_not(stop);
-          const V w = simd::lane_select(valid, alpha * trans, V(T(0)));
-          const T* ch = &s.channels[k * C];
-          for (int c = 0; c < C; ++c) acc[c] = acc[c] + w * V(ch[c]);
-          trans = simd::lane_select(valid, next_T, trans);
-          n_contrib = simd::lane_select(valid, n_contrib + V(T(1)), n_contrib);
-          last = simd::lane_select(valid, V(T(k + 1)), last);
-          if (simd::lane_any(stop)) {
-            done = done | stop;
-            if (skips.early_exit && simd::lane_all(done)) break;
-          }
+      for (std::int32_t i = 0; i < list_size; ++i) {
+        const std::int32_t k = list[i];
+        const V dx = V(s.u[k]) - pxc, dy = V(s.v[k]) - pyc;
+        const V sigma = T(0.5) * (V(s.ca[k]) * dx * dx + V(s.cc[k]) * dy * dy) + V(s.cb[k]) * dx * dy;
+        auto maybe = (sigma <= V(s.sigma_max[k])) & simd::lane_not(done);
+        if (!simd::lane_any(maybe)) continue;
+        const V alpha = simd::lane_min(V(T(max_alpha)), V(s.opacity[k]) * simd::lane_exp(-sigma));
+        auto valid = maybe & (sigma >= V(T(0))) & (alpha >= V(T(alpha_threshold)));
+        if (!simd::lane_any(valid)) continue;
+        const V next_T = trans * (V(T(1)) - alpha);
+        const auto stop = valid & (next_T <= V(T(transmittance_stop)));
+        valid = valid & simd::lane_not(stop);
+        const V w = simd::lane_select(valid, alpha * trans, V(T(0)));
+        const T* ch = &s.channels[std::size_t(k) * C];
+        for (int c = 0; c < C; ++c) acc[c] = acc[c] + w * V(ch[c]);
+        trans = simd::lane_select(valid, next_T, trans);
+        n_contrib = simd::lane_select(valid, n_contrib + V(T(1)), n_contrib);
+        last = simd::lane_select(valid, V(T(k + 1)), last);
+        if (simd::lane_any(stop)) {
+          done = done | stop;
+          if (skips.early_exit && simd::lane_all(done)) break;
         }
       }
       simd::lane_store(lanes_T, trans);
@@ -135,21 +228,22 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const TileScr
   }
 }
 
+// Adds into the per-entry lane accumulators of s (stride 6 + C values of L lanes per entry).
 template <class V, class T>
 void blend_tile_backward(const TileIntersections& ti, index_t tile, TileScratch<T>& s, int C, const T* background,
                          const BlendState<T>& state, const T* d_out_channels, const T* d_alpha) {
-  constexpr int L = int(simd::lane_count<V>::value);
+  constexpr int L = int(simd::lane_count<V>::value), cols = cell_columns<V>;
   const TileGrid& grid = ti.grid;
   const int tx = int(tile % grid.tiles_x), ty = int(tile / grid.tiles_x);
   const std::int64_t count = ti.tile_offsets[tile + 1] - ti.tile_offsets[tile];
   const int stride = entry_grad_fixed + C;
-  std::fill(s.grads.begin(), s.grads.begin() + count * stride, T(0));
   const V iota = lane_offsets<V, T>();
   constexpr int max_channels = 64;
   V d_out[max_channels], behind[max_channels];
   alignas(64) T lanes_T[L], lanes_last[L], lanes_dA[L], lanes_d[max_channels][L];
   const int y_end = std::min(grid.height, (ty + 1) * tile_size);
   const int x_end = std::min(grid.width, (tx + 1) * tile_size);
+  auto add_lanes = [](T* dst, const V& value) { simd::lane_store(dst, simd::lane_load<V>(dst) + value); };
   for (int py = ty * tile_size; py < y_end; ++py) {
     const V pyc = V(T(py) + T(pixel_centre_offset));
     for (int bx = tx * tile_size; bx < x_end; bx += L) {
@@ -164,6 +258,10 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, TileScratch<
         if (inside) max_last = std::max(max_last, state.last_entry[pix]);
       }
       if (max_last == 0) continue;
+      const int cell = (py - ty * tile_size) * cols + (bx - tx * tile_size) / L;
+      const std::int32_t* list = s.cell_list.data() + std::int64_t(cell) * count;
+      std::int32_t list_end = s.cell_offsets[cell];
+      while (list_end > 0 && list[list_end - 1] >= max_last) --list_end;  // behind every lane's last contributor
       const V pxc = iota + V(T(bx) + T(pixel_centre_offset));
       const V T_final = simd::lane_load<V>(lanes_T), last = simd::lane_load<V>(lanes_last);
       const V dA = simd::lane_load<V>(lanes_dA);
@@ -172,7 +270,8 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, TileScratch<
         d_out[c] = simd::lane_load<V>(lanes_d[c]);
         behind[c] = T_final * V(background[c]);
       }
-      for (std::int64_t k = max_last - 1; k >= 0; --k) {
+      for (std::int32_t i = list_end - 1; i >= 0; --i) {
+        const std::int32_t k = list[i];
         const V dx = V(s.u[k]) - pxc, dy = V(s.v[k]) - pyc;
         const V sigma = T(0.5) * (V(s.ca[k]) * dx * dx + V(s.cc[k]) * dy * dy) + V(s.cb[k]) * dx * dy;
         auto maybe = (sigma <= V(s.sigma_max[k])) & (V(T(k)) < last);
@@ -184,23 +283,23 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, TileScratch<
         const V ra = V(T(1)) / (V(T(1)) - alpha);
         trans = simd::lane_select(valid, trans * ra, trans);
         const V vis = alpha * trans;
-        const T* ch = &s.channels[k * C];
-        T* gk = &s.grads[k * stride];
+        const T* ch = &s.channels[std::size_t(k) * C];
+        T* gk = &s.lane_grads[std::size_t(k) * stride * L];
         V v_alpha = dA * T_final * ra;
         for (int c = 0; c < C; ++c) {
-          gk[entry_grad_fixed + c] += simd::lane_sum(simd::lane_select(valid, vis * d_out[c], V(T(0))));
+          add_lanes(gk + (entry_grad_fixed + c) * L, simd::lane_select(valid, vis * d_out[c], V(T(0))));
           v_alpha = v_alpha + (V(ch[c]) * trans - behind[c] * ra) * d_out[c];
           behind[c] = simd::lane_select(valid, behind[c] + V(ch[c]) * vis, behind[c]);
         }
         const auto unclamped = valid & (raw < V(T(max_alpha)));
         const V v_sigma = simd::lane_select(unclamped, -alpha * v_alpha, V(T(0)));
         const V v_opacity = simd::lane_select(unclamped, raw / V(s.opacity[k]) * v_alpha, V(T(0)));
-        gk[0] += simd::lane_sum(v_sigma * (V(s.ca[k]) * dx + V(s.cb[k]) * dy));
-        gk[1] += simd::lane_sum(v_sigma * (V(s.cb[k]) * dx + V(s.cc[k]) * dy));
-        gk[2] += simd::lane_sum(T(0.5) * v_sigma * dx * dx);
-        gk[3] += simd::lane_sum(v_sigma * dx * dy);
-        gk[4] += simd::lane_sum(T(0.5) * v_sigma * dy * dy);
-        gk[5] += simd::lane_sum(v_opacity);
+        add_lanes(gk + 0 * L, v_sigma * (V(s.ca[k]) * dx + V(s.cb[k]) * dy));
+        add_lanes(gk + 1 * L, v_sigma * (V(s.cb[k]) * dx + V(s.cc[k]) * dy));
+        add_lanes(gk + 2 * L, T(0.5) * v_sigma * dx * dx);
+        add_lanes(gk + 3 * L, v_sigma * dx * dy);
+        add_lanes(gk + 4 * L, T(0.5) * v_sigma * dy * dy);
+        add_lanes(gk + 5 * L, v_opacity);
       }
     }
   }
@@ -218,6 +317,31 @@ void for_each_tile(index_t tiles, ThreadPool& pool, Body&& body) {
 
 }  // namespace detail
 
+// Kernel parameters of every Gaussian that has tile entries (the others are never read).
+template <class T>
+void prepare_splats(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
+                    RasterWorkspace<T>& ws, ThreadPool& pool) {
+  const index_t n = index_t(ti.gaussian_counts.size());
+  constexpr int line = int(64 / sizeof(T));
+  const int stride = (splat_fields + C + line - 1) / line * line;
+  ws.splat_storage.resize(std::size_t(n * stride + line));
+  const auto address = reinterpret_cast<std::uintptr_t>(ws.splat_storage.data());
+  ws.splat_offset = ((64 - address % 64) % 64) / sizeof(T);
+  ws.splat_stride = stride, ws.splat_channels = C, ws.splat_count = n;
+  T* records = ws.splat_storage.data() + ws.splat_offset;
+  parallel_for(n, [&](index_t begin, index_t end, int) {
+    for (index_t g = begin; g < end; ++g) {
+      if (ti.gaussian_counts[g] == 0) continue;
+      SplatParams<T> sp;
+      splat_params(proj[g], sp);
+      T* r = records + g * stride;
+      r[0] = sp.u, r[1] = sp.v, r[2] = sp.ca, r[3] = sp.cb, r[4] = sp.cc;
+      r[5] = sp.opacity, r[6] = sp.sigma_max, r[7] = sp.rx, r[8] = sp.ry;
+      for (int c = 0; c < C; ++c) r[splat_fields + c] = channels[g * C + c];
+    }
+  }, pool);
+}
+
 // Blends C channels of the visible Gaussians into out_channels [H*W*C] (background included) and fills state.
 template <class T>
 void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
@@ -232,12 +356,17 @@ void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, c
   state.n_contrib.resize(pixels);
   ws.scratch.resize(std::size_t(pool.size()));
   for (auto& s : ws.scratch) s.reserve(ti.max_tile_entries, C);
+  prepare_splats(ti, proj, channels, C, ws, pool);
   const bool use_simd = simd::enabled() && !skips.force_scalar;
   detail::for_each_tile(ti.grid.count(), pool, [&](index_t tile, int worker) {
     TileScratch<T>& s = ws.scratch[std::size_t(worker)];
-    detail::gather_tile(ti, tile, proj, channels, C, s);
-    if (use_simd) detail::blend_tile_forward<simd::batch<T>, T>(ti, tile, s, C, background, skips, out_channels, state);
-    else detail::blend_tile_forward<T, T>(ti, tile, s, C, background, skips, out_channels, state);
+    if (use_simd) {
+      detail::gather_tile<simd::batch<T>, T>(ti, tile, ws.splat_records(), ws.splat_stride, C, s, 0);
+      detail::blend_tile_forward<simd::batch<T>, T>(ti, tile, s, C, background, skips, out_channels, state);
+    } else {
+      detail::gather_tile<T, T>(ti, tile, ws.splat_records(), ws.splat_stride, C, s, 0);
+      detail::blend_tile_forward<T, T>(ti, tile, s, C, background, skips, out_channels, state);
+    }
   });
 }
 
@@ -252,18 +381,30 @@ void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, 
   ws.entry_grads.resize(ti.isect_gaussian.size() * std::size_t(stride));
   ws.scratch.resize(std::size_t(pool.size()));
   for (auto& s : ws.scratch) s.reserve(ti.max_tile_entries, C);
+  if (ws.splat_count != index_t(ti.gaussian_counts.size()) || ws.splat_channels != C)
+    prepare_splats(ti, proj, channels, C, ws, pool);
   const bool use_simd = simd::enabled() && !skips.force_scalar;
+  auto run_tile = [&](auto lanes_tag, index_t tile, TileScratch<T>& s) {
+    using V = decltype(lanes_tag);
+    constexpr int L = int(simd::lane_count<V>::value);
+    const std::int64_t begin = ti.tile_offsets[tile], count = ti.tile_offsets[tile + 1] - begin;
+    detail::gather_tile<V, T>(ti, tile, ws.splat_records(), ws.splat_stride, C, s, stride);
+    detail::blend_tile_backward<V, T>(ti, tile, s, C, background, state, d_out_channels, d_alpha);
+    for (std::int64_t k = 0; k < count; ++k) {
+      T* record = &ws.entry_grads[std::size_t(ti.tile_entries[begin + k]) * std::size_t(stride)];
+      if (s.cover[std::size_t(k) * 4] > s.cover[std::size_t(k) * 4 + 1]) {
+        std::fill_n(record, stride, T(0));
+        continue;
+      }
+      const T* lanes = &s.lane_grads[std::size_t(k * stride * L)];
+      for (int j = 0; j < stride; ++j) record[j] = simd::lane_sum(simd::lane_load<V>(lanes + j * L));
+    }
+  };
   detail::for_each_tile(ti.grid.count(), pool, [&](index_t tile, int worker) {
     TileScratch<T>& s = ws.scratch[std::size_t(worker)];
-    const std::int64_t begin = ti.tile_offsets[tile], count = ti.tile_offsets[tile + 1] - begin;
-    if (count == 0) return;
-    detail::gather_tile(ti, tile, proj, channels, C, s);
-    if (use_simd) detail::blend_tile_backward<simd::batch<T>, T>(ti, tile, s, C, background, state, d_out_channels, d_alpha);
-    else detail::blend_tile_backward<T, T>(ti, tile, s, C, background, state, d_out_channels, d_alpha);
-    for (std::int64_t k = 0; k < count; ++k) {
-      const std::int64_t e = ti.tile_entries[begin + k];
-      std::copy(&s.grads[k * stride], &s.grads[k * stride] + stride, &ws.entry_grads[e * stride]);
-    }
+    if (ti.tile_offsets[tile + 1] == ti.tile_offsets[tile]) return;
+    if (use_simd) run_tile(simd::batch<T>{}, tile, s);
+    else run_tile(T{}, tile, s);
   });
   // A Gaussian's entries are contiguous and in tile order: a fixed summation order for any thread count.
   parallel_for(n, [&](index_t gb, index_t ge, int) {

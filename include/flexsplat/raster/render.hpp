@@ -127,6 +127,10 @@ CameraParams<T> camera_params(const Camera<T>& cam) {
 
 template <class T>
 void require_finite(const T* data, index_t count, const char* what) {
+  // Branch-free scan first (vectorises); the index is looked up only when something is wrong.
+  bool all_finite = true;
+  for (index_t i = 0; i < count; ++i) all_finite &= std::isfinite(data[i]);
+  if (all_finite) return;
   for (index_t i = 0; i < count; ++i)
     require(std::isfinite(data[i]), "render: ", what, " has a non-finite value ", data[i], " at flat index ", i);
 }
@@ -256,15 +260,17 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
   detail::ensure_shape<T>(out.depth, Shape<2>{H, W});
   detail::ensure_shape<T>(out.n_contrib, Shape<2>{H, W});
   detail::ensure_shape<T>(out.features, Shape<3>{H, W, F});
-  for (index_t p = 0; p < pixels; ++p) {
-    const T* src = &ws.out_channels[p * C];
-    for (int c = 0; c < 3; ++c) out.image.data()[p * 3 + c] = src[c];
-    const T a = T(1) - ws.blend.final_transmittance[p];
-    out.alpha.data()[p] = a;
-    out.depth.data()[p] = opt.expected_depth ? (a > T(0) ? src[3] / a : T(0)) : src[3];
-    out.n_contrib.data()[p] = ws.blend.n_contrib[p];
-    for (int f = 0; f < F; ++f) out.features.data()[p * F + f] = src[4 + f];
-  }
+  parallel_for(pixels, [&](index_t begin, index_t end, int) {
+    for (index_t p = begin; p < end; ++p) {
+      const T* src = &ws.out_channels[p * C];
+      for (int c = 0; c < 3; ++c) out.image.data()[p * 3 + c] = src[c];
+      const T a = T(1) - ws.blend.final_transmittance[p];
+      out.alpha.data()[p] = a;
+      out.depth.data()[p] = opt.expected_depth ? (a > T(0) ? src[3] / a : T(0)) : src[3];
+      out.n_contrib.data()[p] = ws.blend.n_contrib[p];
+      for (int f = 0; f < F; ++f) out.features.data()[p * F + f] = src[4 + f];
+    }
+  }, pool);
 }
 
 template <class T>
@@ -290,28 +296,32 @@ void render_backward(const GaussianInputs<T>& in, const Camera<T>& camera, const
   check(grads.opacities, Shape<1>{n}, "grad opacities");
   check(grads.sh, in.sh.shape(), "grad sh");
   check(grads.features, Shape<2>{n, F}, "grad features");
-  ws.d_out_channels.assign(std::size_t(pixels * C), T(0));
-  ws.d_alpha.assign(std::size_t(pixels), T(0));
-  for (index_t p = 0; p < pixels; ++p) {
-    T* d = &ws.d_out_channels[p * C];
-    if (!d_out.image.empty())
-      for (int c = 0; c < 3; ++c) d[c] = d_out.image.data()[p * 3 + c];
-    if (!d_out.alpha.empty()) ws.d_alpha[p] = d_out.alpha.data()[p];
-    if (!d_out.depth.empty()) {
-      const T dd = d_out.depth.data()[p];
-      if (opt.expected_depth) {
-        const T a = T(1) - ws.blend.final_transmittance[p];
-        if (a > T(0)) {
-          d[3] = dd / a;
-          ws.d_alpha[p] -= dd * ws.out_channels[p * C + 3] / (a * a);
+  ws.d_out_channels.resize(std::size_t(pixels * C));
+  ws.d_alpha.resize(std::size_t(pixels));
+  parallel_for(pixels, [&](index_t begin, index_t end, int) {
+    for (index_t p = begin; p < end; ++p) {
+      T* d = &ws.d_out_channels[p * C];
+      std::fill_n(d, C, T(0));
+      ws.d_alpha[p] = T(0);
+      if (!d_out.image.empty())
+        for (int c = 0; c < 3; ++c) d[c] = d_out.image.data()[p * 3 + c];
+      if (!d_out.alpha.empty()) ws.d_alpha[p] = d_out.alpha.data()[p];
+      if (!d_out.depth.empty()) {
+        const T dd = d_out.depth.data()[p];
+        if (opt.expected_depth) {
+          const T a = T(1) - ws.blend.final_transmittance[p];
+          if (a > T(0)) {
+            d[3] = dd / a;
+            ws.d_alpha[p] -= dd * ws.out_channels[p * C + 3] / (a * a);
+          }
+        } else {
+          d[3] = dd;
         }
-      } else {
-        d[3] = dd;
       }
+      if (!d_out.features.empty())
+        for (int f = 0; f < F; ++f) d[4 + f] = d_out.features.data()[p * F + f];
     }
-    if (!d_out.features.empty())
-      for (int f = 0; f < F; ++f) d[4 + f] = d_out.features.data()[p * F + f];
-  }
+  }, pool);
   const int stride = entry_grad_fixed + C;
   ws.gaussian_grads.assign(std::size_t(n * stride), T(0));
   rasterize_backward(ws.tiles, ws.projections.data(), ws.channels.data(), C, ws.background.data(), ws.blend,
