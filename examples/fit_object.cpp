@@ -2,12 +2,11 @@
 // are optimised with Adam through the rasterizer's adjoints on 24 of the 32 views of an object, then evaluated
 // (PSNR, SSIM) on the 8 held-out views. Writes a PNG: held-out view | render | error map.
 // Usage: fit_object [object_dir] [--gaussians N] [--iters N] [--seconds S] [--out file.png] [--half-extent H]
+//                   [--export fitted.glb|fitted.ply (the fitted set with the training cameras)]
 //                   [--sh-degree D (default 1, raised from 0 after 20% of the budget)]
 //                   [--densify-every N (default 100 iterations, 0: off)]
 // Schedules (position learning rate decay, SH warm-up, densification window) follow the fraction of the time or
 // iteration budget used, whichever is larger.
-#include <stb/stb_image.h>
-#include <stb/stb_image_write.h>
 
 #include <algorithm>
 #include <chrono>
@@ -18,8 +17,10 @@
 #include <string>
 #include <vector>
 
-#include <nlohmann/json.hpp>
-
+#include "flexsplat/export/cameras_json.hpp"
+#include "flexsplat/export/file.hpp"
+#include "flexsplat/export/render_set.hpp"
+#include "flexsplat/image/image_io.hpp"
 #include "flexsplat/raster/render.hpp"
 
 using namespace flexsplat;
@@ -29,33 +30,20 @@ namespace {
 
 struct View {
   Camera<float> camera;
+  gaussians::Camera source;  // as read from cameras.json, exported with the set
   std::vector<float> rgb;  // [H, W, 3], composited on white
 };
 
 std::vector<View> load_views(const std::string& dir) {
-  std::ifstream in(dir + "/cameras.json");
-  require(bool(in), "fit_object: cannot open '", dir, "/cameras.json'");
-  const auto js = nlohmann::json::parse(in);
   std::vector<View> views;
-  for (const auto& fr : js.at("frames")) {
+  for (const auto& cam : gaussians::load_cameras_json(dir + "/cameras.json")) {
     View v;
-    const auto& K = fr.at("K");
-    const auto& w2c = fr.at("w2c");
-    for (int i = 0; i < 3; ++i)
-      for (int j = 0; j < 4; ++j) v.camera.world_to_camera[i * 4 + j] = w2c[i][j].get<float>();
-    v.camera.fx = K[0][0].get<float>(), v.camera.fy = K[1][1].get<float>();
-    v.camera.cx = K[0][2].get<float>(), v.camera.cy = K[1][2].get<float>();
-    const std::string path = dir + "/" + fr.at("file").get<std::string>();
-    int w = 0, h = 0, c = 0;
-    unsigned char* px = stbi_load(path.c_str(), &w, &h, &c, 4);
-    require(px != nullptr, "fit_object: cannot read image '", path, "'");
-    v.camera.width = w, v.camera.height = h;
-    v.rgb.resize(std::size_t(w) * h * 3);
-    for (int i = 0; i < w * h; ++i) {
-      const float a = px[i * 4 + 3] / 255.f;
-      for (int k = 0; k < 3; ++k) v.rgb[i * 3 + k] = px[i * 4 + k] / 255.f * a + (1.f - a);
-    }
-    stbi_image_free(px);
+    v.camera = gaussians::raster_camera<float>(cam);
+    v.source = cam;
+    const Tensor<float, 3> rgb = image::read_rgb<float>(dir + "/" + cam.name);  // composited on white
+    require(rgb.shape(0) == cam.height && rgb.shape(1) == cam.width, "fit_object: image '", cam.name, "' is ",
+            rgb.shape(1), "x", rgb.shape(0), ", cameras.json says ", cam.width, "x", cam.height);
+    v.rgb.assign(rgb.data(), rgb.data() + rgb.size());
     views.push_back(std::move(v));
   }
   require(!views.empty(), "fit_object: no frames in '", dir, "/cameras.json'");
@@ -164,7 +152,7 @@ struct Adam {
 
 int main(int argc, char** argv) {
   try {
-    std::string dir = "../shared/data/objects/spot", out_png = "fit_object.png";
+    std::string dir = "../shared/data/objects/spot", out_png = "fit_object.png", export_path;
     index_t n = 20000;
     int iters = 1000000, sh_degree_max = 1, densify_every = 100;
     double seconds = 600, half_extent = 1.0, sh_warmup = 0.2, densify_from = 0.03, densify_until = 0.7;
@@ -179,6 +167,7 @@ int main(int argc, char** argv) {
       else if (a == "--iters") iters = std::stoi(next());
       else if (a == "--seconds") seconds = std::stod(next());
       else if (a == "--out") out_png = next();
+      else if (a == "--export") export_path = next();
       else if (a == "--half-extent") half_extent = std::stod(next());
       else if (a == "--sh-degree") sh_degree_max = std::stoi(next());
       else if (a == "--densify-every") densify_every = std::stoi(next());
@@ -396,14 +385,26 @@ int main(int argc, char** argv) {
                 panel[(std::size_t(y) * W * 3 + std::size_t(p2) * W + x) * 3 + c] =
                     (unsigned char)std::lround(std::clamp(cols[p2][c], 0.f, 1.f) * 255.f);
           }
-        if (!stbi_write_png(out_png.c_str(), W * 3, H, 3, panel.data(), W * 3 * 3))
-          std::fprintf(stderr, "fit_object: could not write %s\n", out_png.c_str());
+        image::write_png(out_png, TensorView<const std::uint8_t, 3>(panel.data(), {H, 3 * W, 3}));
       }
     }
     std::printf("%s: %d iterations in %.1f s, %lld Gaussians (SH degree %d, %d replaced by densification): held-out "
                 "mean PSNR %.2f dB, SSIM %.4f (%zu views); wrote %s\n",
                 dir.c_str(), done_iters, elapsed(), (long long)n, ro.sh_degree, replaced_total,
                 psnr_sum / double(test.size()), ssim_sum / double(test.size()), test.size(), out_png.c_str());
+    if (!export_path.empty()) {
+      auto set = gaussians::make_gaussian_set<float>(n, sh_degree_max);
+      std::copy(means.data(), means.data() + means.size(), set.positions.data());
+      std::copy(quats.data(), quats.data() + quats.size(), set.rotations.data());
+      std::copy(scales.data(), scales.data() + scales.size(), set.scales.data());
+      std::copy(opacities.data(), opacities.data() + opacities.size(), set.opacities.data());
+      std::copy(sh.data(), sh.data() + sh.size(), set.sh.data());
+      for (int i : train) set.cameras.push_back(views[i].source);
+      const auto report = gaussians::write_gaussians(set, export_path);  // normalises quaternions (reported)
+      std::printf("wrote %s: %lld Gaussians, SH degree %d, %zu cameras, %llu bytes (%lld quaternions renormalised)\n",
+                  export_path.c_str(), (long long)n, sh_degree_max, set.cameras.size(),
+                  (unsigned long long)report.bytes, (long long)report.repairs.rotations_renormalised);
+    }
     return 0;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "fit_object: %s\n", e.what());
