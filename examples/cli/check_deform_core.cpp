@@ -4,7 +4,7 @@
 
 namespace flexsplat::cli {
 namespace {
-const RegisterChecker registered("deform_core", [](const safetensors::File& file, ReferenceReport& report) {
+const RegisterChecker registered_check_deform_core("deform_core", [](const safetensors::File& file, ReferenceReport& report) {
   decoder::check_deform_core_bundle<double>(file, report, 1e-10);
 });
 }  // namespace

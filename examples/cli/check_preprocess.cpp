@@ -5,7 +5,7 @@
 namespace flexsplat::cli {
 namespace {
 
-const RegisterChecker registered("preprocess", [](const safetensors::File& bundle, ReferenceReport& report) {
+const RegisterChecker registered_check_preprocess("preprocess", [](const safetensors::File& bundle, ReferenceReport& report) {
   check_preprocess_reference(bundle, report);
 });
 

@@ -4,6 +4,6 @@
 
 namespace flexsplat::cli {
 namespace {
-const RegisterChecker registered("raster", raster::check_raster_bundle);
+const RegisterChecker registered_check_raster("raster", raster::check_raster_bundle);
 }  // namespace
 }  // namespace flexsplat::cli

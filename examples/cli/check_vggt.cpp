@@ -4,7 +4,7 @@
 
 namespace flexsplat::cli {
 namespace {
-const RegisterChecker registered("vggt", [](const safetensors::File& file, ReferenceReport& report) {
+const RegisterChecker registered_check_vggt("vggt", [](const safetensors::File& file, ReferenceReport& report) {
   geometry::check_vggt_reference(file, report);
 });
 }  // namespace

@@ -36,7 +36,7 @@ int check_reference(const Args& args) {
   return failures == 0 ? 0 : 1;
 }
 
-const RegisterCommand registered("check-reference",
+const RegisterCommand registered_cmd_check_reference("check-reference",
                                  {"compare the library against golden reference bundles (by __metadata__.kind)",
                                   "BUNDLE.safetensors...", check_reference});
 

@@ -52,7 +52,7 @@ int convert(Args args) {
   return 0;
 }
 
-const RegisterCommand registered(
+const RegisterCommand registered_cmd_convert(
     "convert", {"convert Gaussians between .ply (INRIA) and .glb (KHR_gaussian_splatting)",
                 "IN.{ply,glb} OUT.{ply,glb} [--quantize] [--rotation float|int8|int16] [--scale float|uint8|uint16] "
                 "[--opacity float|uint8|uint16] [--color-space srgb_rec709_display|lin_rec709_display] [--no-color] "

@@ -69,7 +69,7 @@ int run_geometry(const Args& input) {
   return 0;
 }
 
-const RegisterCommand registered(
+const RegisterCommand registered_cmd_geometry(
     "geometry",
     {"VGGT cameras (K, world-to-camera), depth and confidence for images",
      "--weights model.safetensors [--mode crop|pad] [--fov-policy error|clamp] [--config JSON] [--prefix P] IMAGES... "

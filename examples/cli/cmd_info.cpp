@@ -31,7 +31,7 @@ int info(Args args) {
   return 0;
 }
 
-const RegisterCommand registered("info", {"counts, SH degree and bounds of a .ply or .glb Gaussian file", "FILE", info});
+const RegisterCommand registered_cmd_info("info", {"counts, SH degree and bounds of a .ply or .glb Gaussian file", "FILE", info});
 
 }  // namespace
 }  // namespace flexsplat::cli

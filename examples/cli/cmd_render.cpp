@@ -59,7 +59,7 @@ int render(Args args) {
   return 0;
 }
 
-const RegisterCommand registered(
+const RegisterCommand registered_cmd_render(
     "render", {"render a .ply or .glb Gaussian file with the CPU rasterizer to PNG",
                "FILE [--camera cameras.json[:index]] [--index I] -o out.png [--background white|black|r,g,b] "
                "[--antialiased] [--rgba]  (several cameras: out_000.png, out_001.png, ...)",

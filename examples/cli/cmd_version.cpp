@@ -21,7 +21,7 @@ int version(const Args& args) {
   return 0;
 }
 
-const RegisterCommand registered("version", {"print version, SIMD build, CPU features and thread count", "", version});
+const RegisterCommand registered_cmd_version("version", {"print version, SIMD build, CPU features and thread count", "", version});
 
 }  // namespace
 }  // namespace flexsplat::cli

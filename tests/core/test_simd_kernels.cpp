@@ -11,7 +11,7 @@ using namespace flexsplat;
 
 namespace {
 template <class T>
-std::vector<T> random_vector(std::size_t n, unsigned seed, T lo = T(-1), T hi = T(1)) {
+std::vector<T> random_kernel_input(std::size_t n, unsigned seed, T lo = T(-1), T hi = T(1)) {
   std::mt19937 rng(seed);
   std::uniform_real_distribution<T> u(lo, hi);
   std::vector<T> v(n);
@@ -29,8 +29,8 @@ TEMPLATE_TEST_CASE("simd dot and axpy agree with the scalar path", "[simd]", flo
   INFO("compiled for " << simd::compiled_arch_name() << ", width " << simd::width<TestType>);
   for (index_t n : sizes) {
     INFO("n = " << n);
-    const auto a = random_vector<TestType>(static_cast<std::size_t>(n), 1);
-    const auto b = random_vector<TestType>(static_cast<std::size_t>(n), 2);
+    const auto a = random_kernel_input<TestType>(static_cast<std::size_t>(n), 1);
+    const auto b = random_kernel_input<TestType>(static_cast<std::size_t>(n), 2);
     double bound = 0;  // |sum a_i b_i| rounding bound of either summation order
     double exact = 0;
     for (index_t i = 0; i < n; ++i) {
@@ -43,7 +43,7 @@ TEMPLATE_TEST_CASE("simd dot and axpy agree with the scalar path", "[simd]", flo
     CHECK(std::abs(double(v) - exact) <= 2.0 * double(n) * eps<TestType> * bound + 1e-300);
     CHECK(simd::dot(a.data(), b.data(), n) == (simd::enabled() ? v : s));
 
-    auto y_scalar = random_vector<TestType>(static_cast<std::size_t>(n), 3);
+    auto y_scalar = random_kernel_input<TestType>(static_cast<std::size_t>(n), 3);
     auto y_simd = y_scalar;
     simd::axpy_scalar(n, TestType(0.75), a.data(), y_scalar.data());
     simd::axpy_simd(n, TestType(0.75), a.data(), y_simd.data());
@@ -56,7 +56,7 @@ TEMPLATE_TEST_CASE("simd softmax matches the scalar path and sums to one", "[sim
   for (index_t n : sizes) {
     if (n == 0) continue;
     INFO("n = " << n);
-    auto x = random_vector<TestType>(static_cast<std::size_t>(n), 4, TestType(-30), TestType(30));
+    auto x = random_kernel_input<TestType>(static_cast<std::size_t>(n), 4, TestType(-30), TestType(30));
     auto y_scalar = x, y_simd = x;
     simd::softmax_row_scalar(y_scalar.data(), n);
     simd::softmax_row_simd(y_simd.data(), n);
@@ -104,10 +104,10 @@ TEMPLATE_TEST_CASE("softmax handles large values, masked rows and rejects NaN", 
 
 TEMPLATE_TEST_CASE("softmax backward adds the vector-Jacobian product on both paths", "[simd]", float, double) {
   const index_t n = 37;
-  auto y = random_vector<TestType>(n, 5, TestType(-2), TestType(2));
+  auto y = random_kernel_input<TestType>(n, 5, TestType(-2), TestType(2));
   simd::softmax_row_scalar(y.data(), n);
-  const auto dy = random_vector<TestType>(n, 6);
-  const auto junk = random_vector<TestType>(n, 7);
+  const auto dy = random_kernel_input<TestType>(n, 6);
+  const auto junk = random_kernel_input<TestType>(n, 7);
   auto dx_scalar = junk, dx_simd = junk;
   simd::softmax_row_backward_scalar(y.data(), dy.data(), dx_scalar.data(), n);
   simd::softmax_row_backward_simd(y.data(), dy.data(), dx_simd.data(), n);

@@ -14,10 +14,10 @@ using flexsplat_test::random_set;
 
 namespace {
 
-gaussians::GaussianSet<float> decode(const std::string& bytes) {
+gaussians::GaussianSet<float> decode_ply(const std::string& bytes) {
   return ply::decode_ply(reinterpret_cast<const unsigned char*>(bytes.data()), bytes.size(), "test.ply");
 }
-gaussians::GaussianSet<float> decode(const std::vector<unsigned char>& bytes) {
+gaussians::GaussianSet<float> decode_ply(const std::vector<unsigned char>& bytes) {
   return ply::decode_ply(bytes.data(), bytes.size(), "test.ply");
 }
 
@@ -65,7 +65,7 @@ TEST_CASE("PLY stores logit opacity, log scale, w-first quaternion and channel-m
 TEST_CASE("PLY round trip at every SH degree", "[ply]") {
   for (int degree = 0; degree <= 3; ++degree) {
     const auto set = random_set(25, degree, 100 + degree);
-    const auto back = decode(ply::encode_ply(set));
+    const auto back = decode_ply(ply::encode_ply(set));
     REQUIRE(back.sh_degree() == degree);
     REQUIRE(back.size() == 25);
     CHECK(std::memcmp(back.positions.data(), set.positions.data(), 4 * set.positions.size()) == 0);
@@ -106,7 +106,7 @@ TEST_CASE("PLY reader normalises training quaternions and accepts ASCII", "[ply]
       "property float rot_1\nproperty float rot_2\nproperty float rot_3\nend_header\n"
       "1 2 3 0.1 0.2 0.3 0 -1 -2 -3 2 0 0 0\n"
       "4 5 6 0 0 0 100 0 0 0 0 0 0 -3\n";
-  const auto set = decode(ascii);
+  const auto set = decode_ply(ascii);
   REQUIRE(set.size() == 2);
   CHECK(set.sh_degree() == 0);
   CHECK(set.positions(1, 2) == 6.0f);
@@ -122,46 +122,46 @@ TEST_CASE("PLY reader rejects bad input with a clear message", "[ply]") {
   const std::size_t body = header_of(good).size();
   SECTION("truncated body") {
     std::vector<unsigned char> cut(good.begin(), good.end() - 5);
-    CHECK_THROWS_WITH(decode(cut), Catch::Contains("declares 4 vertices") && Catch::Contains("truncated"));
+    CHECK_THROWS_WITH(decode_ply(cut), Catch::Contains("declares 4 vertices") && Catch::Contains("truncated"));
   }
   SECTION("truncated header") {
     std::vector<unsigned char> cut(good.begin(), good.begin() + 60);
-    CHECK_THROWS_WITH(decode(cut), Catch::Contains("no 'end_header'"));
+    CHECK_THROWS_WITH(decode_ply(cut), Catch::Contains("no 'end_header'"));
   }
   SECTION("not a PLY") {
-    CHECK_THROWS_WITH(decode(std::string("glTF....")), Catch::Contains("not a PLY file"));
+    CHECK_THROWS_WITH(decode_ply(std::string("glTF....")), Catch::Contains("not a PLY file"));
   }
   SECTION("wrong vertex count") {
     std::string text(good.begin(), good.end());
     text.replace(text.find("element vertex 4"), 16, "element vertex 9");
-    CHECK_THROWS_WITH(decode(text), Catch::Contains("declares 9 vertices"));
+    CHECK_THROWS_WITH(decode_ply(text), Catch::Contains("declares 9 vertices"));
   }
   SECTION("missing attribute") {
     std::string text(good.begin(), good.end());
     text.replace(text.find("property float opacity"), 22, "property float opacitx");
-    CHECK_THROWS_WITH(decode(text), Catch::Contains("no property 'opacity'"));
+    CHECK_THROWS_WITH(decode_ply(text), Catch::Contains("no property 'opacity'"));
   }
   SECTION("incomplete SH") {
     std::string text(good.begin(), good.end());
     text.replace(text.find("property float f_rest_8"), 23, "property float g_rest_8");
-    CHECK_THROWS_WITH(decode(text), Catch::Contains("8 f_rest_* properties is not a multiple of 3"));
+    CHECK_THROWS_WITH(decode_ply(text), Catch::Contains("8 f_rest_* properties is not a multiple of 3"));
   }
   SECTION("big-endian") {
     std::string text(good.begin(), good.end());
     text.replace(text.find("binary_little_endian"), 20, "binary_big_endian");
-    CHECK_THROWS_WITH(decode(text), Catch::Contains("'binary_big_endian' is not supported"));
+    CHECK_THROWS_WITH(decode_ply(text), Catch::Contains("'binary_big_endian' is not supported"));
   }
   SECTION("NaN value") {
     auto bad = good;
     const float nan = std::nanf("");
     std::memcpy(bad.data() + body + 26 * 4 * 2 + 4, &nan, 4);  // y of vertex 2
-    CHECK_THROWS_WITH(decode(bad), Catch::Contains("property 'y' of vertex 2 is not finite"));
+    CHECK_THROWS_WITH(decode_ply(bad), Catch::Contains("property 'y' of vertex 2 is not finite"));
   }
   SECTION("zero quaternion") {
     auto bad = good;
     const float zero[4] = {0, 0, 0, 0};
     std::memcpy(bad.data() + body + 26 * 4 * 1 + 22 * 4, zero, 16);
-    CHECK_THROWS_WITH(decode(bad), Catch::Contains("rotation of vertex 1 is a zero quaternion"));
+    CHECK_THROWS_WITH(decode_ply(bad), Catch::Contains("rotation of vertex 1 is a zero quaternion"));
   }
 }
 
@@ -169,7 +169,7 @@ TEST_CASE("PLY export clamps opacity and reports it", "[ply]") {
   auto set = random_set(3, 0);
   set.opacities(0) = 3.0f;
   ply::WriteReport report;
-  const auto back = decode(ply::encode_ply(set, &report));
+  const auto back = decode_ply(ply::encode_ply(set, &report));
   CHECK(report.repairs.opacities_clamped == 1);
   CHECK(back.opacities(0) == 1.0f);
 }

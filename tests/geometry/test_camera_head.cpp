@@ -12,7 +12,7 @@ using namespace flexsplat::geometry;
 namespace {
 
 template <class T>
-void run_bundle_cases() {
+void run_camera_bundle_cases() {
   const auto json = heads_test::bundle_config();
   const CameraHeadConfig cfg = camera_head_config_from_vggt_json(json);
   ParamSource<T> src(heads_test::bundle(), "param.");
@@ -40,11 +40,11 @@ void run_bundle_cases() {
 }  // namespace
 
 TEST_CASE("camera head reproduces every refinement iteration of the bundle (float)", "[camera_head]") {
-  run_bundle_cases<float>();
+  run_camera_bundle_cases<float>();
 }
 
 TEST_CASE("camera head reproduces every refinement iteration of the bundle (double)", "[camera_head]") {
-  run_bundle_cases<double>();
+  run_camera_bundle_cases<double>();
 }
 
 TEST_CASE("camera head parameter names match the VGGT-1B state_dict layout", "[camera_head]") {

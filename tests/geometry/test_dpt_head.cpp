@@ -36,7 +36,7 @@ std::vector<std::vector<T>> cast_layers(const CaseInputs& c) {
 }
 
 template <class T>
-void run_bundle_cases() {
+void run_dpt_bundle_cases() {
   const auto json = heads_test::bundle_config();
   const DptHeadConfig cfg = dpt_head_config_from_vggt_json(json);
   ParamSource<T> src(heads_test::bundle(), "param.");
@@ -68,9 +68,9 @@ void run_bundle_cases() {
 
 }  // namespace
 
-TEST_CASE("DPT head reproduces the bundle's depth and confidence (float)", "[dpt_head]") { run_bundle_cases<float>(); }
+TEST_CASE("DPT head reproduces the bundle's depth and confidence (float)", "[dpt_head]") { run_dpt_bundle_cases<float>(); }
 
-TEST_CASE("DPT head reproduces the bundle's depth and confidence (double)", "[dpt_head]") { run_bundle_cases<double>(); }
+TEST_CASE("DPT head reproduces the bundle's depth and confidence (double)", "[dpt_head]") { run_dpt_bundle_cases<double>(); }
 
 TEST_CASE("DPT head exposes the map that output_conv2 turns into depth", "[dpt_head]") {
   const auto json = heads_test::bundle_config();
@@ -125,11 +125,11 @@ TEST_CASE("banded 3x3 convolution equals the whole-image convolution", "[dpt_hea
   nn::conv2d_forward(ref.data(), in.data(), weight.data(), bias.data(), shape, std::span<double>(scratch));
   for (index_t band_rows : {1, 2, 3, 7}) {
     std::vector<double> out(cout * h * w, -1.0), small(cin * 9 * w * band_rows);
-    detail::conv2d_same(out.data(), in.data(), weight.data(), bias.data(), cin, cout, h, w, 3, std::span<double>(small));
+    geometry::detail::conv2d_same(out.data(), in.data(), weight.data(), bias.data(), cin, cout, h, w, 3, std::span<double>(small));
     for (std::size_t i = 0; i < out.size(); ++i) CHECK(out[i] == Approx(ref[i]).margin(1e-12));
   }
   std::vector<double> out(cout * h * w), too_small(cin * 9 * w - 1);
-  CHECK_THROWS_WITH(detail::conv2d_same(out.data(), in.data(), weight.data(), bias.data(), cin, cout, h, w, 3,
+  CHECK_THROWS_WITH(geometry::detail::conv2d_same(out.data(), in.data(), weight.data(), bias.data(), cin, cout, h, w, 3,
                                         std::span<double>(too_small)),
                     Catch::Contains("cannot hold one row"));
 }
