@@ -43,14 +43,8 @@ struct CameraHeadConfig {
 
   index_t branch_hidden() const { return dim / 2; }
   BlockConfig block() const {
-    BlockConfig b;
-    b.dim = dim;
-    b.num_heads = num_heads;
-    b.mlp_ratio = mlp_ratio;
-    b.qk_norm = false;
-    b.layer_scale = init_values > 0;
-    b.norm_eps = norm_eps;
-    return b;
+    return {.dim = dim, .num_heads = num_heads, .mlp_ratio = mlp_ratio,
+            .qk_norm = false, .layer_scale = init_values > 0, .norm_eps = norm_eps};
   }
   void validate() const {
     require(trunk_depth >= 0 && iterations >= 1, "camera head config: trunk_depth ", trunk_depth, " and iterations ",

@@ -32,14 +32,8 @@ struct DinoConfig {
 
   index_t pos_grid() const { return img_size / patch_size; }
   BlockConfig block() const {
-    BlockConfig b;
-    b.dim = embed_dim;
-    b.num_heads = num_heads;
-    b.mlp_ratio = mlp_ratio;
-    b.qk_norm = false;
-    b.layer_scale = init_values > 0;
-    b.norm_eps = norm_eps;
-    return b;
+    return {.dim = embed_dim, .num_heads = num_heads, .mlp_ratio = mlp_ratio,
+            .qk_norm = false, .layer_scale = init_values > 0, .norm_eps = norm_eps};
   }
   void validate() const {
     require(patch_size > 0 && img_size >= patch_size, "DINO config: img_size ", img_size, " and patch_size ",
@@ -68,15 +62,8 @@ struct AggregatorConfig {
 
   index_t patch_start_idx() const { return 1 + num_register_tokens; }
   BlockConfig block() const {
-    BlockConfig b;
-    b.dim = embed_dim;
-    b.num_heads = num_heads;
-    b.mlp_ratio = mlp_ratio;
-    b.qk_norm = qk_norm;
-    b.layer_scale = init_values > 0;
-    b.norm_eps = norm_eps;
-    b.qk_norm_eps = 1e-5;
-    return b;
+    return {.dim = embed_dim, .num_heads = num_heads, .mlp_ratio = mlp_ratio,
+            .qk_norm = qk_norm, .layer_scale = init_values > 0, .norm_eps = norm_eps};
   }
   void validate() const {
     block().validate("aggregator config");
