@@ -143,7 +143,7 @@ TEST_CASE("window attention: SIMD and scalar paths agree, and each window is ful
   }
 }
 
-TEST_CASE("deform_core: SIMD and scalar paths agree; the visiting order changes nothing", "[decoder][kernels][simd]") {
+TEST_CASE("deform_core: SIMD and scalar paths agree and the visiting order changes nothing", "[decoder][kernels][simd]") {
   std::vector<index_t> hw{9, 11, 6, 7};
   const index_t heads = 2, D = 37, P = 3, Q = 13;  // D not a multiple of any batch width
   const auto L = decoder::make_deform_core_layout(1, Q, heads, D, P, hw);

@@ -30,7 +30,7 @@ struct TinyModel {
 };
 }  // namespace
 
-TEST_CASE("model chains UNet, fusion and decoder; RGB head in (0, 1)", "[decoder][model]") {
+TEST_CASE("model chains UNet, fusion and decoder with the RGB head in (0, 1)", "[decoder][model]") {
   TinyModel t;
   decoder::ModelWorkspace<double> ws;
   decoder::model_forward(ws, t.n, t.params.data(), t.cfg, t.images.data(), t.h, t.w, t.depth_features.data(), t.dh, t.dw,

@@ -56,7 +56,7 @@ TEST_CASE("vggt_forward rejects images that are not whole patches or not finite"
   CHECK_THROWS_WITH(vggt_forward<float>(images.data(), 0, 28, 28, cfg, weights, ws), Catch::Contains("at least one image"));
 }
 
-TEST_CASE("VGGT config from JSON builds consistent head configs; inconsistent ones are refused", "[geometry][config]") {
+TEST_CASE("VGGT config from JSON builds consistent head configs and refuses inconsistent ones", "[geometry][config]") {
   const auto cfg = vggt_config_from_json(std::string(R"({"img_size": 98, "patch_size": 14, "embed_dim": 64, "depth": 3,
       "num_heads": 2, "dino_depth": 2, "dino_heads": 2, "trunk_depth": 2, "cam_heads": 2, "features": 32,
       "out_channels": [16, 32, 64, 64], "intermediate_layer_idx": [0, 1, 1, 2]})"));

@@ -84,7 +84,7 @@ TEST_CASE("the VGGT-1B checkpoint layout maps completely, zero-copy, from a spar
   CHECK(weights.dino.pos_embed == reinterpret_cast<const float*>(f.bytes(f.info("aggregator.patch_embed.pos_embed"))));
 }
 
-TEST_CASE("one error lists every missing, mis-shaped and unexpected tensor; point/track heads are ignored", "[geometry][weights]") {
+TEST_CASE("one error lists every missing, mis-shaped and unexpected tensor, ignoring point/track heads", "[geometry][weights]") {
   const auto bundle = safetensors::File::open(vggt_bundle_path());
   const VggtConfig cfg = vggt_config_from_json(bundle.metadata("config"));
   safetensors::Writer writer;
