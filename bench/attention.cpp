@@ -129,7 +129,7 @@ void accuracy_check() {
   dense_reference(qkv64, dout64, L, scale, out_ref, dqkv_ref);
   std::vector<float> qkv(qkv64.begin(), qkv64.end()), dout(dout64.begin(), dout64.end());
   std::vector<float> out(out_ref.size()), lse(batch * heads * tokens), dqkv(qkv.size(), 0.0f);
-  std::vector<float> scratch(nn::attention_scratch_per_worker(d) * global_pool().size());
+  std::vector<float> scratch(nn::attention_scratch_per_worker(d, tokens) * global_pool().size());
   nn::attention_forward<float>(out.data(), lse.data(), qkv.data(), qkv.data() + C, qkv.data() + 2 * C, L, float(scale),
                                scratch);
   nn::attention_backward<float>(dqkv.data(), dqkv.data() + C, dqkv.data() + 2 * C, dout.data(), out.data(), lse.data(),
@@ -180,7 +180,7 @@ int main(int argc, char** argv) {
     const auto qkv = random_values<float>(batch * tokens * 3 * C, 1, 1.0);
     const auto dout = random_values<float>(batch * tokens * C, 2, 1.0);
     std::vector<float> out(batch * tokens * C), lse(batch * heads * tokens), dqkv(qkv.size());
-    std::vector<float> scratch(nn::attention_scratch_per_worker(d) * global_pool().size());
+    std::vector<float> scratch(nn::attention_scratch_per_worker(d, tokens) * global_pool().size());
     const double flops = 4.0 * double(batch * heads) * double(tokens) * double(tokens) * double(d);
 
     // The same product as one head's QK^T: (tokens x 64) x (64 x tokens), C = tokens x tokens.

@@ -159,15 +159,17 @@ struct FusedCase {
   index_t C() const { return L.heads * L.head_dim; }
 };
 
+// whole_heads: scratch large enough for the per-(batch, head) copies of K and V.
 template <class T, bool Simd>
 void run_fused(const FusedCase& c, std::vector<T>& out, std::vector<T>& lse, std::vector<T>& d_qkv,
-               ThreadPool& pool = global_pool()) {
+               ThreadPool& pool = global_pool(), bool whole_heads = false) {
   const auto qkv = cast_to<T>(c.qkv), d_out = cast_to<T>(c.d_out);
   const index_t C = c.C();
   out.assign(c.d_out.size(), T(-3));
   lse.assign(c.L.batch * c.L.heads * c.L.n_q, T(0));
   d_qkv.assign(qkv.size(), T(0.25));  // backward adds
-  std::vector<T> scratch(nn::attention_scratch_per_worker(c.L.head_dim) * pool.size());
+  std::vector<T> scratch((whole_heads ? nn::attention_scratch_per_worker(c.L.head_dim, c.L.n_kv)
+                                      : nn::attention_scratch_per_worker(c.L.head_dim)) * pool.size());
   const T scale = static_cast<T>(c.scale);
   nn::attention_forward_impl<T, Simd>(out.data(), lse.data(), qkv.data(), qkv.data() + C, qkv.data() + 2 * C, c.L, scale,
                                       std::span<T>(scratch), pool);
@@ -207,7 +209,7 @@ TEST_CASE("attention over several key blocks, fused q|k|v rows: scalar and SIMD 
 
     std::vector<double> out_s, lse_s, g_s, out_v, lse_v, g_v;
     run_fused<double, false>(c, out_s, lse_s, g_s);
-    run_fused<double, true>(c, out_v, lse_v, g_v);
+    run_fused<double, true>(c, out_v, lse_v, g_v, global_pool(), true);
     CHECK(max_abs_diff(out_s, expect_out) < 1e-12);
     CHECK(max_abs_diff(out_v, expect_out) < 1e-12);
     CHECK(max_abs_diff(g_s, expect_grad) < 1e-11);
@@ -215,7 +217,7 @@ TEST_CASE("attention over several key blocks, fused q|k|v rows: scalar and SIMD 
     CHECK(max_abs_diff(lse_v, std::vector<double>(lse_s.begin(), lse_s.end())) < 1e-12);
 
     std::vector<float> out_fs, lse_fs, g_fs, out_fv, lse_fv, g_fv;
-    run_fused<float, false>(c, out_fs, lse_fs, g_fs);
+    run_fused<float, false>(c, out_fs, lse_fs, g_fs, global_pool(), true);
     run_fused<float, true>(c, out_fv, lse_fv, g_fv);
     CHECK(max_abs_diff(out_fs, expect_out) < 1e-4);
     CHECK(max_abs_diff(out_fv, expect_out) < 1e-4);
@@ -255,4 +257,20 @@ TEST_CASE("attention over several key blocks: float64 gradient check; 1 and 2 th
   run_fused<float, false>(c, o2, l2, g2, two);
   CHECK(o1 == o2);
   CHECK(g1 == g2);
+  // Copying whole heads of K and V instead of one key block at a time changes no bit.
+  run_fused<float, true>(c, o1, l1, g1, two, false);
+  run_fused<float, true>(c, o2, l2, g2, two, true);
+  CHECK(o1 == o2);
+  CHECK(l1 == l2);
+  CHECK(g1 == g2);
+}
+
+TEST_CASE("attention scratch sizes: whole-head size grows with the key count", "[nn][attention]") {
+  CHECK(nn::attention_scratch_per_worker(64, 1000) - nn::attention_scratch_per_worker(64) == 2 * 1000 * 64);
+  auto L = nn::packed_attention_layout(1, 1, 3, 2, 2);
+  std::vector<double> x(6, 0.5), out(6), lse(3);
+  std::vector<double> short_by_one(nn::attention_scratch_per_worker(2) * global_pool().size() - 1);
+  CHECK_THROWS_WITH(nn::attention_backward(out.data(), out.data(), out.data(), x.data(), x.data(), lse.data(), x.data(),
+                                           x.data(), x.data(), L, 1.0, std::span<double>(short_by_one)),
+                    Catch::Contains("attention scratch has"));
 }

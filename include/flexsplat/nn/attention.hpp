@@ -33,9 +33,17 @@ struct AttentionLayout {
 inline constexpr index_t attention_q_block = 64;
 inline constexpr index_t attention_kv_block = 256;
 
-// Scratch elements one worker needs; pass at least this times the pool size.
+// Scratch elements one worker needs; pass at least this times the pool size. Key and value rows are then copied into
+// contiguous tiles once per (query block, key block).
 inline index_t attention_scratch_per_worker(index_t head_dim) {
-  return 3 * attention_q_block * head_dim + 2 * attention_kv_block * attention_q_block + 4 * attention_q_block;
+  return 5 * attention_q_block * head_dim + 2 * attention_kv_block * (attention_q_block + head_dim) + 4 * attention_q_block;
+}
+
+// Scratch per worker that also holds one whole head of keys and values (linear in n_kv): with at least this times the
+// pool size, the forward and dQ passes copy K and V once per (batch, head) instead of once per tile (faster for long
+// sequences; the results are bit-identical either way).
+inline index_t attention_scratch_per_worker(index_t head_dim, index_t n_kv) {
+  return attention_scratch_per_worker(head_dim) + 2 * n_kv * head_dim;
 }
 
 namespace detail {
@@ -173,13 +181,19 @@ void outer_block(T* y, index_t y_row, index_t cols, const T* zt, index_t ld, con
     if (full * W < d) outer_block<T>(y + full * W, y_row, cols, zt, ld, x + full * W, x_row, rows, d - full * W);
 }
 
+// dst [rows][d] contiguous <- rows of src: strided key / value rows would cost a TLB miss per row in the kernels.
+template <class T>
+void pack_rows(T* dst, const T* src, index_t row, index_t rows, index_t d) {
+  for (index_t r = 0; r < rows; ++r) std::copy(src + r * row, src + r * row + d, dst + r * d);
+}
+
 // dst[j*ld + r] = scale * src[r*row + j] for r < rows, zero for rows <= r < ld.
+// Row-major traversal of src: its rows may be far apart (fused q|k|v buffers), one TLB entry each.
 template <class T>
 void pack_transposed(T* dst, index_t ld, const T* src, index_t row, index_t rows, index_t d, T scale) {
-  for (index_t j = 0; j < d; ++j) {
-    for (index_t r = 0; r < rows; ++r) dst[j * ld + r] = scale * src[r * row + j];
-    std::fill(dst + j * ld + rows, dst + (j + 1) * ld, T(0));
-  }
+  for (index_t r = 0; r < rows; ++r)
+    for (index_t j = 0; j < d; ++j) dst[j * ld + r] = scale * src[r * row + j];
+  for (index_t j = 0; j < d; ++j) std::fill(dst + j * ld + rows, dst + (j + 1) * ld, T(0));
 }
 
 // One key block of the online softmax on a transposed tile st [cols][q_block]: st becomes exp(s - new max), the
@@ -242,13 +256,18 @@ void attention_forward_impl(T* out, T* lse, const T* q, const T* k, const T* v, 
   const index_t q_blocks = (L.n_q + Bq - 1) / Bq;
   const index_t tasks = L.batch * L.heads * q_blocks;
   check_scratch(scratch.size(), d, pool.size());
+  const bool whole_heads = static_cast<index_t>(scratch.size()) >= attention_scratch_per_worker(d, L.n_kv) * pool.size();
+  const index_t per_worker = whole_heads ? attention_scratch_per_worker(d, L.n_kv) : attention_scratch_per_worker(d);
   parallel_for(tasks, [&](index_t t0, index_t t1, int worker) {
-    T* qt = scratch.data() + worker * attention_scratch_per_worker(d);  // [d][Bq] scale * Q^T
+    T* qt = scratch.data() + worker * per_worker;  // [d][Bq] scale * Q^T
     T* ot = qt + d * Bq;                                                 // [d][Bq] unnormalised output^T
     T* st = ot + d * Bq;                                                 // [Bk][Bq] scores^T, then exp
     T* row_max = st + Bk * Bq;
     T* row_sum = row_max + Bq;
     T* rescale = row_sum + Bq;
+    T* kp = rescale + Bq;                                    // [Bk][d] key block, or [n_kv][d] whole head
+    T* vp = kp + (whole_heads ? L.n_kv : Bk) * d;             // the same for values
+    index_t packed_bh = -1;
     for (index_t t = t0; t < t1; ++t) {
       const index_t bh = t / q_blocks, qb = t % q_blocks, b = bh / L.heads, h = bh % L.heads;
       const index_t r0 = qb * Bq, rows = std::min(Bq, L.n_q - r0);
@@ -258,11 +277,21 @@ void attention_forward_impl(T* out, T* lse, const T* q, const T* k, const T* v, 
       std::fill(row_sum, row_sum + Bq, T(0));
       const T* k_head = k + b * L.k.batch + h * L.k.head;
       const T* v_head = v + b * L.v.batch + h * L.v.head;
+      if (whole_heads && bh != packed_bh) {
+        pack_rows(kp, k_head, L.k.row, L.n_kv, d);
+        pack_rows(vp, v_head, L.v.row, L.n_kv, d);
+        packed_bh = bh;
+      }
       for (index_t c0 = 0; c0 < L.n_kv; c0 += Bk) {
         const index_t cols = std::min(Bk, L.n_kv - c0);
-        dot_t_block<V>(st, Bq, k_head + c0 * L.k.row, L.k.row, cols, qt, d);
+        if (!whole_heads) {
+          pack_rows(kp, k_head + c0 * L.k.row, L.k.row, cols, d);
+          pack_rows(vp, v_head + c0 * L.v.row, L.v.row, cols, d);
+        }
+        const index_t at = whole_heads ? c0 * d : 0;
+        dot_t_block<V>(st, Bq, kp + at, d, cols, qt, d);
         online_softmax_t<V>(st, cols, row_max, row_sum, rescale);
-        axpy_t_block<V>(ot, Bq, rescale, v_head + c0 * L.v.row, L.v.row, st, cols, d);
+        axpy_t_block<V>(ot, Bq, rescale, vp + at, d, st, cols, d);
       }
       T* o = out + b * L.out.batch + h * L.out.head + r0 * L.out.row;
       for (index_t r = 0; r < rows; ++r) {
@@ -289,17 +318,23 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
   if (L.n_q == 0 || L.n_kv == 0) return;
 
   struct Buffers {
-    T *qt, *dot, *dqt, *st, *dst, *lse, *delta;
+    T *qt, *dot, *dqt, *qp, *dop, *st, *dst, *lse, *delta, *kp, *vp;
   };
+  const bool whole_heads = static_cast<index_t>(scratch.size()) >= attention_scratch_per_worker(d, L.n_kv) * pool.size();
+  const index_t per_worker = whole_heads ? attention_scratch_per_worker(d, L.n_kv) : attention_scratch_per_worker(d);
   auto buffers = [&](int worker) {
     Buffers s;
-    s.qt = scratch.data() + worker * attention_scratch_per_worker(d);  // [d][Bq] scale * Q^T
+    s.qt = scratch.data() + worker * per_worker;  // [d][Bq] scale * Q^T
     s.dot = s.qt + d * Bq;                                              // [d][Bq] dO^T
     s.dqt = s.dot + d * Bq;                                             // [d][Bq] dQ^T of pass 2
-    s.st = s.dqt + d * Bq;                                              // [Bk][Bq] scores^T, then P^T
+    s.qp = s.dqt + d * Bq;                                              // [Bq][d] Q rows
+    s.dop = s.qp + d * Bq;                                              // [Bq][d] dO rows
+    s.st = s.dop + d * Bq;                                              // [Bk][Bq] scores^T, then P^T
     s.dst = s.st + Bk * Bq;                                             // [Bk][Bq] dP^T, then scale * dS^T
     s.lse = s.dst + Bk * Bq;
     s.delta = s.lse + Bq;
+    s.kp = s.delta + Bq;                                // [Bk][d] key block, or [n_kv][d] whole head (dQ pass)
+    s.vp = s.kp + (whole_heads ? L.n_kv : Bk) * d;       // the same for values
     return s;
   };
   // Packs query block qb of (b, h): Q^T, dO^T, lse (+inf on padding and non-finite rows: P = 0) and delta = dO . O.
@@ -309,6 +344,8 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
     const T* o = out + b * L.out.batch + h * L.out.head + r0 * L.out.row;
     pack_transposed(s.qt, Bq, q + b * L.q.batch + h * L.q.head + r0 * L.q.row, L.q.row, rows, d, scale);
     pack_transposed(s.dot, Bq, d_o, L.out.row, rows, d, T(1));
+    pack_rows(s.qp, q + b * L.q.batch + h * L.q.head + r0 * L.q.row, L.q.row, rows, d);
+    pack_rows(s.dop, d_o, L.out.row, rows, d);
     for (index_t r = 0; r < Bq; ++r) {
       const T row_lse = r < rows ? lse[(b * L.heads + h) * L.n_q + r0 + r] : T(0);
       s.lse[r] = r < rows && std::isfinite(row_lse) ? row_lse : std::numeric_limits<T>::infinity();
@@ -319,13 +356,16 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
     }
     return rows;
   };
-  // P^T and scale * dS^T of key block kb against the packed query block.
-  auto tile = [&](const Buffers& s, index_t b, index_t h, index_t kb) {
-    const index_t c0 = kb * Bk, cols = std::min(Bk, L.n_kv - c0);
-    dot_t_block<V>(s.st, Bq, k + b * L.k.batch + h * L.k.head + c0 * L.k.row, L.k.row, cols, s.qt, d);
-    dot_t_block<V>(s.dst, Bq, v + b * L.v.batch + h * L.v.head + c0 * L.v.row, L.v.row, cols, s.dot, d);
+  // Copies `count` key / value rows from row c0 of head (b, h) to the start of the packed buffers.
+  auto load_keys = [&](const Buffers& s, index_t b, index_t h, index_t c0, index_t count) {
+    pack_rows(s.kp, k + b * L.k.batch + h * L.k.head + c0 * L.k.row, L.k.row, count, d);
+    pack_rows(s.vp, v + b * L.v.batch + h * L.v.head + c0 * L.v.row, L.v.row, count, d);
+  };
+  // P^T and scale * dS^T of packed keys / values kp, vp (cols rows) against the packed query block.
+  auto tile = [&](const Buffers& s, const T* kp, const T* vp, index_t cols) {
+    dot_t_block<V>(s.st, Bq, kp, d, cols, s.qt, d);
+    dot_t_block<V>(s.dst, Bq, vp, d, cols, s.dot, d);
     softmax_grad_t<V>(s.st, s.dst, cols, s.lse, s.delta, scale);
-    return cols;
   };
 
   if (d_k || d_v) {
@@ -333,15 +373,13 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
       const Buffers s = buffers(worker);
       for (index_t t = t0; t < t1; ++t) {
         const index_t bh = t / kv_blocks, kb = t % kv_blocks, b = bh / L.heads, h = bh % L.heads;
-        const index_t c0 = kb * Bk;
+        const index_t c0 = kb * Bk, cols = std::min(Bk, L.n_kv - c0);
+        load_keys(s, b, h, c0, cols);
         for (index_t qb = 0; qb < q_blocks; ++qb) {
-          const index_t rows = load_queries(s, b, h, qb), cols = tile(s, b, h, kb), r0 = qb * Bq;
-          if (d_v)
-            outer_block<V>(d_v + b * L.v.batch + h * L.v.head + c0 * L.v.row, L.v.row, cols, s.st, Bq,
-                           d_out + b * L.out.batch + h * L.out.head + r0 * L.out.row, L.out.row, rows, d);
-          if (d_k)
-            outer_block<V>(d_k + b * L.k.batch + h * L.k.head + c0 * L.k.row, L.k.row, cols, s.dst, Bq,
-                           q + b * L.q.batch + h * L.q.head + r0 * L.q.row, L.q.row, rows, d);
+          const index_t rows = load_queries(s, b, h, qb);
+          tile(s, s.kp, s.vp, cols);
+          if (d_v) outer_block<V>(d_v + b * L.v.batch + h * L.v.head + c0 * L.v.row, L.v.row, cols, s.st, Bq, s.dop, d, rows, d);
+          if (d_k) outer_block<V>(d_k + b * L.k.batch + h * L.k.head + c0 * L.k.row, L.k.row, cols, s.dst, Bq, s.qp, d, rows, d);
         }
       }
     }, pool);
@@ -349,14 +387,20 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
   if (d_q) {
     parallel_for(L.batch * L.heads * q_blocks, [&](index_t t0, index_t t1, int worker) {
       const Buffers s = buffers(worker);
+      index_t packed_bh = -1;
       for (index_t t = t0; t < t1; ++t) {
         const index_t bh = t / q_blocks, qb = t % q_blocks, b = bh / L.heads, h = bh % L.heads;
         const index_t rows = load_queries(s, b, h, qb), r0 = qb * Bq;
         std::fill(s.dqt, s.dqt + d * Bq, T(0));
+        if (whole_heads && bh != packed_bh) {
+          load_keys(s, b, h, 0, L.n_kv);
+          packed_bh = bh;
+        }
         for (index_t kb = 0; kb < kv_blocks; ++kb) {
-          const index_t cols = tile(s, b, h, kb);
-          axpy_t_block<V>(s.dqt, Bq, static_cast<const T*>(nullptr), k + b * L.k.batch + h * L.k.head + kb * Bk * L.k.row, L.k.row, s.dst, cols,
-                          d);
+          const index_t c0 = kb * Bk, cols = std::min(Bk, L.n_kv - c0), at = whole_heads ? c0 * d : 0;
+          if (!whole_heads) load_keys(s, b, h, c0, cols);
+          tile(s, s.kp + at, s.vp + at, cols);
+          axpy_t_block<V>(s.dqt, Bq, static_cast<const T*>(nullptr), s.kp + at, d, s.dst, cols, d);
         }
         T* dq = d_q + b * L.q.batch + h * L.q.head + r0 * L.q.row;
         for (index_t r = 0; r < rows; ++r)
