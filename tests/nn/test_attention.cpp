@@ -248,6 +248,7 @@ TEST_CASE("attention over several key blocks: float64 gradient check; 1 and 2 th
   FusedCase c(1, 3, 333, 64, 51);
   ThreadPool one(1), two(2);
   std::vector<float> o1, l1, g1, o2, l2, g2;
+  std::vector<double> o1d, l1d, g1d, o2d, l2d, g2d;
   run_fused<float, true>(c, o1, l1, g1, one);
   run_fused<float, true>(c, o2, l2, g2, two);
   CHECK(o1 == o2);
@@ -257,12 +258,24 @@ TEST_CASE("attention over several key blocks: float64 gradient check; 1 and 2 th
   run_fused<float, false>(c, o2, l2, g2, two);
   CHECK(o1 == o2);
   CHECK(g1 == g2);
-  // Copying whole heads of K and V instead of one key block at a time changes no bit.
+  // Copying whole heads of K and V instead of one key block at a time changes no bit, and neither does the backward
+  // schedule: 3 heads on 1 worker run in one pass per head, on 2 workers as key-block then query-block passes.
   run_fused<float, true>(c, o1, l1, g1, two, false);
   run_fused<float, true>(c, o2, l2, g2, two, true);
   CHECK(o1 == o2);
   CHECK(l1 == l2);
   CHECK(g1 == g2);
+  run_fused<float, true>(c, o1, l1, g1, one, true);
+  CHECK(o1 == o2);
+  CHECK(g1 == g2);
+  FusedCase even(2, 2, 200, 24, 52);  // 4 heads: one pass on 2 workers too
+  run_fused<double, true>(even, o1d, l1d, g1d, two, true);
+  run_fused<double, true>(even, o2d, l2d, g2d, two, false);
+  CHECK(o1d == o2d);
+  CHECK(g1d == g2d);
+  run_fused<double, false>(even, o1d, l1d, g1d, one, true);
+  run_fused<double, false>(even, o2d, l2d, g2d, two, false);
+  CHECK(g1d == g2d);
 }
 
 TEST_CASE("attention scratch sizes: whole-head size grows with the key count", "[nn][attention]") {

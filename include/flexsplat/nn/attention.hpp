@@ -39,11 +39,12 @@ inline index_t attention_scratch_per_worker(index_t head_dim) {
   return 5 * attention_q_block * head_dim + 2 * attention_kv_block * (attention_q_block + head_dim) + 4 * attention_q_block;
 }
 
-// Scratch per worker that also holds one whole head of keys and values (linear in n_kv): with at least this times the
-// pool size, the forward and dQ passes copy K and V once per (batch, head) instead of once per tile (faster for long
-// sequences; the results are bit-identical either way).
-inline index_t attention_scratch_per_worker(index_t head_dim, index_t n_kv) {
-  return attention_scratch_per_worker(head_dim) + 2 * n_kv * head_dim;
+// Scratch per worker for sequences of at most `tokens` queries and keys (linear in tokens). With at least this times
+// the pool size, forward copies K and V once per (batch, head) instead of once per tile, and backward can run in one
+// pass per (batch, head) holding that head's dQ (5 instead of 7 tile products). Results are bit-identical either way.
+inline index_t attention_scratch_per_worker(index_t head_dim, index_t tokens) {
+  const index_t padded = (tokens + attention_q_block - 1) / attention_q_block * attention_q_block;
+  return attention_scratch_per_worker(head_dim) + std::max(2 * tokens, padded) * head_dim;
 }
 
 namespace detail {
@@ -256,8 +257,9 @@ void attention_forward_impl(T* out, T* lse, const T* q, const T* k, const T* v, 
   const index_t q_blocks = (L.n_q + Bq - 1) / Bq;
   const index_t tasks = L.batch * L.heads * q_blocks;
   check_scratch(scratch.size(), d, pool.size());
-  const bool whole_heads = static_cast<index_t>(scratch.size()) >= attention_scratch_per_worker(d, L.n_kv) * pool.size();
-  const index_t per_worker = whole_heads ? attention_scratch_per_worker(d, L.n_kv) : attention_scratch_per_worker(d);
+  const index_t base = attention_scratch_per_worker(d);
+  const bool whole_heads = static_cast<index_t>(scratch.size()) >= (base + 2 * L.n_kv * d) * pool.size();
+  const index_t per_worker = base + (whole_heads ? 2 * L.n_kv * d : 0);
   parallel_for(tasks, [&](index_t t0, index_t t1, int worker) {
     T* qt = scratch.data() + worker * per_worker;  // [d][Bq] scale * Q^T
     T* ot = qt + d * Bq;                                                 // [d][Bq] unnormalised output^T
@@ -318,10 +320,16 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
   if (L.n_q == 0 || L.n_kv == 0) return;
 
   struct Buffers {
-    T *qt, *dot, *dqt, *qp, *dop, *st, *dst, *lse, *delta, *kp, *vp;
+    T *qt, *dot, *dqt, *qp, *dop, *st, *dst, *lse, *delta, *kp, *vp, *dq_head;
   };
-  const bool whole_heads = static_cast<index_t>(scratch.size()) >= attention_scratch_per_worker(d, L.n_kv) * pool.size();
-  const index_t per_worker = whole_heads ? attention_scratch_per_worker(d, L.n_kv) : attention_scratch_per_worker(d);
+  // One pass per (batch, head) when the scratch holds a head's dQ^T and the heads spread evenly over the workers;
+  // otherwise key-block tasks (dK, dV) then query-block tasks (dQ). Both sum every gradient in the same order.
+  const index_t base = attention_scratch_per_worker(d), heads_total = L.batch * L.heads, workers = pool.size();
+  const index_t have = static_cast<index_t>(scratch.size());
+  const bool one_pass = d_q && have >= (base + q_blocks * Bq * d) * workers &&
+                        (heads_total % workers == 0 || heads_total >= 4 * workers);
+  const bool whole_heads = !one_pass && have >= (base + 2 * L.n_kv * d) * workers;
+  const index_t per_worker = base + (one_pass ? q_blocks * Bq * d : whole_heads ? 2 * L.n_kv * d : 0);
   auto buffers = [&](int worker) {
     Buffers s;
     s.qt = scratch.data() + worker * per_worker;  // [d][Bq] scale * Q^T
@@ -335,6 +343,7 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
     s.delta = s.lse + Bq;
     s.kp = s.delta + Bq;                                // [Bk][d] key block, or [n_kv][d] whole head (dQ pass)
     s.vp = s.kp + (whole_heads ? L.n_kv : Bk) * d;       // the same for values
+    s.dq_head = s.qt + base;                            // [q_blocks][d][Bq] dQ^T of one head (one pass)
     return s;
   };
   // Packs query block qb of (b, h): Q^T, dO^T, lse (+inf on padding and non-finite rows: P = 0) and delta = dO . O.
@@ -368,6 +377,36 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
     softmax_grad_t<V>(s.st, s.dst, cols, s.lse, s.delta, scale);
   };
 
+  // dQ^T of query block qb of head (b, h) added into d_q.
+  auto add_dq = [&](const T* dqt, index_t b, index_t h, index_t qb) {
+    const index_t r0 = qb * Bq, rows = std::min(Bq, L.n_q - r0);
+    T* dq = d_q + b * L.q.batch + h * L.q.head + r0 * L.q.row;
+    for (index_t r = 0; r < rows; ++r)
+      for (index_t j = 0; j < d; ++j) dq[r * L.q.row + j] += dqt[j * Bq + r];
+  };
+
+  if (one_pass) {
+    parallel_for(heads_total, [&](index_t t0, index_t t1, int worker) {
+      const Buffers s = buffers(worker);
+      for (index_t bh = t0; bh < t1; ++bh) {
+        const index_t b = bh / L.heads, h = bh % L.heads;
+        std::fill(s.dq_head, s.dq_head + q_blocks * Bq * d, T(0));
+        for (index_t kb = 0; kb < kv_blocks; ++kb) {
+          const index_t c0 = kb * Bk, cols = std::min(Bk, L.n_kv - c0);
+          load_keys(s, b, h, c0, cols);
+          for (index_t qb = 0; qb < q_blocks; ++qb) {
+            const index_t rows = load_queries(s, b, h, qb);
+            tile(s, s.kp, s.vp, cols);
+            if (d_v) outer_block<V>(d_v + b * L.v.batch + h * L.v.head + c0 * L.v.row, L.v.row, cols, s.st, Bq, s.dop, d, rows, d);
+            if (d_k) outer_block<V>(d_k + b * L.k.batch + h * L.k.head + c0 * L.k.row, L.k.row, cols, s.dst, Bq, s.qp, d, rows, d);
+            axpy_t_block<V>(s.dq_head + qb * d * Bq, Bq, static_cast<const T*>(nullptr), s.kp, d, s.dst, cols, d);
+          }
+        }
+        for (index_t qb = 0; qb < q_blocks; ++qb) add_dq(s.dq_head + qb * d * Bq, b, h, qb);
+      }
+    }, pool);
+    return;
+  }
   if (d_k || d_v) {
     parallel_for(L.batch * L.heads * kv_blocks, [&](index_t t0, index_t t1, int worker) {
       const Buffers s = buffers(worker);
@@ -390,7 +429,7 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
       index_t packed_bh = -1;
       for (index_t t = t0; t < t1; ++t) {
         const index_t bh = t / q_blocks, qb = t % q_blocks, b = bh / L.heads, h = bh % L.heads;
-        const index_t rows = load_queries(s, b, h, qb), r0 = qb * Bq;
+        load_queries(s, b, h, qb);
         std::fill(s.dqt, s.dqt + d * Bq, T(0));
         if (whole_heads && bh != packed_bh) {
           load_keys(s, b, h, 0, L.n_kv);
@@ -402,9 +441,7 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
           tile(s, s.kp + at, s.vp + at, cols);
           axpy_t_block<V>(s.dqt, Bq, static_cast<const T*>(nullptr), s.kp + at, d, s.dst, cols, d);
         }
-        T* dq = d_q + b * L.q.batch + h * L.q.head + r0 * L.q.row;
-        for (index_t r = 0; r < rows; ++r)
-          for (index_t j = 0; j < d; ++j) dq[r * L.q.row + j] += s.dqt[j * Bq + r];
+        add_dq(s.dqt, b, h, qb);
       }
     }, pool);
   }
