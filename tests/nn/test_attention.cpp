@@ -79,7 +79,7 @@ TEST_CASE("attention backward passes the float64 gradient check and is thread-co
   CHECK(grads_with(one) == grads_with(two));
 }
 
-TEST_CASE("attention with no keys gives zeros, not NaN; short scratch is a clear error", "[nn][attention]") {
+TEST_CASE("attention with no keys gives zeros, not NaN, and short scratch is a clear error", "[nn][attention]") {
   auto L = nn::packed_attention_layout(1, 1, 3, 0, 2);
   std::vector<double> q(6, 1.0), out(6, 7.0), lse(3);
   std::vector<double> scratch(nn::attention_scratch_per_worker(2) * global_pool().size());
@@ -227,7 +227,7 @@ TEST_CASE("attention over several key blocks, fused q|k|v rows: scalar and SIMD 
   }
 }
 
-TEST_CASE("attention over several key blocks: float64 gradient check; 1 and 2 threads bit-identical on both paths",
+TEST_CASE("attention over several key blocks: float64 gradient check, 1 and 2 threads bit-identical on both paths",
           "[nn][attention]") {
   auto L = nn::packed_attention_layout(1, 1, 70, 300, 3);
   auto q = random_vector(70 * 3, 41, 2.0), k = random_vector(300 * 3, 42, 2.0), v = random_vector(300 * 3, 43);
