@@ -208,6 +208,17 @@ template <class T>
 inline T lane_min(T a, T b) { return a < b ? a : b; }
 template <class T, class A>
 inline xsimd::batch<T, A> lane_min(const xsimd::batch<T, A>& a, const xsimd::batch<T, A>& b) { return xsimd::min(a, b); }
+template <class T>
+inline T lane_max(T a, T b) { return a < b ? b : a; }
+template <class T, class A>
+inline xsimd::batch<T, A> lane_max(const xsimd::batch<T, A>& a, const xsimd::batch<T, A>& b) { return xsimd::max(a, b); }
+// a * b + c: one rounding on the batch path where the target has FMA; the scalar path rounds as the compiler contracts.
+template <class T>
+inline T lane_fma(T a, T b, T c) { return a * b + c; }
+template <class T, class A>
+inline xsimd::batch<T, A> lane_fma(const xsimd::batch<T, A>& a, const xsimd::batch<T, A>& b, const xsimd::batch<T, A>& c) {
+  return xsimd::fma(a, b, c);
+}
 template <class V, class T>
 inline V lane_load(const T* p) {
   if constexpr (std::is_same_v<V, T>) return *p;

@@ -74,7 +74,7 @@ struct SelfAttentionCache {
       const kernels::WindowAttentionShape s{n_queries, c.window, c.heads, c.dim / c.heads};
       scratch.resize(static_cast<std::size_t>(kernels::window_attention_scratch_per_worker(s) * workers));
     } else {
-      scratch.resize(static_cast<std::size_t>(nn::attention_scratch_per_worker(c.dim / c.heads) * workers));
+      scratch.resize(static_cast<std::size_t>(nn::attention_scratch_per_worker(c.dim / c.heads, n_queries) * workers));
     }
   }
   std::size_t capacity_bytes() const {

@@ -116,10 +116,11 @@ BlockWeights<T> load_block_weights(ParamSource<T>& src, const std::string& prefi
 // The MLP runs over row chunks of this size so its hidden buffer does not grow with the token count.
 inline constexpr index_t block_mlp_chunk_rows = 1024;
 
-// Workspace elements block_forward needs for `rows` = batch * tokens rows on a pool of `workers` threads.
+// Workspace elements block_forward needs for `rows` = batch * tokens rows on a pool of `workers` threads. The attention
+// share lets it copy one whole head of K and V per worker (rows bounds the tokens of any batch entry).
 inline index_t block_workspace_size(const BlockConfig& c, index_t rows, int workers) {
   const index_t chunk = std::min(rows, block_mlp_chunk_rows);
-  return rows * 4 * c.dim + chunk * c.mlp_hidden() + nn::attention_scratch_per_worker(c.head_dim()) * workers;
+  return rows * 4 * c.dim + chunk * c.mlp_hidden() + nn::attention_scratch_per_worker(c.head_dim(), rows) * workers;
 }
 
 namespace detail {
