@@ -39,12 +39,10 @@ struct DecoderLayerOffsets {
   index_t deform, ln1_g, ln1_b, attn, ln2_g, ln2_b, ffn_w1, ffn_b1, ffn_w2, ffn_b2, ln3_g, ln3_b, head_w, head_b;
 };
 
-// Offsets of layer l computed directly (no allocation): the layers follow the initial head, all of equal size.
-inline DecoderLayerOffsets decoder_layer_offsets(const DecoderConfig& c, index_t l) {
-  const index_t deform = MVDeformParamLayout(c.deform()).size, attn = SelfAttentionParamLayout(c.self_attention()).size;
-  const index_t layer_size = deform + attn + 6 * c.dim + 2 * c.ffn * c.dim + c.ffn + c.dim + splat_values * c.dim + splat_values;
-  index_t at = c.max_queries * c.dim + splat_values * c.dim + splat_values + l * layer_size;
-  auto take = [&](index_t n) { const index_t o = at; at += n; return o; };
+namespace detail {
+// The order of one layer's parameters, shared by the direct computation and the sequential layout walk.
+template <class Take>
+DecoderLayerOffsets take_layer_offsets(Take&& take, const DecoderConfig& c, index_t deform, index_t attn) {
   DecoderLayerOffsets o;
   o.deform = take(deform);
   o.ln1_g = take(c.dim);
@@ -62,6 +60,15 @@ inline DecoderLayerOffsets decoder_layer_offsets(const DecoderConfig& c, index_t
   o.head_b = take(splat_values);
   return o;
 }
+}  // namespace detail
+
+// Offsets of layer l computed directly (no allocation): the layers follow the initial head, all of equal size.
+inline DecoderLayerOffsets decoder_layer_offsets(const DecoderConfig& c, index_t l) {
+  const index_t deform = MVDeformParamLayout(c.deform()).size, attn = SelfAttentionParamLayout(c.self_attention()).size;
+  const index_t layer_size = deform + attn + 6 * c.dim + 2 * c.ffn * c.dim + c.ffn + c.dim + splat_values * c.dim + splat_values;
+  index_t at = c.max_queries * c.dim + splat_values * c.dim + splat_values + l * layer_size;
+  return detail::take_layer_offsets([&](index_t n) { const index_t o = at; at += n; return o; }, c, deform, attn);
+}
 
 struct DecoderParamLayout {
   index_t embeddings, init_head_w, init_head_b, size;
@@ -72,24 +79,8 @@ struct DecoderParamLayout {
     embeddings = take(c.max_queries * c.dim);
     init_head_w = take(splat_values * c.dim);
     init_head_b = take(splat_values);
-    for (index_t l = 0; l < c.layers; ++l) {
-      DecoderLayerOffsets o;
-      o.deform = take(MVDeformParamLayout(c.deform()).size);
-      o.ln1_g = take(c.dim);
-      o.ln1_b = take(c.dim);
-      o.attn = take(SelfAttentionParamLayout(c.self_attention()).size);
-      o.ln2_g = take(c.dim);
-      o.ln2_b = take(c.dim);
-      o.ffn_w1 = take(c.ffn * c.dim);
-      o.ffn_b1 = take(c.ffn);
-      o.ffn_w2 = take(c.dim * c.ffn);
-      o.ffn_b2 = take(c.dim);
-      o.ln3_g = take(c.dim);
-      o.ln3_b = take(c.dim);
-      o.head_w = take(splat_values * c.dim);
-      o.head_b = take(splat_values);
-      layer.push_back(o);
-    }
+    const index_t deform = MVDeformParamLayout(c.deform()).size, attn = SelfAttentionParamLayout(c.self_attention()).size;
+    for (index_t l = 0; l < c.layers; ++l) layer.push_back(detail::take_layer_offsets(take, c, deform, attn));
     size = at;
   }
 };
