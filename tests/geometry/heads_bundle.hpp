@@ -3,6 +3,8 @@
 #include <catch2/catch.hpp>
 
 #include <cstdio>
+#include <fstream>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -21,6 +23,29 @@ inline const flexsplat::safetensors::File& bundle() {
 }
 
 inline nlohmann::json bundle_config() { return nlohmann::json::parse(bundle().metadata("config")); }
+
+using ShapeMap = std::map<std::string, std::vector<flexsplat::index_t>>;
+
+// Name -> shape of every VGGT-1B tensor whose name starts with prefix, from the shared layout file.
+inline ShapeMap vggt1b_layout_shapes(const std::string& prefix) {
+  std::ifstream f(std::string(FLEXSPLAT_SHARED_DIR) + "/reference/vggt1b_state_dict_layout.json");
+  REQUIRE(f.good());
+  const auto layout = nlohmann::json::parse(f);
+  ShapeMap expected;
+  for (auto& t : layout.at("tensors")) {
+    const std::string name = t.at("name");
+    if (name.rfind(prefix, 0) == 0) expected[name] = t.at("shape").get<std::vector<flexsplat::index_t>>();
+  }
+  return expected;
+}
+
+// Name -> shape of a spec list; duplicates would shrink the map, so callers compare sizes too.
+template <class Specs>
+ShapeMap spec_shapes(const Specs& specs) {
+  ShapeMap ours;
+  for (auto& s : specs) ours[s.name] = s.shape;
+  return ours;
+}
 
 // Cases as [S, H, W] from the bundle metadata.
 inline std::vector<std::array<long, 3>> bundle_cases() {

@@ -48,18 +48,10 @@ TEST_CASE("camera head reproduces every refinement iteration of the bundle (doub
 }
 
 TEST_CASE("camera head parameter names match the VGGT-1B state_dict layout", "[camera_head]") {
-  std::ifstream f(std::string(FLEXSPLAT_SHARED_DIR) + "/reference/vggt1b_state_dict_layout.json");
-  REQUIRE(f.good());
-  const auto layout = nlohmann::json::parse(f);
-  std::map<std::string, std::vector<index_t>> expected;
-  for (auto& t : layout.at("tensors")) {
-    const std::string name = t.at("name");
-    if (name.rfind("camera_head.", 0) == 0) expected[name] = t.at("shape").get<std::vector<index_t>>();
-  }
+  const auto expected = heads_test::vggt1b_layout_shapes("camera_head.");
   std::vector<TensorSpec> specs;
   append_camera_head_specs(specs, CameraHeadConfig{});
-  std::map<std::string, std::vector<index_t>> ours;
-  for (auto& s : specs) ours[s.name] = s.shape;
+  const auto ours = heads_test::spec_shapes(specs);
   CHECK(ours.size() == specs.size());
   CHECK(expected.size() > 50);
   CHECK(ours == expected);

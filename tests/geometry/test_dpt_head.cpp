@@ -135,18 +135,10 @@ TEST_CASE("banded 3x3 convolution equals the whole-image convolution", "[dpt_hea
 }
 
 TEST_CASE("DPT head parameter names match the VGGT-1B state_dict layout", "[dpt_head]") {
-  std::ifstream f(std::string(FLEXSPLAT_SHARED_DIR) + "/reference/vggt1b_state_dict_layout.json");
-  REQUIRE(f.good());
-  const auto layout = nlohmann::json::parse(f);
-  std::map<std::string, std::vector<index_t>> expected;
-  for (auto& t : layout.at("tensors")) {
-    const std::string name = t.at("name");
-    if (name.rfind("depth_head.", 0) == 0) expected[name] = t.at("shape").get<std::vector<index_t>>();
-  }
+  const auto expected = heads_test::vggt1b_layout_shapes("depth_head.");
   std::vector<TensorSpec> specs;
   append_dpt_head_specs(specs, DptHeadConfig{});
-  std::map<std::string, std::vector<index_t>> ours;
-  for (auto& s : specs) ours[s.name] = s.shape;
+  const auto ours = heads_test::spec_shapes(specs);
   CHECK(ours.size() == specs.size());
   CHECK(expected.size() > 50);
   CHECK(ours == expected);
