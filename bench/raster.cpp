@@ -68,6 +68,7 @@ struct Result {
   CameraGrad<T> d_cam;
   double forward_ms = 0, backward_ms = 0, forward_cpu_ms = 0, backward_cpu_ms = 0;  // wall and process CPU time
   double contributors_per_pixel = 0, entries = 0;
+  ForwardStageTimes stages;  // medians over the repetitions
 };
 
 template <class T>
@@ -88,6 +89,7 @@ Result<T> run(const Scene<T>& s, const RenderOptions& opt, int reps, unsigned co
   r.d_sh.resize(s.sh.shape());
   RenderWorkspace<T> ws;
   std::vector<double> fwd, bwd, fwd_cpu, bwd_cpu;
+  std::vector<ForwardStageTimes> stages;
   auto cpu_ms = [] {
     timespec ts{};
     clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
@@ -113,6 +115,7 @@ Result<T> run(const Scene<T>& s, const RenderOptions& opt, int reps, unsigned co
       fwd.push_back(std::chrono::duration<double, std::milli>(t1 - t0).count());
       bwd.push_back(std::chrono::duration<double, std::milli>(t3 - t2).count());
       fwd_cpu.push_back(c1 - c0);
+      stages.push_back(ws.forward_times);
       bwd_cpu.push_back(c3 - c2);
     }
   }
@@ -124,6 +127,15 @@ Result<T> run(const Scene<T>& s, const RenderOptions& opt, int reps, unsigned co
   std::sort(bwd_cpu.begin(), bwd_cpu.end());
   r.forward_cpu_ms = fwd_cpu[fwd_cpu.size() / 2];
   r.backward_cpu_ms = bwd_cpu[bwd_cpu.size() / 2];
+  auto median = [&](double ForwardStageTimes::*field) {
+    std::vector<double> v;
+    for (const auto& s : stages) v.push_back(s.*field);
+    std::sort(v.begin(), v.end());
+    return v[v.size() / 2];
+  };
+  for (auto field : {&ForwardStageTimes::validate, &ForwardStageTimes::project, &ForwardStageTimes::intersect,
+                     &ForwardStageTimes::rasterize, &ForwardStageTimes::output})
+    r.stages.*field = median(field);
   double total = 0;
   for (auto v : r.out.n_contrib.span()) total += v;
   r.contributors_per_pixel = total / double(H * W);
@@ -214,6 +226,9 @@ int main(int argc, char** argv) {
     std::printf("target scene, all skips, %d reps: fwd %.2f ms (cpu %.2f), bwd %.2f ms (cpu %.2f), %.0f tile entries, "
                 "%.2f contributors/pixel\n", profile_reps, r.forward_ms, r.forward_cpu_ms, r.backward_ms,
                 r.backward_cpu_ms, r.entries, r.contributors_per_pixel);
+    std::printf("forward stages (median wall ms): validate %.2f, project+SH %.2f, intersect %.2f, rasterize %.2f, "
+                "output %.2f\n", r.stages.validate, r.stages.project, r.stages.intersect, r.stages.rasterize,
+                r.stages.output);
     return 0;
   }
   std::vector<Row> rows;

@@ -19,6 +19,7 @@
 // respect to means, quats, scales, opacities, sh, features and the camera (world_to_camera and intrinsics); the
 // workspace must still hold the state of the matching render_forward call.
 #include <array>
+#include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <vector>
@@ -95,6 +96,11 @@ struct GaussianGrads {
   CameraGrad<T>* camera = nullptr;
 };
 
+// Wall time of each stage of the last render_forward (milliseconds), for benchmarks and profiling.
+struct ForwardStageTimes {
+  double validate = 0, project = 0, intersect = 0, rasterize = 0, output = 0;
+};
+
 template <class T>
 struct RenderWorkspace {
   std::vector<std::uint8_t> visible;
@@ -109,6 +115,7 @@ struct RenderWorkspace {
   std::vector<T> background;
   int sh_degree = 0, channel_count = 0;
   index_t n = 0;
+  ForwardStageTimes forward_times;
 };
 
 namespace detail {
@@ -207,7 +214,14 @@ void ensure_shape(Tensor_& t, const Shape<R>& shape) {
 template <class T>
 void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const RenderOptions& opt,
                     RenderWorkspace<T>& ws, RenderOutputs<T>& out) {
+  using clock = std::chrono::steady_clock;
+  auto stage_end = [last = clock::now()](double& ms) mutable {
+    const auto now = clock::now();
+    ms = std::chrono::duration<double, std::milli>(now - last).count();
+    last = now;
+  };
   const int degree = detail::validate_inputs(in, camera, opt);
+  stage_end(ws.forward_times.validate);
   ThreadPool& pool = opt.pool ? *opt.pool : global_pool();
   const index_t n = in.means.shape(0);
   const int F = in.features.empty() ? 0 : int(in.features.shape(1));
@@ -248,12 +262,15 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
       for (int f = 0; f < F; ++f) ch[4 + f] = in.features.data()[g * F + f];
     }
   }, pool);
+  stage_end(ws.forward_times.project);
   const TileGrid grid(camera.width, camera.height);
   intersect_tiles(n, ws.visible.data(), ws.projections.data(), grid, opt.skips, ws.tiles, pool);
+  stage_end(ws.forward_times.intersect);
   const index_t pixels = index_t(camera.width) * camera.height;
   ws.out_channels.resize(std::size_t(pixels * C));
   rasterize_forward(ws.tiles, ws.projections.data(), ws.channels.data(), C, ws.background.data(), opt.skips, ws.raster,
                     ws.out_channels.data(), ws.blend, pool);
+  stage_end(ws.forward_times.rasterize);
   const index_t H = camera.height, W = camera.width;
   detail::ensure_shape<T>(out.image, Shape<3>{H, W, 3});
   detail::ensure_shape<T>(out.alpha, Shape<2>{H, W});
@@ -271,6 +288,7 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
       for (int f = 0; f < F; ++f) out.features.data()[p * F + f] = src[4 + f];
     }
   }, pool);
+  stage_end(ws.forward_times.output);
 }
 
 template <class T>
