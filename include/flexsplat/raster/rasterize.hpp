@@ -38,19 +38,27 @@ struct SplatParams {
   T rx, ry;  // half-extents (pixels) of the region where sigma <= sigma_max can hold in float arithmetic
 };
 
-// Per-worker tile scratch: tile-local copies of the Gaussians (structure of arrays), the lists of entries whose
-// extent covers each cell (one row of L pixels), and per-entry gradient accumulators (one lane group per value).
+// Per-worker tile scratch: tile-local copies of the Gaussians (structure of arrays), the rows and batch columns
+// each entry's extent reaches, one front-to-back entry list per pixel row, and per-entry gradient accumulators
+// (one lane group per value).
 template <class T>
 struct TileScratch {
   std::vector<T> u, v, ca, cb, cc, opacity, sigma_max, rx, ry, channels, lane_grads;
-  std::vector<std::int16_t> cover;             // [count * 4]: first row, last row, first cell column, last
-  std::vector<std::int32_t> cell_offsets, cell_list;  // cell c's list: cell_list[c * count, + cell_offsets[c])
+  std::vector<std::int32_t> row_first, row_last;  // [count] tile-local rows reached (first > last: none)
+  std::vector<std::int16_t> column_first, column_last;  // [count] batch columns reached
+  std::int64_t row_stride = 0;                    // capacity of one row list (count + SIMD slack)
+  std::vector<std::int32_t> row_size, row_list;   // row r's list: row_list[r * row_stride, + row_size[r])
   void reserve(std::int64_t n, int channel_count) {
     for (auto* a : {&u, &v, &ca, &cb, &cc, &opacity, &sigma_max, &rx, &ry})
       if (a->size() < std::size_t(n)) a->resize(std::size_t(n));
     if (channels.size() < std::size_t(n * channel_count)) channels.resize(std::size_t(n * channel_count));
-    if (cover.size() < std::size_t(n * 4)) cover.resize(std::size_t(n * 4));
+    for (auto* a : {&row_first, &row_last})
+      if (a->size() < std::size_t(n)) a->resize(std::size_t(n));
+    for (auto* a : {&column_first, &column_last})
+      if (a->size() < std::size_t(n)) a->resize(std::size_t(n));
+    row_size.resize(tile_size);
   }
+  bool covered(std::int64_t k) const { return row_first[std::size_t(k)] <= row_last[std::size_t(k)]; }
 };
 
 template <class T>
@@ -95,26 +103,29 @@ void splat_params(const Projection<T>& p, SplatParams<T>& s) {
 
 namespace detail {
 
-template <class V>
-inline constexpr int cell_columns = tile_size / int(simd::lane_count<V>::value);
-
-// Copies the Gaussians of one tile into s and builds, for each cell (row r, column c of L pixels), the front-to-back
-// list of the entries whose extent reaches it; lane_grad_stride > 0 also clears the backward accumulators of covered
-// entries.
+// Copies the Gaussians of one tile into s and builds, for each pixel row, the front-to-back list of the entries
+// whose extent reaches it (and records the batch columns each entry reaches); lane_grad_stride > 0 also clears the
+// backward accumulators of covered entries.
 template <class V, class T>
 void gather_tile(const TileIntersections& ti, index_t tile, const T* records, int stride, int C, TileScratch<T>& s,
                  int lane_grad_stride) {
-  constexpr int L = int(simd::lane_count<V>::value), cols = cell_columns<V>, cells = tile_size * cols;
+  constexpr int L = int(simd::lane_count<V>::value);
   const TileGrid& grid = ti.grid;
   const int x_base = int(tile % grid.tiles_x) * tile_size, y_base = int(tile / grid.tiles_x) * tile_size;
   const int width_here = std::min(tile_size, grid.width - x_base), rows_here = std::min(tile_size, grid.height - y_base);
   const std::int64_t begin = ti.tile_offsets[tile], count = ti.tile_offsets[tile + 1] - begin;
-  s.cell_offsets.assign(cells, 0);
-  if (s.cell_list.size() < std::size_t(count * cells)) s.cell_list.resize(std::size_t(count * cells));
+  s.row_stride = count + simd::append_indices_slack;
+  if (s.row_list.size() < std::size_t(s.row_stride * tile_size)) s.row_list.resize(std::size_t(s.row_stride * tile_size));
   if (lane_grad_stride > 0 && s.lane_grads.size() < std::size_t(count * lane_grad_stride * L))
     s.lane_grads.resize(std::size_t(count * lane_grad_stride * L));
   const std::int32_t* gaussians = ti.tile_gaussian.data() + begin;
-  // Copy first (independent loads, prefetched a few entries ahead), then derive the coverage from the copies.
+  // Tile-local pixel ranges: values are clamped to +-(tile_size + 8) first (beyond that the range misses the tile),
+  // so floor reduces to truncation of a positive value (exact, and cheap without SSE4.1 rounding instructions).
+  auto floor_local = [](double x) {
+    constexpr int reach = tile_size + 8;
+    return int(std::min(std::max(x, -double(reach)), double(reach)) + 2 * reach) - 2 * reach;
+  };
+  // Records are read in tile order (prefetched a few entries ahead: each is a likely cache miss).
   constexpr std::int64_t prefetch_distance = 24;
   for (std::int64_t k = 0; k < count; ++k) {
     if (k + prefetch_distance < count) __builtin_prefetch(records + std::int64_t(gaussians[k + prefetch_distance]) * stride);
@@ -125,36 +136,21 @@ void gather_tile(const TileIntersections& ti, index_t tile, const T* records, in
     s.sigma_max[k] = p[6];
     s.rx[k] = p[7], s.ry[k] = p[8];
     for (int c = 0; c < C; ++c) s.channels[k * C + c] = p[splat_fields + c];
-  }
-  // Tile-local pixel ranges: values are clamped to +-(tile_size + 8) first (beyond that the range misses the tile),
-  // so floor reduces to truncation of a positive value (exact, and cheap without SSE4.1 rounding instructions).
-  auto floor_local = [](double x) {
-    constexpr int reach = tile_size + 8;
-    return int(std::min(std::max(x, -double(reach)), double(reach)) + 2 * reach) - 2 * reach;
-  };
-  std::int32_t* lists = s.cell_list.data();
-  std::int32_t* fill = s.cell_offsets.data();  // fill[c]: entries so far in cell c's list (capacity count)
-  for (std::int64_t k = 0; k < count; ++k) {
     // Pixel x is in range when |x + 0.5 - u| <= rx.
-    const double u = double(s.u[k]) - pixel_centre_offset - x_base, rx = double(s.rx[k]);
-    const double v = double(s.v[k]) - pixel_centre_offset - y_base, ry = double(s.ry[k]);
+    const double u = double(p[0]) - pixel_centre_offset - x_base, rx = double(p[7]);
+    const double v = double(p[1]) - pixel_centre_offset - y_base, ry = double(p[8]);
     const int x0 = std::max(0, -floor_local(rx - u)), x1 = std::min(width_here - 1, floor_local(u + rx));
     const int y0 = std::max(0, -floor_local(ry - v)), y1 = std::min(rows_here - 1, floor_local(v + ry));
-    std::int16_t* cover = &s.cover[std::size_t(k) * 4];
-    if (x0 > x1 || y0 > y1) {
-      cover[0] = 1, cover[1] = 0, cover[2] = 1, cover[3] = 0;
-      continue;
-    }
-    cover[0] = std::int16_t(y0), cover[1] = std::int16_t(y1), cover[2] = std::int16_t(x0 / L);
-    cover[3] = std::int16_t(x1 / L);
-    for (int r = y0; r <= y1; ++r)
-      for (int c = x0 / L; c <= x1 / L; ++c) {
-        const int cell = r * cols + c;
-        lists[std::int64_t(cell) * count + fill[cell]++] = std::int32_t(k);
-      }
-    if (lane_grad_stride > 0)
+    const bool reached = x0 <= x1 && y0 <= y1;
+    s.row_first[k] = reached ? y0 : 1;
+    s.row_last[k] = reached ? y1 : 0;
+    s.column_first[k] = std::int16_t(x0 / L), s.column_last[k] = std::int16_t(x1 / L);
+    if (lane_grad_stride > 0 && reached)
       std::fill_n(&s.lane_grads[std::size_t(k * lane_grad_stride * L)], lane_grad_stride * L, T(0));
   }
+  for (int r = 0; r < rows_here; ++r)
+    s.row_size[r] = std::int32_t(simd::append_indices_in_range(s.row_first.data(), s.row_last.data(), count, r,
+                                                               s.row_list.data() + r * s.row_stride));
 }
 
 template <class V, class T>
@@ -168,11 +164,10 @@ V lane_offsets() {
 template <class V, class T>
 void blend_tile_forward(const TileIntersections& ti, index_t tile, const TileScratch<T>& s, int C, const T* background,
                         const RasterSkips& skips, T* out_channels, BlendState<T>& state) {
-  constexpr int L = int(simd::lane_count<V>::value), cols = cell_columns<V>;
+  constexpr int L = int(simd::lane_count<V>::value);
   static_assert(tile_size % L == 0, "tile rows must split into whole batches");
   const TileGrid& grid = ti.grid;
   const int tx = int(tile % grid.tiles_x), ty = int(tile / grid.tiles_x);
-  const std::int64_t count = ti.tile_offsets[tile + 1] - ti.tile_offsets[tile];
   const V iota = lane_offsets<V, T>();
   constexpr int max_channels = 64;
   V acc[max_channels];
@@ -182,9 +177,9 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const TileScr
   for (int py = ty * tile_size; py < y_end; ++py) {
     const V pyc = V(T(py) + T(pixel_centre_offset));
     for (int bx = tx * tile_size; bx < x_end; bx += L) {
-      const int cell = (py - ty * tile_size) * cols + (bx - tx * tile_size) / L;
-      const std::int32_t* list = s.cell_list.data() + std::int64_t(cell) * count;
-      const std::int32_t list_size = s.cell_offsets[cell];
+      const int row = py - ty * tile_size, column = (bx - tx * tile_size) / L;
+      const std::int32_t* list = s.row_list.data() + row * s.row_stride;
+      const std::int32_t list_size = s.row_size[row];
       const V px = iota + V(T(bx));
       const V pxc = px + V(T(pixel_centre_offset));
       auto done = px >= V(T(grid.width));
@@ -192,6 +187,7 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const TileScr
       for (int c = 0; c < C; ++c) acc[c] = V(T(0));
       for (std::int32_t i = 0; i < list_size; ++i) {
         const std::int32_t k = list[i];
+        if (L < tile_size && (column < s.column_first[k] || column > s.column_last[k])) continue;
         const V dx = V(s.u[k]) - pxc, dy = V(s.v[k]) - pyc;
         const V sigma = T(0.5) * (V(s.ca[k]) * dx * dx + V(s.cc[k]) * dy * dy) + V(s.cb[k]) * dx * dy;
         auto maybe = (sigma <= V(s.sigma_max[k])) & simd::lane_not(done);
@@ -232,10 +228,9 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const TileScr
 template <class V, class T>
 void blend_tile_backward(const TileIntersections& ti, index_t tile, TileScratch<T>& s, int C, const T* background,
                          const BlendState<T>& state, const T* d_out_channels, const T* d_alpha) {
-  constexpr int L = int(simd::lane_count<V>::value), cols = cell_columns<V>;
+  constexpr int L = int(simd::lane_count<V>::value);
   const TileGrid& grid = ti.grid;
   const int tx = int(tile % grid.tiles_x), ty = int(tile / grid.tiles_x);
-  const std::int64_t count = ti.tile_offsets[tile + 1] - ti.tile_offsets[tile];
   const int stride = entry_grad_fixed + C;
   const V iota = lane_offsets<V, T>();
   constexpr int max_channels = 64;
@@ -258,9 +253,9 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, TileScratch<
         if (inside) max_last = std::max(max_last, state.last_entry[pix]);
       }
       if (max_last == 0) continue;
-      const int cell = (py - ty * tile_size) * cols + (bx - tx * tile_size) / L;
-      const std::int32_t* list = s.cell_list.data() + std::int64_t(cell) * count;
-      std::int32_t list_end = s.cell_offsets[cell];
+      const int row = py - ty * tile_size, column = (bx - tx * tile_size) / L;
+      const std::int32_t* list = s.row_list.data() + row * s.row_stride;
+      std::int32_t list_end = s.row_size[row];
       while (list_end > 0 && list[list_end - 1] >= max_last) --list_end;  // behind every lane's last contributor
       const V pxc = iota + V(T(bx) + T(pixel_centre_offset));
       const V T_final = simd::lane_load<V>(lanes_T), last = simd::lane_load<V>(lanes_last);
@@ -272,6 +267,7 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, TileScratch<
       }
       for (std::int32_t i = list_end - 1; i >= 0; --i) {
         const std::int32_t k = list[i];
+        if (L < tile_size && (column < s.column_first[k] || column > s.column_last[k])) continue;
         const V dx = V(s.u[k]) - pxc, dy = V(s.v[k]) - pyc;
         const V sigma = T(0.5) * (V(s.ca[k]) * dx * dx + V(s.cc[k]) * dy * dy) + V(s.cb[k]) * dx * dy;
         auto maybe = (sigma <= V(s.sigma_max[k])) & (V(T(k)) < last);
@@ -392,7 +388,7 @@ void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, 
     detail::blend_tile_backward<V, T>(ti, tile, s, C, background, state, d_out_channels, d_alpha);
     for (std::int64_t k = 0; k < count; ++k) {
       T* record = &ws.entry_grads[std::size_t(ti.tile_entries[begin + k]) * std::size_t(stride)];
-      if (s.cover[std::size_t(k) * 4] > s.cover[std::size_t(k) * 4 + 1]) {
+      if (!s.covered(k)) {
         std::fill_n(record, stride, T(0));
         continue;
       }
