@@ -90,7 +90,9 @@ TEST_CASE("intersect: opacity-aware extent and tile lists of a single Gaussian",
   p.opacity = 0.005f;  // radius ~ 1.5 px: only tile (1, 1)
   intersect_tiles<float>(1, &visible, &p, grid, RasterSkips{}, ti);
   CHECK(ti.gaussian_counts[0] == 1);
-  CHECK(ti.isect_tile[0] == 1 * grid.tiles_x + 1);
+  const std::int64_t tile = 1 * grid.tiles_x + 1;
+  CHECK(ti.tile_offsets[tile + 1] - ti.tile_offsets[tile] == 1);
+  CHECK(ti.tile_offsets.back() == 1);
   p.u = -30.f;  // off screen
   intersect_tiles<float>(1, &visible, &p, grid, RasterSkips{}, ti);
   CHECK(ti.gaussian_counts[0] == 0);

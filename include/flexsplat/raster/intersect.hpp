@@ -195,17 +195,64 @@ void radix_sort_positive(std::vector<T>& keys, std::vector<std::int32_t>& values
   }
 }
 
+// Tiles one Gaussian reaches: its tile rectangle and the column span of its first rows (later rows are recomputed).
+struct GaussianTiles {
+  static constexpr int stored_rows = 4;
+  TileRect rect;
+  std::int16_t first[stored_rows], last[stored_rows];  // columns of row rect.y0 + i (first > last: none)
+};
+
+// Rectangle, row spans and number of tiles of one projected Gaussian (0: it reaches no pixel).
+template <class T>
+std::int64_t count_gaussian_tiles(const Projection<T>& p, const TileGrid& grid, const RasterSkips& skips,
+                                  GaussianTiles& out) {
+  TileRect rect;
+  double r2 = 0;
+  out.rect = TileRect{};
+  if (!gaussian_tile_rect(p.u, p.v, p.cov, p.opacity, grid, skips.opacity_aware_extent, rect, r2)) return 0;
+  out.rect = rect;
+  std::int64_t count = 0;
+  const EllipseRows rows = skips.exact_tile_test ? ellipse_rows(p.u, p.v, p.conic, r2) : EllipseRows{};
+  for (int ty = rect.y0; ty <= rect.y1; ++ty) {
+    int tx0 = rect.x0, tx1 = rect.x1;
+    if (skips.exact_tile_test && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) tx0 = 1, tx1 = 0;
+    if (ty - rect.y0 < GaussianTiles::stored_rows) {
+      out.first[ty - rect.y0] = std::int16_t(tx0);
+      out.last[ty - rect.y0] = std::int16_t(tx1);
+    }
+    count += std::max(0, tx1 - tx0 + 1);
+  }
+  return count;
+}
+
+// Calls f(tile index) for every tile of the Gaussian, row by row, in the order count_gaussian_tiles counted them.
+template <class T, class F>
+void for_each_gaussian_tile(const Projection<T>& p, const GaussianTiles& t, const TileGrid& grid,
+                            const RasterSkips& skips, F&& f) {
+  const TileRect& rect = t.rect;
+  const int stored_last_row = std::min(rect.y1, rect.y0 + GaussianTiles::stored_rows - 1);
+  for (int ty = rect.y0; ty <= stored_last_row; ++ty)
+    for (int tx = t.first[ty - rect.y0]; tx <= t.last[ty - rect.y0]; ++tx) f(ty * grid.tiles_x + tx);
+  if (stored_last_row == rect.y1) return;
+  const double r2 = cull_radius2(double(p.opacity), skips.opacity_aware_extent);
+  const EllipseRows rows = skips.exact_tile_test ? ellipse_rows(p.u, p.v, p.conic, r2) : EllipseRows{};
+  for (int ty = stored_last_row + 1; ty <= rect.y1; ++ty) {
+    int tx0 = rect.x0, tx1 = rect.x1;
+    if (skips.exact_tile_test && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) continue;
+    for (int tx = tx0; tx <= tx1; ++tx) f(ty * grid.tiles_x + tx);
+  }
+}
+
 // Result of the intersection stage: tile t owns entries [tile_offsets[t], tile_offsets[t+1]) of tile_entries,
-// each an emission index e (Gaussian isect_gaussian[e]); the entries of one tile are front to back.
-// Emission indices of one Gaussian are contiguous (gaussian_offsets), so per-entry gradients reduce per Gaussian
-// in a fixed order.
+// each an emission index e; the entries of one tile are front to back. Emission indices of one Gaussian are
+// contiguous (gaussian_offsets), so per-entry gradients reduce per Gaussian in a fixed order.
 struct TileIntersections {
   TileGrid grid;
-  std::vector<std::int32_t> order;             // visible Gaussians front to back
+  std::vector<GaussianTiles> gaussian_tiles;   // [N] filled by count_gaussian_tiles
+  std::vector<std::int64_t> gaussian_counts;   // [N] tiles of each Gaussian (0 when culled)
+  std::vector<std::int32_t> order;             // Gaussians with tiles, front to back
   std::vector<std::int64_t> gaussian_offsets;  // [N] first emission of each Gaussian
-  std::vector<std::int64_t> gaussian_counts;   // [N] emissions of each Gaussian (0 when culled)
-  std::vector<std::int32_t> isect_gaussian;    // [E] Gaussian of each emission
-  std::vector<std::int32_t> isect_tile;        // [E] tile of each emission
+  std::int64_t total_entries = 0;
   std::vector<std::int64_t> tile_offsets;      // [tiles+1]
   std::vector<std::int32_t> tile_entries;      // [E] emission indices sorted by (tile, depth)
   std::vector<std::int32_t> tile_gaussian;     // [E] Gaussian of each tile_entries element (one indirection less)
@@ -215,42 +262,23 @@ struct TileIntersections {
   std::vector<float> depth_keys_f, depth_tmp_f;
   std::vector<std::int32_t> order_tmp;
   std::vector<std::int64_t> tile_cursor;      // [chunks * tiles]
-  std::vector<TileRect> rects;
-  std::vector<double> radius2;
+  std::vector<std::int32_t> chunk_bounds;     // [chunks + 1] positions in order
 };
 
-// Builds the per-tile lists of the visible Gaussians (visible[g] != 0, proj[g] filled by project_forward_one).
-template <class T>
-void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>* proj, const TileGrid& grid,
-                     const RasterSkips& skips, TileIntersections& out,
-                     ThreadPool& pool = global_pool()) {
+// Sizes the per-Gaussian arrays for n Gaussians on grid (counts zero) before count_gaussian_tiles fills them.
+inline void begin_intersections(index_t n, const TileGrid& grid, TileIntersections& out) {
   out.grid = grid;
-  out.rects.assign(std::size_t(n), TileRect{});
-  out.radius2.assign(std::size_t(n), 0.0);
+  out.gaussian_tiles.resize(std::size_t(n));
   out.gaussian_counts.assign(std::size_t(n), 0);
-  parallel_for(n, [&](index_t begin, index_t end, int) {
-    for (index_t g = begin; g < end; ++g) {
-      if (!visible[g]) continue;
-      const Projection<T>& p = proj[g];
-      TileRect rect;
-      double r2 = 0;
-      if (!gaussian_tile_rect(p.u, p.v, p.cov, p.opacity, grid, skips.opacity_aware_extent, rect, r2)) continue;
-      out.rects[g] = rect;
-      out.radius2[g] = r2;
-      std::int64_t count = 0;
-      if (!skips.exact_tile_test) {
-        count = std::int64_t(rect.x1 - rect.x0 + 1) * (rect.y1 - rect.y0 + 1);
-      } else {
-        const EllipseRows rows = ellipse_rows(p.u, p.v, p.conic, r2);
-        for (int ty = rect.y0; ty <= rect.y1; ++ty) {
-          int tx0 = 0, tx1 = -1;
-          if (tile_row_span(rows, grid, rect, ty, tx0, tx1)) count += tx1 - tx0 + 1;
-        }
-      }
-      out.gaussian_counts[g] = count;
-    }
-  }, pool);
-  // Front-to-back order of the Gaussians that touch at least one tile.
+}
+
+// From the per-Gaussian counts: front-to-back order, then every Gaussian's tiles written straight into per-tile
+// lists. The depth order is cut into chunks; chunk w's entries of a tile follow chunk w-1's, so each tile's list is
+// front to back for any number of threads.
+template <class T>
+void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, TileIntersections& out,
+               ThreadPool& pool = global_pool()) {
+  const TileGrid& grid = out.grid;
   auto sort_by_depth = [&](auto& keys, auto& tmp) {
     keys.clear();
     out.order.clear();
@@ -270,39 +298,24 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
     total += out.gaussian_counts[g];
   }
   require(total < (std::int64_t(1) << 31), "raster: ", total, " tile intersections exceed the 2^31 limit");
-  out.isect_gaussian.resize(std::size_t(total));
-  out.isect_tile.resize(std::size_t(total));
-  // In Gaussian order (sequential reads; each Gaussian writes its own slot range wherever depth puts it).
-  parallel_for(n, [&](index_t begin, index_t end, int) {
-    for (index_t g = begin; g < end; ++g) {
-      if (out.gaussian_counts[g] == 0) continue;
-      const Projection<T>& p = proj[g];
-      const TileRect& rect = out.rects[g];
-      std::int64_t e = out.gaussian_offsets[g];
-      const bool exact = skips.exact_tile_test;
-      const EllipseRows rows = exact ? ellipse_rows(p.u, p.v, p.conic, out.radius2[g]) : EllipseRows{};
-      for (int ty = rect.y0; ty <= rect.y1; ++ty) {
-        int tx0 = rect.x0, tx1 = rect.x1;
-        if (exact && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) continue;
-        for (int tx = tx0; tx <= tx1; ++tx) {
-          out.isect_gaussian[e] = std::int32_t(g);
-          out.isect_tile[e] = std::int32_t(ty * grid.tiles_x + tx);
-          ++e;
-        }
-      }
-    }
-  }, pool);
-  // Stable counting sort of the emissions by tile (within a tile, emission order is depth order). Each worker
-  // counts and scatters one contiguous chunk of emissions; chunk w's entries of a tile follow chunk w-1's.
+  out.total_entries = total;
+  // Chunks of the depth order with about equal entry counts.
   const index_t tiles = grid.count();
   const int chunks = int(std::clamp<std::int64_t>(total / 65536, 1, pool.size()));
+  out.chunk_bounds.assign(std::size_t(chunks) + 1, std::int32_t(out.order.size()));
+  out.chunk_bounds[0] = 0;
+  for (int w = 1, i = 0; w < chunks; ++w) {
+    while (i < int(out.order.size()) && out.gaussian_offsets[out.order[i]] < total * w / chunks) ++i;
+    out.chunk_bounds[w] = i;
+  }
   out.tile_cursor.assign(std::size_t(chunks) * std::size_t(tiles), 0);
-  auto chunk_range = [&](int w) { return std::pair{total * w / chunks, total * (w + 1) / chunks}; };
   parallel_for(chunks, [&](index_t wb, index_t we, int) {
     for (index_t w = wb; w < we; ++w) {
       std::int64_t* counts = &out.tile_cursor[std::size_t(w * tiles)];
-      const auto [e0, e1] = chunk_range(int(w));
-      for (std::int64_t e = e0; e < e1; ++e) ++counts[out.isect_tile[e]];
+      for (std::int32_t i = out.chunk_bounds[w]; i < out.chunk_bounds[w + 1]; ++i) {
+        const std::int32_t g = out.order[i];
+        for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) { ++counts[tile]; });
+      }
     }
   }, pool);
   out.tile_offsets.assign(std::size_t(tiles) + 1, 0);
@@ -324,14 +337,29 @@ void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>
   parallel_for(chunks, [&](index_t wb, index_t we, int) {
     for (index_t w = wb; w < we; ++w) {
       std::int64_t* cursor = &out.tile_cursor[std::size_t(w * tiles)];
-      const auto [e0, e1] = chunk_range(int(w));
-      for (std::int64_t e = e0; e < e1; ++e) {
-        const std::int64_t slot = cursor[out.isect_tile[e]]++;
-        out.tile_entries[slot] = std::int32_t(e);
-        out.tile_gaussian[slot] = out.isect_gaussian[e];
+      for (std::int32_t i = out.chunk_bounds[w]; i < out.chunk_bounds[w + 1]; ++i) {
+        const std::int32_t g = out.order[i];
+        std::int64_t e = out.gaussian_offsets[g];
+        for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) {
+          const std::int64_t slot = cursor[tile]++;
+          out.tile_entries[slot] = std::int32_t(e++);
+          out.tile_gaussian[slot] = g;
+        });
       }
     }
   }, pool);
+}
+
+// Builds the per-tile lists of the visible Gaussians (visible[g] != 0, proj[g] filled by project_forward_one).
+template <class T>
+void intersect_tiles(index_t n, const std::uint8_t* visible, const Projection<T>* proj, const TileGrid& grid,
+                     const RasterSkips& skips, TileIntersections& out, ThreadPool& pool = global_pool()) {
+  begin_intersections(n, grid, out);
+  parallel_for(n, [&](index_t begin, index_t end, int) {
+    for (index_t g = begin; g < end; ++g)
+      if (visible[g]) out.gaussian_counts[g] = count_gaussian_tiles(proj[g], grid, skips, out.gaussian_tiles[g]);
+  }, pool);
+  bin_tiles(n, proj, skips, out, pool);
 }
 
 }  // namespace raster

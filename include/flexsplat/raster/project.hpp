@@ -3,6 +3,7 @@
 // with respect to the camera (rotation, translation, fx, fy, cx, cy). Matrices are 3x3 row-major arrays.
 #include <cmath>
 
+#include "flexsplat/core/inline.hpp"
 #include "flexsplat/raster/constants.hpp"
 
 namespace flexsplat {
@@ -48,7 +49,7 @@ struct Projection {
 
 // Rotation matrix of a unit quaternion (w, x, y, z).
 template <class T>
-void quat_to_rotmat(const T q[4], T R[9]) {
+FLEXSPLAT_ALWAYS_INLINE void quat_to_rotmat(const T q[4], T R[9]) {
   const T w = q[0], x = q[1], y = q[2], z = q[3];
   R[0] = 1 - 2 * (y * y + z * z), R[1] = 2 * (x * y - w * z), R[2] = 2 * (x * z + w * y);
   R[3] = 2 * (x * y + w * z), R[4] = 1 - 2 * (x * x + z * z), R[5] = 2 * (y * z - w * x);
@@ -56,7 +57,7 @@ void quat_to_rotmat(const T q[4], T R[9]) {
 }
 
 template <class T>
-void quat_to_rotmat_vjp(const T q[4], const T dR[9], T dq[4]) {
+FLEXSPLAT_ALWAYS_INLINE void quat_to_rotmat_vjp(const T q[4], const T dR[9], T dq[4]) {
   const T w = q[0], x = q[1], y = q[2], z = q[3];
   dq[0] += 2 * (-z * dR[1] + y * dR[2] + z * dR[3] - x * dR[5] - y * dR[6] + x * dR[7]);
   dq[1] += 2 * (y * dR[1] + z * dR[2] + y * dR[3] - 2 * x * dR[4] - w * dR[5] + z * dR[6] + w * dR[7] - 2 * x * dR[8]);
@@ -65,25 +66,25 @@ void quat_to_rotmat_vjp(const T q[4], const T dR[9], T dq[4]) {
 }
 
 template <class T>
-void mat3_mul(const T A[9], const T B[9], T C[9]) {
+FLEXSPLAT_ALWAYS_INLINE void mat3_mul(const T A[9], const T B[9], T C[9]) {
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j) C[i * 3 + j] = A[i * 3] * B[j] + A[i * 3 + 1] * B[3 + j] + A[i * 3 + 2] * B[6 + j];
 }
 template <class T>
-void mat3_mul_bt(const T A[9], const T B[9], T C[9]) {  // A * B^T
+FLEXSPLAT_ALWAYS_INLINE void mat3_mul_bt(const T A[9], const T B[9], T C[9]) {  // A * B^T
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j)
       C[i * 3 + j] = A[i * 3] * B[j * 3] + A[i * 3 + 1] * B[j * 3 + 1] + A[i * 3 + 2] * B[j * 3 + 2];
 }
 template <class T>
-void mat3_mul_at(const T A[9], const T B[9], T C[9]) {  // A^T * B
+FLEXSPLAT_ALWAYS_INLINE void mat3_mul_at(const T A[9], const T B[9], T C[9]) {  // A^T * B
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j) C[i * 3 + j] = A[i] * B[j] + A[3 + i] * B[3 + j] + A[6 + i] * B[6 + j];
 }
 
 // World covariance R(q/|q|) diag(s)^2 R^T; also returns the unit quaternion and M = R diag(s).
 template <class T>
-void covariance_forward(const T q[4], const T s[3], T qn[4], T M[9], T cov[9]) {
+FLEXSPLAT_ALWAYS_INLINE void covariance_forward(const T q[4], const T s[3], T qn[4], T M[9], T cov[9]) {
   const T len = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
   for (int i = 0; i < 4; ++i) qn[i] = q[i] / len;
   T R[9];
@@ -118,7 +119,7 @@ void covariance_vjp(const T q[4], const T s[3], const T dcov[9], T dq[4], T ds[3
 
 // Half-extents of the field of view (with the 1.3x margin) used to clamp x/z and y/z in the Jacobian.
 template <class T>
-void fov_limits(const CameraParams<T>& cam, T& lim_x_pos, T& lim_x_neg, T& lim_y_pos, T& lim_y_neg) {
+FLEXSPLAT_ALWAYS_INLINE void fov_limits(const CameraParams<T>& cam, T& lim_x_pos, T& lim_x_neg, T& lim_y_pos, T& lim_y_neg) {
   const T mx = T(fov_clamp_margin) * T(0.5) * cam.width / cam.fx;
   const T my = T(fov_clamp_margin) * T(0.5) * cam.height / cam.fy;
   lim_x_pos = (cam.width - cam.cx) / cam.fx + mx;
@@ -136,7 +137,7 @@ struct ProjectionTrace {
 };
 
 template <class T>
-void projection_trace(const T m[3], const T q[4], const T s[3], const CameraParams<T>& cam, T eps2d,
+FLEXSPLAT_ALWAYS_INLINE void projection_trace(const T m[3], const T q[4], const T s[3], const CameraParams<T>& cam, T eps2d,
                       ProjectionTrace<T>& tr) {
   covariance_forward(q, s, tr.qn, tr.M, tr.cov_world);
   for (int i = 0; i < 3; ++i)

@@ -313,46 +313,57 @@ void for_each_tile(index_t tiles, ThreadPool& pool, Body&& body) {
 
 }  // namespace detail
 
-// Kernel parameters of every Gaussian that has tile entries (the others are never read).
+// Sizes the per-Gaussian record store of ws for n Gaussians of C channels (records are then written by
+// write_splat_record at splat_records() + g * splat_stride).
 template <class T>
-void prepare_splats(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
-                    RasterWorkspace<T>& ws, ThreadPool& pool) {
-  const index_t n = index_t(ti.gaussian_counts.size());
+void begin_splats(index_t n, int C, RasterWorkspace<T>& ws) {
   constexpr int line = int(64 / sizeof(T));
   const int stride = (splat_fields + C + line - 1) / line * line;
   ws.splat_storage.resize(std::size_t(n * stride + line));
   const auto address = reinterpret_cast<std::uintptr_t>(ws.splat_storage.data());
   ws.splat_offset = ((64 - address % 64) % 64) / sizeof(T);
   ws.splat_stride = stride, ws.splat_channels = C, ws.splat_count = n;
+}
+
+template <class T>
+void write_splat_record(const Projection<T>& p, const T* channels, int C, T* record) {
+  SplatParams<T> sp;
+  splat_params(p, sp);
+  record[0] = sp.u, record[1] = sp.v, record[2] = sp.ca, record[3] = sp.cb, record[4] = sp.cc;
+  record[5] = sp.opacity, record[6] = sp.sigma_max, record[7] = sp.rx, record[8] = sp.ry;
+  for (int c = 0; c < C; ++c) record[splat_fields + c] = channels[c];
+}
+
+// Kernel parameters of every Gaussian that has tile entries (the others are never read).
+template <class T>
+void prepare_splats(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
+                    RasterWorkspace<T>& ws, ThreadPool& pool) {
+  const index_t n = index_t(ti.gaussian_counts.size());
+  begin_splats(n, C, ws);
   T* records = ws.splat_storage.data() + ws.splat_offset;
   parallel_for(n, [&](index_t begin, index_t end, int) {
-    for (index_t g = begin; g < end; ++g) {
-      if (ti.gaussian_counts[g] == 0) continue;
-      SplatParams<T> sp;
-      splat_params(proj[g], sp);
-      T* r = records + g * stride;
-      r[0] = sp.u, r[1] = sp.v, r[2] = sp.ca, r[3] = sp.cb, r[4] = sp.cc;
-      r[5] = sp.opacity, r[6] = sp.sigma_max, r[7] = sp.rx, r[8] = sp.ry;
-      for (int c = 0; c < C; ++c) r[splat_fields + c] = channels[g * C + c];
-    }
+    for (index_t g = begin; g < end; ++g)
+      if (ti.gaussian_counts[g] != 0) write_splat_record(proj[g], channels + g * C, C, records + g * ws.splat_stride);
   }, pool);
 }
 
-// Blends C channels of the visible Gaussians into out_channels [H*W*C] (background included) and fills state.
+// rasterize_forward for a workspace whose records (begin_splats, write_splat_record) already hold every Gaussian
+// that has tile entries.
 template <class T>
-void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
-                       const T* background, const RasterSkips& skips, RasterWorkspace<T>& ws, T* out_channels,
-                       BlendState<T>& state, ThreadPool& pool = global_pool()) {
+void rasterize_forward_prepared(const TileIntersections& ti, int C, const T* background, const RasterSkips& skips,
+                                RasterWorkspace<T>& ws, T* out_channels, BlendState<T>& state,
+                                ThreadPool& pool = global_pool()) {
   require(C >= 1 && C <= 64, "raster: ", C, " channels; between 1 and 64 are supported");
   require(ti.max_tile_entries < (std::int64_t(1) << 24), "raster: a tile holds ", ti.max_tile_entries,
           " Gaussians, above the 2^24 limit");
+  require(ws.splat_count == index_t(ti.gaussian_counts.size()) && ws.splat_channels == C,
+          "raster: the workspace's Gaussian records do not match these intersections");
   const std::size_t pixels = std::size_t(ti.grid.width) * std::size_t(ti.grid.height);
   state.final_transmittance.resize(pixels);
   state.last_entry.resize(pixels);
   state.n_contrib.resize(pixels);
   ws.scratch.resize(std::size_t(pool.size()));
   for (auto& s : ws.scratch) s.reserve(ti.max_tile_entries, C);
-  prepare_splats(ti, proj, channels, C, ws, pool);
   const bool use_simd = simd::enabled() && !skips.force_scalar;
   detail::for_each_tile(ti.grid.count(), pool, [&](index_t tile, int worker) {
     TileScratch<T>& s = ws.scratch[std::size_t(worker)];
@@ -366,6 +377,16 @@ void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, c
   });
 }
 
+// Blends C channels of the visible Gaussians into out_channels [H*W*C] (background included) and fills state.
+template <class T>
+void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
+                       const T* background, const RasterSkips& skips, RasterWorkspace<T>& ws, T* out_channels,
+                       BlendState<T>& state, ThreadPool& pool = global_pool()) {
+  require(C >= 1 && C <= 64, "raster: ", C, " channels; between 1 and 64 are supported");
+  prepare_splats(ti, proj, channels, C, ws, pool);
+  rasterize_forward_prepared(ti, C, background, skips, ws, out_channels, state, pool);
+}
+
 // Adds into the per-Gaussian cotangents (grads [N, 6 + C], same record layout as an entry) from d_out_channels
 // [H*W*C] and d_alpha [H*W] (may be null). Zero the caller's buffer once; this accumulates.
 template <class T>
@@ -374,7 +395,7 @@ void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, 
                         const RasterSkips& skips, RasterWorkspace<T>& ws, index_t n, T* gaussian_grads,
                         ThreadPool& pool = global_pool()) {
   const int stride = entry_grad_fixed + C;
-  ws.entry_grads.resize(ti.isect_gaussian.size() * std::size_t(stride));
+  ws.entry_grads.resize(std::size_t(ti.total_entries) * std::size_t(stride));
   ws.scratch.resize(std::size_t(pool.size()));
   for (auto& s : ws.scratch) s.reserve(ti.max_tile_entries, C);
   if (ws.splat_count != index_t(ti.gaussian_counts.size()) || ws.splat_channels != C)

@@ -19,6 +19,7 @@
 // respect to means, quats, scales, opacities, sh, features and the camera (world_to_camera and intrinsics); the
 // workspace must still hold the state of the matching render_forward call.
 #include <array>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -173,20 +174,6 @@ int validate_inputs(const GaussianInputs<T>& in, const Camera<T>& cam, const Ren
   require(degree <= max_sh_degree, "render: sh_degree ", degree, " is above the supported ", max_sh_degree);
   require(sh_coeff_count(degree) <= k, "render: sh_degree ", degree, " needs ", sh_coeff_count(degree),
           " coefficients but sh has K = ", k);
-  require_finite(in.means.data(), n * 3, "means");
-  require_finite(in.quats.data(), n * 4, "quats");
-  require_finite(in.scales.data(), n * 3, "scales");
-  require_finite(in.opacities.data(), n, "opacities");
-  require_finite(in.sh.data(), in.sh.size(), "sh");
-  if (!in.features.empty()) require_finite(in.features.data(), in.features.size(), "features");
-  for (index_t g = 0; g < n; ++g) {
-    const T* q = in.quats.data() + g * 4;
-    const T len2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
-    require(len2 > T(0) && std::isfinite(len2), "render: quaternion ", g, " (", q[0], ", ", q[1], ", ", q[2], ", ",
-            q[3], ") has no direction (zero or out of range length)");
-    const T o = in.opacities.data()[g];
-    require(o >= T(0) && o <= T(1), "render: opacity ", g, " is ", o, ", outside [0, 1]");
-  }
   require(cam.width > 0 && cam.height > 0 && cam.width <= 65536 && cam.height <= 65536, "render: image size ",
           cam.width, "x", cam.height, " is not in [1, 65536]");
   require_finite(cam.world_to_camera.data(), 16, "camera world_to_camera");
@@ -202,6 +189,46 @@ int validate_inputs(const GaussianInputs<T>& in, const Camera<T>& cam, const Ren
           opt.far_plane, " must satisfy 0 < near < far");
   for (double b : opt.background) require(std::isfinite(b), "render: background has a non-finite value ", b);
   return degree;
+}
+
+// The per-value checks (finite inputs, quaternion directions, opacity range), throwing at the first bad value.
+template <class T>
+void validate_values(const GaussianInputs<T>& in) {
+  const index_t n = in.means.shape(0);
+  require_finite(in.means.data(), n * 3, "means");
+  require_finite(in.quats.data(), n * 4, "quats");
+  require_finite(in.scales.data(), n * 3, "scales");
+  require_finite(in.opacities.data(), n, "opacities");
+  require_finite(in.sh.data(), in.sh.size(), "sh");
+  if (!in.features.empty()) require_finite(in.features.data(), in.features.size(), "features");
+  for (index_t g = 0; g < n; ++g) {
+    const T* q = in.quats.data() + g * 4;
+    const T len2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
+    require(len2 > T(0) && std::isfinite(len2), "render: quaternion ", g, " (", q[0], ", ", q[1], ", ", q[2], ", ",
+            q[3], ") has no direction (zero or out of range length)");
+    const T o = in.opacities.data()[g];
+    require(o >= T(0) && o <= T(1), "render: opacity ", g, " is ", o, ", outside [0, 1]");
+  }
+}
+
+// The same verdict as validate_values for Gaussian g alone, without a message (run inside the projection pass).
+template <class T>
+bool gaussian_values_ok(const GaussianInputs<T>& in, index_t g) {
+  const index_t k = in.sh.shape(1), f = in.features.empty() ? 0 : in.features.shape(1);
+  bool ok = true;
+  auto scan = [&ok](const T* data, index_t count) {
+    for (index_t i = 0; i < count; ++i) ok &= std::isfinite(data[i]);
+  };
+  scan(in.means.data() + g * 3, 3);
+  scan(in.quats.data() + g * 4, 4);
+  scan(in.scales.data() + g * 3, 3);
+  scan(in.opacities.data() + g, 1);
+  scan(in.sh.data() + g * k * 3, k * 3);
+  if (f > 0) scan(in.features.data() + g * f, f);
+  const T* q = in.quats.data() + g * 4;
+  const T len2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3];
+  const T o = in.opacities.data()[g];
+  return ok && len2 > T(0) && std::isfinite(len2) && o >= T(0) && o <= T(1);
 }
 
 template <class T, class Tensor_, std::size_t R>
@@ -242,8 +269,18 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
   set.antialiased = opt.antialiased;
   T campos[3];
   for (int i = 0; i < 3; ++i) campos[i] = -(cam.R[i] * cam.t[0] + cam.R[3 + i] * cam.t[1] + cam.R[6 + i] * cam.t[2]);
+  // One pass per Gaussian while its data is in cache: value checks, projection, colour, tiles, kernel record.
+  const TileGrid grid(camera.width, camera.height);
+  begin_intersections(n, grid, ws.tiles);
+  begin_splats(n, C, ws.raster);
+  T* records = ws.raster.splat_storage.data() + ws.raster.splat_offset;
+  std::atomic<bool> value_failed{false};
   parallel_for(n, [&](index_t begin, index_t end, int) {
     for (index_t g = begin; g < end; ++g) {
+      if (!detail::gaussian_values_ok(in, g)) {
+        value_failed.store(true, std::memory_order_relaxed);
+        continue;
+      }
       const T* m = in.means.data() + g * 3;
       Projection<T>& p = ws.projections[g];
       if (!project_forward_one(m, in.quats.data() + g * 4, in.scales.data() + g * 3, in.opacities.data()[g], cam, set, p))
@@ -260,16 +297,22 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
       }
       ch[3] = p.z;
       for (int f = 0; f < F; ++f) ch[4 + f] = in.features.data()[g * F + f];
+      const std::int64_t tiles = count_gaussian_tiles(p, grid, opt.skips, ws.tiles.gaussian_tiles[g]);
+      ws.tiles.gaussian_counts[g] = tiles;
+      if (tiles > 0) write_splat_record(p, ch, C, records + g * ws.raster.splat_stride);
     }
   }, pool);
+  if (value_failed.load()) {
+    detail::validate_values(in);
+    throw Error("render: an input value failed validation");  // validate_values names it first; not reached
+  }
   stage_end(ws.forward_times.project);
-  const TileGrid grid(camera.width, camera.height);
-  intersect_tiles(n, ws.visible.data(), ws.projections.data(), grid, opt.skips, ws.tiles, pool);
+  bin_tiles(n, ws.projections.data(), opt.skips, ws.tiles, pool);
   stage_end(ws.forward_times.intersect);
   const index_t pixels = index_t(camera.width) * camera.height;
   ws.out_channels.resize(std::size_t(pixels * C));
-  rasterize_forward(ws.tiles, ws.projections.data(), ws.channels.data(), C, ws.background.data(), opt.skips, ws.raster,
-                    ws.out_channels.data(), ws.blend, pool);
+  rasterize_forward_prepared(ws.tiles, C, ws.background.data(), opt.skips, ws.raster, ws.out_channels.data(), ws.blend,
+                             pool);
   stage_end(ws.forward_times.rasterize);
   const index_t H = camera.height, W = camera.width;
   detail::ensure_shape<T>(out.image, Shape<3>{H, W, 3});

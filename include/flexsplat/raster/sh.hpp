@@ -3,6 +3,7 @@
 // Coefficients are [K, channels] row-major with K = (degree+1)^2 or more; bands above `degree` are never read.
 #include <cmath>
 
+#include "flexsplat/core/inline.hpp"
 #include "flexsplat/raster/constants.hpp"
 
 namespace flexsplat {
@@ -13,7 +14,7 @@ inline constexpr int sh_coeff_count(int degree) { return (degree + 1) * (degree 
 
 // Basis values b[k] for a unit direction n, and (optionally) their gradients g[k][3] with respect to n.
 template <class T>
-void sh_basis(int degree, const T n[3], T* b, T (*g)[3]) {
+FLEXSPLAT_ALWAYS_INLINE void sh_basis(int degree, const T n[3], T* b, T (*g)[3]) {
   const T x = n[0], y = n[1], z = n[2];
   b[0] = T(sh_c0);
   if (g) g[0][0] = g[0][1] = g[0][2] = T(0);
