@@ -202,6 +202,12 @@ struct GaussianTiles {
   std::int16_t first[stored_rows], last[stored_rows];  // columns of row rect.y0 + i (first > last: none)
 };
 
+// Whether the per-row ellipse test runs for a rectangle: one tile row or column leaves it nothing to drop but the odd
+// tile at an image border, so those keep their rectangle (conservative) and skip the square roots.
+inline bool uses_row_test(const RasterSkips& skips, const TileRect& rect) {
+  return skips.exact_tile_test && rect.x1 > rect.x0 && rect.y1 > rect.y0;
+}
+
 // Rectangle, row spans and number of tiles of one projected Gaussian (0: it reaches no pixel).
 template <class T>
 std::int64_t count_gaussian_tiles(const Projection<T>& p, const TileGrid& grid, const RasterSkips& skips,
@@ -212,10 +218,11 @@ std::int64_t count_gaussian_tiles(const Projection<T>& p, const TileGrid& grid, 
   if (!gaussian_tile_rect(p.u, p.v, p.cov, p.opacity, grid, skips.opacity_aware_extent, rect, r2)) return 0;
   out.rect = rect;
   std::int64_t count = 0;
-  const EllipseRows rows = skips.exact_tile_test ? ellipse_rows(p.u, p.v, p.conic, r2) : EllipseRows{};
+  const bool exact = uses_row_test(skips, rect);
+  const EllipseRows rows = exact ? ellipse_rows(p.u, p.v, p.conic, r2) : EllipseRows{};
   for (int ty = rect.y0; ty <= rect.y1; ++ty) {
     int tx0 = rect.x0, tx1 = rect.x1;
-    if (skips.exact_tile_test && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) tx0 = 1, tx1 = 0;
+    if (exact && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) tx0 = 1, tx1 = 0;
     if (ty - rect.y0 < GaussianTiles::stored_rows) {
       out.first[ty - rect.y0] = std::int16_t(tx0);
       out.last[ty - rect.y0] = std::int16_t(tx1);
@@ -234,11 +241,12 @@ void for_each_gaussian_tile(const Projection<T>& p, const GaussianTiles& t, cons
   for (int ty = rect.y0; ty <= stored_last_row; ++ty)
     for (int tx = t.first[ty - rect.y0]; tx <= t.last[ty - rect.y0]; ++tx) f(ty * grid.tiles_x + tx);
   if (stored_last_row == rect.y1) return;
+  const bool exact = uses_row_test(skips, rect);
   const double r2 = cull_radius2(double(p.opacity), skips.opacity_aware_extent);
-  const EllipseRows rows = skips.exact_tile_test ? ellipse_rows(p.u, p.v, p.conic, r2) : EllipseRows{};
+  const EllipseRows rows = exact ? ellipse_rows(p.u, p.v, p.conic, r2) : EllipseRows{};
   for (int ty = stored_last_row + 1; ty <= rect.y1; ++ty) {
     int tx0 = rect.x0, tx1 = rect.x1;
-    if (skips.exact_tile_test && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) continue;
+    if (exact && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) continue;
     for (int tx = tx0; tx <= tx1; ++tx) f(ty * grid.tiles_x + tx);
   }
 }
@@ -309,10 +317,13 @@ void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, T
     out.chunk_bounds[w] = i;
   }
   out.tile_cursor.assign(std::size_t(chunks) * std::size_t(tiles), 0);
+  constexpr std::int32_t prefetch_distance = 16;  // Gaussians are visited in depth order: random reads
   parallel_for(chunks, [&](index_t wb, index_t we, int) {
     for (index_t w = wb; w < we; ++w) {
       std::int64_t* counts = &out.tile_cursor[std::size_t(w * tiles)];
       for (std::int32_t i = out.chunk_bounds[w]; i < out.chunk_bounds[w + 1]; ++i) {
+        if (i + prefetch_distance < out.chunk_bounds[w + 1])
+          __builtin_prefetch(&out.gaussian_tiles[std::size_t(out.order[i + prefetch_distance])]);
         const std::int32_t g = out.order[i];
         for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) { ++counts[tile]; });
       }
@@ -338,6 +349,10 @@ void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, T
     for (index_t w = wb; w < we; ++w) {
       std::int64_t* cursor = &out.tile_cursor[std::size_t(w * tiles)];
       for (std::int32_t i = out.chunk_bounds[w]; i < out.chunk_bounds[w + 1]; ++i) {
+        if (i + prefetch_distance < out.chunk_bounds[w + 1]) {
+          __builtin_prefetch(&out.gaussian_tiles[std::size_t(out.order[i + prefetch_distance])]);
+          __builtin_prefetch(&out.gaussian_offsets[std::size_t(out.order[i + prefetch_distance])]);
+        }
         const std::int32_t g = out.order[i];
         std::int64_t e = out.gaussian_offsets[g];
         for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) {
