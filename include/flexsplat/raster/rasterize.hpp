@@ -1,8 +1,9 @@
 #pragma once
 // Front-to-back alpha blending of C channels per pixel over the per-tile lists, and its adjoint (back to front,
-// transmittance recovered by division). Threads take whole tiles; SIMD lanes are neighbouring pixels of a row.
-// Backward writes one gradient record per (tile, Gaussian) entry, reduced per Gaussian in a fixed order, so results
-// do not depend on the number of threads.
+// transmittance recovered by division). Threads take whole tiles; a tile's pixel state lives in per-worker buffers
+// and each entry of the tile list visits only the pixel batches its extent reaches (SIMD lanes = neighbouring pixels
+// of a row). Backward writes one gradient record per (tile, Gaussian) entry, reduced per Gaussian in a fixed order,
+// so results do not depend on the number of threads.
 #include <algorithm>
 #include <atomic>
 #include <cmath>
@@ -10,6 +11,7 @@
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/raster/constants.hpp"
@@ -38,34 +40,25 @@ struct SplatParams {
   T rx, ry;  // half-extents (pixels) of the region where sigma <= sigma_max can hold in float arithmetic
 };
 
-// Per-worker tile scratch: tile-local copies of the Gaussians (structure of arrays), the rows and batch columns
-// each entry's extent reaches, one front-to-back entry list per pixel row, and per-entry gradient accumulators
-// (one lane group per value).
+// Per-worker state of the tile being blended: one slot of L lanes per pixel batch (row-major, tile_size / L batches
+// per row); channel c of slot j at [c * tile_pixels + j * L].
 template <class T>
-struct TileScratch {
-  std::vector<T> u, v, ca, cb, cc, opacity, sigma_max, rx, ry, channels, lane_grads;
-  std::vector<std::int32_t> row_first, row_last;  // [count] tile-local rows reached (first > last: none)
-  std::vector<std::int16_t> column_first, column_last;  // [count] batch columns reached
-  std::int64_t row_stride = 0;                    // capacity of one row list (count + SIMD slack)
-  std::vector<std::int32_t> row_size, row_list;   // row r's list: row_list[r * row_stride, + row_size[r])
-  void reserve(std::int64_t n, int channel_count) {
-    for (auto* a : {&u, &v, &ca, &cb, &cc, &opacity, &sigma_max, &rx, &ry})
-      if (a->size() < std::size_t(n)) a->resize(std::size_t(n));
-    if (channels.size() < std::size_t(n * channel_count)) channels.resize(std::size_t(n * channel_count));
-    for (auto* a : {&row_first, &row_last})
-      if (a->size() < std::size_t(n)) a->resize(std::size_t(n));
-    for (auto* a : {&column_first, &column_last})
-      if (a->size() < std::size_t(n)) a->resize(std::size_t(n));
-    row_size.resize(tile_size);
+struct TileState {
+  static constexpr int tile_pixels = tile_size * tile_size;
+  std::vector<T> transmittance, n_contrib, last, done, final_transmittance, d_alpha, channels, d_channels, behind;
+  std::vector<std::uint8_t> batch_done;
+  void reserve(int channel_count) {
+    for (auto* a : {&transmittance, &n_contrib, &last, &done, &final_transmittance, &d_alpha}) a->resize(tile_pixels);
+    for (auto* a : {&channels, &d_channels, &behind}) a->resize(std::size_t(tile_pixels) * std::size_t(channel_count));
+    batch_done.resize(tile_pixels);
   }
-  bool covered(std::int64_t k) const { return row_first[std::size_t(k)] <= row_last[std::size_t(k)]; }
 };
 
 template <class T>
 struct RasterWorkspace {
-  std::vector<TileScratch<T>> scratch;  // one per worker
+  std::vector<TileState<T>> scratch;  // one per worker
   // Per-Gaussian records (SplatParams fields, then the C channels), one or more whole cache lines each so a tile
-  // gather misses once per entry; filled by rasterize_forward, reused by rasterize_backward.
+  // entry misses once; filled by rasterize_forward, reused by rasterize_backward.
   std::vector<T> splat_storage;
   std::size_t splat_offset = 0;  // first record, 64-byte aligned
   int splat_stride = 0, splat_channels = 0;
@@ -103,54 +96,25 @@ void splat_params(const Projection<T>& p, SplatParams<T>& s) {
 
 namespace detail {
 
-// Copies the Gaussians of one tile into s and builds, for each pixel row, the front-to-back list of the entries
-// whose extent reaches it (and records the batch columns each entry reaches); lane_grad_stride > 0 also clears the
-// backward accumulators of covered entries.
-template <class V, class T>
-void gather_tile(const TileIntersections& ti, index_t tile, const T* records, int stride, int C, TileScratch<T>& s,
-                 int lane_grad_stride) {
-  constexpr int L = int(simd::lane_count<V>::value);
-  const TileGrid& grid = ti.grid;
-  const int x_base = int(tile % grid.tiles_x) * tile_size, y_base = int(tile / grid.tiles_x) * tile_size;
-  const int width_here = std::min(tile_size, grid.width - x_base), rows_here = std::min(tile_size, grid.height - y_base);
-  const std::int64_t begin = ti.tile_offsets[tile], count = ti.tile_offsets[tile + 1] - begin;
-  s.row_stride = count + simd::append_indices_slack;
-  if (s.row_list.size() < std::size_t(s.row_stride * tile_size)) s.row_list.resize(std::size_t(s.row_stride * tile_size));
-  if (lane_grad_stride > 0 && s.lane_grads.size() < std::size_t(count * lane_grad_stride * L))
-    s.lane_grads.resize(std::size_t(count * lane_grad_stride * L));
-  const std::int32_t* gaussians = ti.tile_gaussian.data() + begin;
-  // Tile-local pixel ranges: values are clamped to +-(tile_size + 8) first (beyond that the range misses the tile),
-  // so floor reduces to truncation of a positive value (exact, and cheap without SSE4.1 rounding instructions).
+// Tile-local pixel rectangle that an entry's conservative extent reaches (x1 < x0 or y1 < y0: none).
+struct EntryPixels {
+  int x0, x1, y0, y1;
+  bool empty() const { return x1 < x0 || y1 < y0; }
+};
+
+template <class T>
+FLEXSPLAT_ALWAYS_INLINE EntryPixels entry_pixels(const T* record, int x_base, int y_base, int width_here, int rows_here) {
+  // Values are clamped to +-(tile_size + 8) first (beyond that the range misses the tile), so floor reduces to
+  // truncation of a positive value (exact, and cheap without SSE4.1 rounding instructions).
   auto floor_local = [](double x) {
     constexpr int reach = tile_size + 8;
     return int(std::min(std::max(x, -double(reach)), double(reach)) + 2 * reach) - 2 * reach;
   };
-  // Records are read in tile order (prefetched a few entries ahead: each is a likely cache miss).
-  constexpr std::int64_t prefetch_distance = 24;
-  for (std::int64_t k = 0; k < count; ++k) {
-    if (k + prefetch_distance < count) __builtin_prefetch(records + std::int64_t(gaussians[k + prefetch_distance]) * stride);
-    const T* p = records + std::int64_t(gaussians[k]) * stride;
-    s.u[k] = p[0], s.v[k] = p[1];
-    s.ca[k] = p[2], s.cb[k] = p[3], s.cc[k] = p[4];
-    s.opacity[k] = p[5];
-    s.sigma_max[k] = p[6];
-    s.rx[k] = p[7], s.ry[k] = p[8];
-    for (int c = 0; c < C; ++c) s.channels[k * C + c] = p[splat_fields + c];
-    // Pixel x is in range when |x + 0.5 - u| <= rx.
-    const double u = double(p[0]) - pixel_centre_offset - x_base, rx = double(p[7]);
-    const double v = double(p[1]) - pixel_centre_offset - y_base, ry = double(p[8]);
-    const int x0 = std::max(0, -floor_local(rx - u)), x1 = std::min(width_here - 1, floor_local(u + rx));
-    const int y0 = std::max(0, -floor_local(ry - v)), y1 = std::min(rows_here - 1, floor_local(v + ry));
-    const bool reached = x0 <= x1 && y0 <= y1;
-    s.row_first[k] = reached ? y0 : 1;
-    s.row_last[k] = reached ? y1 : 0;
-    s.column_first[k] = std::int16_t(x0 / L), s.column_last[k] = std::int16_t(x1 / L);
-    if (lane_grad_stride > 0 && reached)
-      std::fill_n(&s.lane_grads[std::size_t(k * lane_grad_stride * L)], lane_grad_stride * L, T(0));
-  }
-  for (int r = 0; r < rows_here; ++r)
-    s.row_size[r] = std::int32_t(simd::append_indices_in_range(s.row_first.data(), s.row_last.data(), count, r,
-                                                               s.row_list.data() + r * s.row_stride));
+  // Pixel x is in range when |x + 0.5 - u| <= rx.
+  const double u = double(record[0]) - pixel_centre_offset - x_base, rx = double(record[7]);
+  const double v = double(record[1]) - pixel_centre_offset - y_base, ry = double(record[8]);
+  return {std::max(0, -floor_local(rx - u)), std::min(width_here - 1, floor_local(u + rx)),
+          std::max(0, -floor_local(ry - v)), std::min(rows_here - 1, floor_local(v + ry))};
 }
 
 template <class V, class T>
@@ -160,144 +124,189 @@ V lane_offsets() {
   return simd::lane_load<V>(idx);
 }
 
-// Blends one tile; V is T (scalar path) or simd::batch<T>.
+// Geometry of one tile: its pixel origin and the pixels inside the image.
+struct TileFrame {
+  int x_base, y_base, width_here, rows_here;
+  TileFrame(const TileGrid& grid, index_t tile)
+      : x_base(int(tile % grid.tiles_x) * tile_size), y_base(int(tile / grid.tiles_x) * tile_size),
+        width_here(std::min(tile_size, grid.width - x_base)), rows_here(std::min(tile_size, grid.height - y_base)) {}
+};
+
+// Blends one tile front to back; V is T (scalar path) or simd::batch<T>. Entries visit the batches their extent
+// reaches; a pixel sees the tile's entries in list order, so its result does not depend on the visiting order.
 template <class V, class T>
-void blend_tile_forward(const TileIntersections& ti, index_t tile, const TileScratch<T>& s, int C, const T* background,
-                        const RasterSkips& skips, T* out_channels, BlendState<T>& state) {
-  constexpr int L = int(simd::lane_count<V>::value);
+void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* records, int record_stride,
+                        TileState<T>& st, int C, const T* background, const RasterSkips& skips, T* out_channels,
+                        BlendState<T>& state) {
+  constexpr int L = int(simd::lane_count<V>::value), batches_per_row = tile_size / L;
+  constexpr int P = TileState<T>::tile_pixels;
   static_assert(tile_size % L == 0, "tile rows must split into whole batches");
   const TileGrid& grid = ti.grid;
-  const int tx = int(tile % grid.tiles_x), ty = int(tile / grid.tiles_x);
+  const TileFrame f(grid, tile);
+  const std::int64_t begin = ti.tile_offsets[tile], count = ti.tile_offsets[tile + 1] - begin;
+  const std::int32_t* gaussians = ti.tile_gaussian.data() + begin;
   const V iota = lane_offsets<V, T>();
-  constexpr int max_channels = 64;
-  V acc[max_channels];
-  alignas(64) T lanes_T[L], lanes_n[L], lanes_last[L], lanes_acc[max_channels][L];
-  const int y_end = std::min(grid.height, (ty + 1) * tile_size);
-  const int x_end = std::min(grid.width, (tx + 1) * tile_size);
-  for (int py = ty * tile_size; py < y_end; ++py) {
-    const V pyc = V(T(py) + T(pixel_centre_offset));
-    for (int bx = tx * tile_size; bx < x_end; bx += L) {
-      const int row = py - ty * tile_size, column = (bx - tx * tile_size) / L;
-      const std::int32_t* list = s.row_list.data() + row * s.row_stride;
-      const std::int32_t list_size = s.row_size[row];
-      const V px = iota + V(T(bx));
-      const V pxc = px + V(T(pixel_centre_offset));
-      auto done = px >= V(T(grid.width));
-      V trans = V(T(1)), n_contrib = V(T(0)), last = V(T(0));
-      for (int c = 0; c < C; ++c) acc[c] = V(T(0));
-      for (std::int32_t i = 0; i < list_size; ++i) {
-        const std::int32_t k = list[i];
-        if (L < tile_size && (column < s.column_first[k] || column > s.column_last[k])) continue;
-        const V dx = V(s.u[k]) - pxc, dy = V(s.v[k]) - pyc;
-        const V sigma = T(0.5) * (V(s.ca[k]) * dx * dx + V(s.cc[k]) * dy * dy) + V(s.cb[k]) * dx * dy;
-        auto maybe = (sigma <= V(s.sigma_max[k])) & simd::lane_not(done);
+  const int used_batches = (f.width_here + L - 1) / L;
+  int active_batches = used_batches * f.rows_here;
+  for (int j = 0; j < P / L; ++j) {
+    const int column = j % batches_per_row;
+    const V inside = simd::lane_select(iota + V(T(column * L)) < V(T(f.width_here)), V(T(0)), V(T(1)));
+    simd::lane_store(&st.done[j * L], inside);
+    simd::lane_store(&st.transmittance[j * L], V(T(1)));
+    simd::lane_store(&st.n_contrib[j * L], V(T(0)));
+    simd::lane_store(&st.last[j * L], V(T(0)));
+    for (int c = 0; c < C; ++c) simd::lane_store(&st.channels[c * P + j * L], V(T(0)));
+    st.batch_done[j] = 0;
+  }
+  constexpr std::int64_t prefetch_distance = 8;
+  for (std::int64_t k = 0; k < count; ++k) {
+    if (k + prefetch_distance < count)
+      __builtin_prefetch(records + std::int64_t(gaussians[k + prefetch_distance]) * record_stride);
+    const T* r = records + std::int64_t(gaussians[k]) * record_stride;
+    const EntryPixels px = entry_pixels(r, f.x_base, f.y_base, f.width_here, f.rows_here);
+    if (px.empty()) continue;
+    const V u = V(r[0]), v = V(r[1]), ca = V(r[2]), cb = V(r[3]), cc = V(r[4]), opacity = V(r[5]), smax = V(r[6]);
+    const T* ch = r + splat_fields;
+    const V entry_index = V(T(k + 1));
+    for (int row = px.y0; row <= px.y1; ++row) {
+      const V pyc = V(T(f.y_base + row) + T(pixel_centre_offset));
+      for (int column = px.x0 / L; column <= px.x1 / L; ++column) {
+        const int j = row * batches_per_row + column;
+        if (skips.early_exit && st.batch_done[j]) continue;
+        const V pxc = iota + V(T(f.x_base + column * L) + T(pixel_centre_offset));
+        const V dx = u - pxc, dy = v - pyc;
+        const V sigma = T(0.5) * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+        const auto done = simd::lane_load<V>(&st.done[j * L]) != V(T(0));
+        auto maybe = (sigma <= smax) & simd::lane_not(done);
         if (!simd::lane_any(maybe)) continue;
-        const V alpha = simd::lane_min(V(T(max_alpha)), V(s.opacity[k]) * simd::lane_exp(-sigma));
+        const V alpha = simd::lane_min(V(T(max_alpha)), opacity * simd::lane_exp(-sigma));
         auto valid = maybe & (sigma >= V(T(0))) & (alpha >= V(T(alpha_threshold)));
         if (!simd::lane_any(valid)) continue;
+        const V trans = simd::lane_load<V>(&st.transmittance[j * L]);
         const V next_T = trans * (V(T(1)) - alpha);
         const auto stop = valid & (next_T <= V(T(transmittance_stop)));
         valid = valid & simd::lane_not(stop);
         const V w = simd::lane_select(valid, alpha * trans, V(T(0)));
-        const T* ch = &s.channels[std::size_t(k) * C];
-        for (int c = 0; c < C; ++c) acc[c] = acc[c] + w * V(ch[c]);
-        trans = simd::lane_select(valid, next_T, trans);
-        n_contrib = simd::lane_select(valid, n_contrib + V(T(1)), n_contrib);
-        last = simd::lane_select(valid, V(T(k + 1)), last);
+        for (int c = 0; c < C; ++c) {
+          T* acc = &st.channels[c * P + j * L];
+          simd::lane_store(acc, simd::lane_load<V>(acc) + w * V(ch[c]));
+        }
+        simd::lane_store(&st.transmittance[j * L], simd::lane_select(valid, next_T, trans));
+        const V n = simd::lane_load<V>(&st.n_contrib[j * L]);
+        simd::lane_store(&st.n_contrib[j * L], simd::lane_select(valid, n + V(T(1)), n));
+        const V last = simd::lane_load<V>(&st.last[j * L]);
+        simd::lane_store(&st.last[j * L], simd::lane_select(valid, entry_index, last));
         if (simd::lane_any(stop)) {
-          done = done | stop;
-          if (skips.early_exit && simd::lane_all(done)) break;
+          const auto now_done = done | stop;
+          simd::lane_store(&st.done[j * L], simd::lane_select(now_done, V(T(1)), V(T(0))));
+          if (simd::lane_all(now_done)) {
+            st.batch_done[j] = 1;
+            --active_batches;
+          }
         }
       }
-      simd::lane_store(lanes_T, trans);
-      simd::lane_store(lanes_n, n_contrib);
-      simd::lane_store(lanes_last, last);
-      for (int c = 0; c < C; ++c) simd::lane_store(lanes_acc[c], acc[c]);
-      for (int l = 0; l < L && bx + l < x_end; ++l) {
-        const std::int64_t pix = std::int64_t(py) * grid.width + bx + l;
-        state.final_transmittance[pix] = lanes_T[l];
-        state.n_contrib[pix] = std::int32_t(lanes_n[l]);
-        state.last_entry[pix] = std::int32_t(lanes_last[l]);
-        for (int c = 0; c < C; ++c) out_channels[pix * C + c] = lanes_acc[c][l] + lanes_T[l] * background[c];
-      }
     }
+    if (skips.early_exit && active_batches == 0) break;
   }
+  for (int row = 0; row < f.rows_here; ++row)
+    for (int x = 0; x < f.width_here; ++x) {
+      const int i = row * tile_size + x;
+      const std::int64_t pix = std::int64_t(f.y_base + row) * grid.width + f.x_base + x;
+      const T trans = st.transmittance[i];
+      state.final_transmittance[pix] = trans;
+      state.n_contrib[pix] = std::int32_t(st.n_contrib[i]);
+      state.last_entry[pix] = std::int32_t(st.last[i]);
+      for (int c = 0; c < C; ++c) out_channels[pix * C + c] = st.channels[c * P + i] + trans * background[c];
+    }
 }
 
-// Adds into the per-entry lane accumulators of s (stride 6 + C values of L lanes per entry).
+// Writes the gradient record (6 + C values) of every entry of the tile into entry_grads at the entry's emission
+// slot, visiting entries back to front.
 template <class V, class T>
-void blend_tile_backward(const TileIntersections& ti, index_t tile, TileScratch<T>& s, int C, const T* background,
-                         const BlendState<T>& state, const T* d_out_channels, const T* d_alpha) {
-  constexpr int L = int(simd::lane_count<V>::value);
+void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* records, int record_stride,
+                         TileState<T>& st, int C, const T* background, const BlendState<T>& state,
+                         const T* d_out_channels, const T* d_alpha, T* entry_grads) {
+  constexpr int L = int(simd::lane_count<V>::value), batches_per_row = tile_size / L;
+  constexpr int P = TileState<T>::tile_pixels;
+  constexpr int max_channels = 64;
   const TileGrid& grid = ti.grid;
-  const int tx = int(tile % grid.tiles_x), ty = int(tile / grid.tiles_x);
+  const TileFrame f(grid, tile);
+  const std::int64_t begin = ti.tile_offsets[tile], count = ti.tile_offsets[tile + 1] - begin;
+  const std::int32_t* gaussians = ti.tile_gaussian.data() + begin;
   const int stride = entry_grad_fixed + C;
   const V iota = lane_offsets<V, T>();
-  constexpr int max_channels = 64;
-  V d_out[max_channels], behind[max_channels];
-  alignas(64) T lanes_T[L], lanes_last[L], lanes_dA[L], lanes_d[max_channels][L];
-  const int y_end = std::min(grid.height, (ty + 1) * tile_size);
-  const int x_end = std::min(grid.width, (tx + 1) * tile_size);
-  auto add_lanes = [](T* dst, const V& value) { simd::lane_store(dst, simd::lane_load<V>(dst) + value); };
-  for (int py = ty * tile_size; py < y_end; ++py) {
-    const V pyc = V(T(py) + T(pixel_centre_offset));
-    for (int bx = tx * tile_size; bx < x_end; bx += L) {
-      std::int32_t max_last = 0;
-      for (int l = 0; l < L; ++l) {
-        const bool inside = bx + l < x_end;
-        const std::int64_t pix = std::int64_t(py) * grid.width + bx + l;
-        lanes_T[l] = inside ? state.final_transmittance[pix] : T(1);
-        lanes_last[l] = inside ? T(state.last_entry[pix]) : T(0);
-        lanes_dA[l] = inside && d_alpha ? d_alpha[pix] : T(0);
-        for (int c = 0; c < C; ++c) lanes_d[c][l] = inside ? d_out_channels[pix * C + c] : T(0);
-        if (inside) max_last = std::max(max_last, state.last_entry[pix]);
-      }
-      if (max_last == 0) continue;
-      const int row = py - ty * tile_size, column = (bx - tx * tile_size) / L;
-      const std::int32_t* list = s.row_list.data() + row * s.row_stride;
-      std::int32_t list_end = s.row_size[row];
-      while (list_end > 0 && list[list_end - 1] >= max_last) --list_end;  // behind every lane's last contributor
-      const V pxc = iota + V(T(bx) + T(pixel_centre_offset));
-      const V T_final = simd::lane_load<V>(lanes_T), last = simd::lane_load<V>(lanes_last);
-      const V dA = simd::lane_load<V>(lanes_dA);
-      V trans = T_final;
+  std::int32_t max_last = 0;
+  for (int row = 0; row < tile_size; ++row)
+    for (int x = 0; x < tile_size; ++x) {
+      const int i = row * tile_size + x;
+      const bool inside = row < f.rows_here && x < f.width_here;
+      const std::int64_t pix = std::int64_t(f.y_base + row) * grid.width + f.x_base + x;
+      const T t_final = inside ? state.final_transmittance[pix] : T(1);
+      st.final_transmittance[i] = st.transmittance[i] = t_final;
+      st.last[i] = inside ? T(state.last_entry[pix]) : T(0);
+      st.d_alpha[i] = inside && d_alpha ? d_alpha[pix] : T(0);
       for (int c = 0; c < C; ++c) {
-        d_out[c] = simd::lane_load<V>(lanes_d[c]);
-        behind[c] = T_final * V(background[c]);
+        st.d_channels[c * P + i] = inside ? d_out_channels[pix * C + c] : T(0);
+        st.behind[c * P + i] = t_final * background[c];
       }
-      for (std::int32_t i = list_end - 1; i >= 0; --i) {
-        const std::int32_t k = list[i];
-        if (L < tile_size && (column < s.column_first[k] || column > s.column_last[k])) continue;
-        const V dx = V(s.u[k]) - pxc, dy = V(s.v[k]) - pyc;
-        const V sigma = T(0.5) * (V(s.ca[k]) * dx * dx + V(s.cc[k]) * dy * dy) + V(s.cb[k]) * dx * dy;
-        auto maybe = (sigma <= V(s.sigma_max[k])) & (V(T(k)) < last);
+      if (inside) max_last = std::max(max_last, state.last_entry[pix]);
+    }
+  constexpr std::int64_t prefetch_distance = 8;
+  V grad[entry_grad_fixed + max_channels];
+  for (std::int64_t k = count - 1; k >= 0; --k) {
+    if (k - prefetch_distance >= 0)
+      __builtin_prefetch(records + std::int64_t(gaussians[k - prefetch_distance]) * record_stride);
+    T* record_out = entry_grads + std::int64_t(ti.tile_entries[begin + k]) * stride;
+    const T* r = records + std::int64_t(gaussians[k]) * record_stride;
+    const EntryPixels px = entry_pixels(r, f.x_base, f.y_base, f.width_here, f.rows_here);
+    if (px.empty() || k >= max_last) {  // reaches no pixel, or behind every pixel's last contributor
+      std::fill_n(record_out, stride, T(0));
+      continue;
+    }
+    for (int j = 0; j < stride; ++j) grad[j] = V(T(0));
+    const V u = V(r[0]), v = V(r[1]), ca = V(r[2]), cb = V(r[3]), cc = V(r[4]), opacity = V(r[5]), smax = V(r[6]);
+    const T* ch = r + splat_fields;
+    const V entry_position = V(T(k));
+    for (int row = px.y0; row <= px.y1; ++row) {
+      const V pyc = V(T(f.y_base + row) + T(pixel_centre_offset));
+      for (int column = px.x0 / L; column <= px.x1 / L; ++column) {
+        const int j = row * batches_per_row + column;
+        const V pxc = iota + V(T(f.x_base + column * L) + T(pixel_centre_offset));
+        const V dx = u - pxc, dy = v - pyc;
+        const V sigma = T(0.5) * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+        auto maybe = (sigma <= smax) & (entry_position < simd::lane_load<V>(&st.last[j * L]));
         if (!simd::lane_any(maybe)) continue;
-        const V raw = V(s.opacity[k]) * simd::lane_exp(-sigma);
+        const V raw = opacity * simd::lane_exp(-sigma);
         const V alpha = simd::lane_min(V(T(max_alpha)), raw);
         const auto valid = maybe & (sigma >= V(T(0))) & (alpha >= V(T(alpha_threshold)));
         if (!simd::lane_any(valid)) continue;
         const V ra = V(T(1)) / (V(T(1)) - alpha);
-        trans = simd::lane_select(valid, trans * ra, trans);
+        const V trans = simd::lane_select(valid, simd::lane_load<V>(&st.transmittance[j * L]) * ra,
+                                          simd::lane_load<V>(&st.transmittance[j * L]));
+        simd::lane_store(&st.transmittance[j * L], trans);
         const V vis = alpha * trans;
-        const T* ch = &s.channels[std::size_t(k) * C];
-        T* gk = &s.lane_grads[std::size_t(k) * stride * L];
-        V v_alpha = dA * T_final * ra;
+        const V t_final = simd::lane_load<V>(&st.final_transmittance[j * L]);
+        V v_alpha = simd::lane_load<V>(&st.d_alpha[j * L]) * t_final * ra;
         for (int c = 0; c < C; ++c) {
-          add_lanes(gk + (entry_grad_fixed + c) * L, simd::lane_select(valid, vis * d_out[c], V(T(0))));
-          v_alpha = v_alpha + (V(ch[c]) * trans - behind[c] * ra) * d_out[c];
-          behind[c] = simd::lane_select(valid, behind[c] + V(ch[c]) * vis, behind[c]);
+          const V d_out = simd::lane_load<V>(&st.d_channels[c * P + j * L]);
+          T* behind_ptr = &st.behind[c * P + j * L];
+          const V behind = simd::lane_load<V>(behind_ptr);
+          grad[entry_grad_fixed + c] = grad[entry_grad_fixed + c] + simd::lane_select(valid, vis * d_out, V(T(0)));
+          v_alpha = v_alpha + (V(ch[c]) * trans - behind * ra) * d_out;
+          simd::lane_store(behind_ptr, simd::lane_select(valid, behind + V(ch[c]) * vis, behind));
         }
         const auto unclamped = valid & (raw < V(T(max_alpha)));
         const V v_sigma = simd::lane_select(unclamped, -alpha * v_alpha, V(T(0)));
-        const V v_opacity = simd::lane_select(unclamped, raw / V(s.opacity[k]) * v_alpha, V(T(0)));
-        add_lanes(gk + 0 * L, v_sigma * (V(s.ca[k]) * dx + V(s.cb[k]) * dy));
-        add_lanes(gk + 1 * L, v_sigma * (V(s.cb[k]) * dx + V(s.cc[k]) * dy));
-        add_lanes(gk + 2 * L, T(0.5) * v_sigma * dx * dx);
-        add_lanes(gk + 3 * L, v_sigma * dx * dy);
-        add_lanes(gk + 4 * L, T(0.5) * v_sigma * dy * dy);
-        add_lanes(gk + 5 * L, v_opacity);
+        const V v_opacity = simd::lane_select(unclamped, raw / opacity * v_alpha, V(T(0)));
+        grad[0] = grad[0] + v_sigma * (ca * dx + cb * dy);
+        grad[1] = grad[1] + v_sigma * (cb * dx + cc * dy);
+        grad[2] = grad[2] + T(0.5) * v_sigma * dx * dx;
+        grad[3] = grad[3] + v_sigma * dx * dy;
+        grad[4] = grad[4] + T(0.5) * v_sigma * dy * dy;
+        grad[5] = grad[5] + v_opacity;
       }
     }
+    for (int j = 0; j < stride; ++j) record_out[j] = simd::lane_sum(grad[j]);
   }
 }
 
@@ -363,17 +372,16 @@ void rasterize_forward_prepared(const TileIntersections& ti, int C, const T* bac
   state.last_entry.resize(pixels);
   state.n_contrib.resize(pixels);
   ws.scratch.resize(std::size_t(pool.size()));
-  for (auto& s : ws.scratch) s.reserve(ti.max_tile_entries, C);
+  for (auto& s : ws.scratch) s.reserve(C);
   const bool use_simd = simd::enabled() && !skips.force_scalar;
   detail::for_each_tile(ti.grid.count(), pool, [&](index_t tile, int worker) {
-    TileScratch<T>& s = ws.scratch[std::size_t(worker)];
-    if (use_simd) {
-      detail::gather_tile<simd::batch<T>, T>(ti, tile, ws.splat_records(), ws.splat_stride, C, s, 0);
-      detail::blend_tile_forward<simd::batch<T>, T>(ti, tile, s, C, background, skips, out_channels, state);
-    } else {
-      detail::gather_tile<T, T>(ti, tile, ws.splat_records(), ws.splat_stride, C, s, 0);
-      detail::blend_tile_forward<T, T>(ti, tile, s, C, background, skips, out_channels, state);
-    }
+    TileState<T>& st = ws.scratch[std::size_t(worker)];
+    if (use_simd)
+      detail::blend_tile_forward<simd::batch<T>, T>(ti, tile, ws.splat_records(), ws.splat_stride, st, C, background,
+                                                    skips, out_channels, state);
+    else
+      detail::blend_tile_forward<T, T>(ti, tile, ws.splat_records(), ws.splat_stride, st, C, background, skips,
+                                       out_channels, state);
   });
 }
 
@@ -397,31 +405,19 @@ void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, 
   const int stride = entry_grad_fixed + C;
   ws.entry_grads.resize(std::size_t(ti.total_entries) * std::size_t(stride));
   ws.scratch.resize(std::size_t(pool.size()));
-  for (auto& s : ws.scratch) s.reserve(ti.max_tile_entries, C);
+  for (auto& s : ws.scratch) s.reserve(C);
   if (ws.splat_count != index_t(ti.gaussian_counts.size()) || ws.splat_channels != C)
     prepare_splats(ti, proj, channels, C, ws, pool);
   const bool use_simd = simd::enabled() && !skips.force_scalar;
-  auto run_tile = [&](auto lanes_tag, index_t tile, TileScratch<T>& s) {
-    using V = decltype(lanes_tag);
-    constexpr int L = int(simd::lane_count<V>::value);
-    const std::int64_t begin = ti.tile_offsets[tile], count = ti.tile_offsets[tile + 1] - begin;
-    detail::gather_tile<V, T>(ti, tile, ws.splat_records(), ws.splat_stride, C, s, stride);
-    detail::blend_tile_backward<V, T>(ti, tile, s, C, background, state, d_out_channels, d_alpha);
-    for (std::int64_t k = 0; k < count; ++k) {
-      T* record = &ws.entry_grads[std::size_t(ti.tile_entries[begin + k]) * std::size_t(stride)];
-      if (!s.covered(k)) {
-        std::fill_n(record, stride, T(0));
-        continue;
-      }
-      const T* lanes = &s.lane_grads[std::size_t(k * stride * L)];
-      for (int j = 0; j < stride; ++j) record[j] = simd::lane_sum(simd::lane_load<V>(lanes + j * L));
-    }
-  };
   detail::for_each_tile(ti.grid.count(), pool, [&](index_t tile, int worker) {
-    TileScratch<T>& s = ws.scratch[std::size_t(worker)];
+    TileState<T>& st = ws.scratch[std::size_t(worker)];
     if (ti.tile_offsets[tile + 1] == ti.tile_offsets[tile]) return;
-    if (use_simd) run_tile(simd::batch<T>{}, tile, s);
-    else run_tile(T{}, tile, s);
+    if (use_simd)
+      detail::blend_tile_backward<simd::batch<T>, T>(ti, tile, ws.splat_records(), ws.splat_stride, st, C, background,
+                                                     state, d_out_channels, d_alpha, ws.entry_grads.data());
+    else
+      detail::blend_tile_backward<T, T>(ti, tile, ws.splat_records(), ws.splat_stride, st, C, background, state,
+                                        d_out_channels, d_alpha, ws.entry_grads.data());
   });
   // A Gaussian's entries are contiguous and in tile order: a fixed summation order for any thread count.
   parallel_for(n, [&](index_t gb, index_t ge, int) {
