@@ -67,7 +67,9 @@ struct RasterWorkspace {
   std::vector<T> entry_grads;           // [E, 6 + C]
 };
 
-inline constexpr int splat_fields = 9;  // u, v, ca, cb, cc, opacity, sigma_max, rx, ry; then the channels
+// u, v, ca, cb, cc, opacity, sigma_max, then the image pixels the extent reaches (first x, last x, first y, last y;
+// first > last: none), then the channels
+inline constexpr int splat_fields = 11;
 
 // Kernel parameters of one projected Gaussian. The extent is conservative for the float evaluation of sigma: its
 // rounding error grows with the conic's condition number, so the margin does too.
@@ -103,18 +105,10 @@ struct EntryPixels {
 };
 
 template <class T>
-FLEXSPLAT_ALWAYS_INLINE EntryPixels entry_pixels(const T* record, int x_base, int y_base, int width_here, int rows_here) {
-  // Values are clamped to +-(tile_size + 8) first (beyond that the range misses the tile), so floor reduces to
-  // truncation of a positive value (exact, and cheap without SSE4.1 rounding instructions).
-  auto floor_local = [](double x) {
-    constexpr int reach = tile_size + 8;
-    return int(std::min(std::max(x, -double(reach)), double(reach)) + 2 * reach) - 2 * reach;
-  };
-  // Pixel x is in range when |x + 0.5 - u| <= rx.
-  const double u = double(record[0]) - pixel_centre_offset - x_base, rx = double(record[7]);
-  const double v = double(record[1]) - pixel_centre_offset - y_base, ry = double(record[8]);
-  return {std::max(0, -floor_local(rx - u)), std::min(width_here - 1, floor_local(u + rx)),
-          std::max(0, -floor_local(ry - v)), std::min(rows_here - 1, floor_local(v + ry))};
+FLEXSPLAT_ALWAYS_INLINE EntryPixels entry_pixels(const T* record, int x_base, int y_base, int width_here,
+                                                 int rows_here) {
+  return {std::max(0, int(record[7]) - x_base), std::min(width_here - 1, int(record[8]) - x_base),
+          std::max(0, int(record[9]) - y_base), std::min(rows_here - 1, int(record[10]) - y_base)};
 }
 
 template <class V, class T>
@@ -335,11 +329,20 @@ void begin_splats(index_t n, int C, RasterWorkspace<T>& ws) {
 }
 
 template <class T>
-void write_splat_record(const Projection<T>& p, const T* channels, int C, T* record) {
+void write_splat_record(const Projection<T>& p, const T* channels, int C, const TileGrid& grid, T* record) {
   SplatParams<T> sp;
   splat_params(p, sp);
   record[0] = sp.u, record[1] = sp.v, record[2] = sp.ca, record[3] = sp.cb, record[4] = sp.cc;
-  record[5] = sp.opacity, record[6] = sp.sigma_max, record[7] = sp.rx, record[8] = sp.ry;
+  record[5] = sp.opacity, record[6] = sp.sigma_max;
+  // Pixel x is in range when |x + 0.5 - u| <= rx; computed once here so tiles only clamp integers.
+  auto pixel_range = [](double centre, double half, int size, T* out) {
+    const double first = std::ceil(centre - pixel_centre_offset - half);
+    const double last = std::floor(centre - pixel_centre_offset + half);
+    out[0] = T(std::clamp(first, 0.0, double(size)));
+    out[1] = T(std::clamp(last, -1.0, double(size - 1)));
+  };
+  pixel_range(double(sp.u), double(sp.rx), grid.width, record + 7);
+  pixel_range(double(sp.v), double(sp.ry), grid.height, record + 9);
   for (int c = 0; c < C; ++c) record[splat_fields + c] = channels[c];
 }
 
@@ -352,7 +355,8 @@ void prepare_splats(const TileIntersections& ti, const Projection<T>* proj, cons
   T* records = ws.splat_storage.data() + ws.splat_offset;
   parallel_for(n, [&](index_t begin, index_t end, int) {
     for (index_t g = begin; g < end; ++g)
-      if (ti.gaussian_counts[g] != 0) write_splat_record(proj[g], channels + g * C, C, records + g * ws.splat_stride);
+      if (ti.gaussian_counts[g] != 0)
+        write_splat_record(proj[g], channels + g * C, C, ti.grid, records + g * ws.splat_stride);
   }, pool);
 }
 

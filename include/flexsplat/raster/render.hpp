@@ -299,7 +299,7 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
       for (int f = 0; f < F; ++f) ch[4 + f] = in.features.data()[g * F + f];
       const std::int64_t tiles = count_gaussian_tiles(p, grid, opt.skips, ws.tiles.gaussian_tiles[g]);
       ws.tiles.gaussian_counts[g] = tiles;
-      if (tiles > 0) write_splat_record(p, ch, C, records + g * ws.raster.splat_stride);
+      if (tiles > 0) write_splat_record(p, ch, C, grid, records + g * ws.raster.splat_stride);
     }
   }, pool);
   if (value_failed.load()) {
