@@ -18,9 +18,6 @@
 #include <type_traits>
 
 #include <xsimd/xsimd.hpp>
-#if defined(__AVX512F__)
-#include <immintrin.h>
-#endif
 
 #include "flexsplat/core/error.hpp"
 
@@ -231,42 +228,6 @@ template <class T>
 inline void lane_store(T* p, T v) { *p = v; }
 template <class T, class A>
 inline void lane_store(T* p, const xsimd::batch<T, A>& v) { v.store_unaligned(p); }
-
-// Slack (elements) that append_indices_in_range may write past the last appended index.
-inline constexpr std::int64_t append_indices_slack = 16;
-
-// Appends to out the indices k < count with lo[k] <= value <= hi[k], in increasing order; returns how many. out
-// needs room for the result plus append_indices_slack. The AVX-512 path compacts 16 candidates per instruction
-// (in registers: compress-to-memory is microcoded on some CPUs); the scalar path is branch-free.
-inline std::int64_t append_indices_in_range_scalar(const std::int32_t* lo, const std::int32_t* hi, std::int64_t count,
-                                                   std::int32_t value, std::int32_t* out) {
-  std::int64_t n = 0;
-  for (std::int64_t k = 0; k < count; ++k) {
-    out[n] = std::int32_t(k);
-    n += (lo[k] <= value) & (value <= hi[k]);
-  }
-  return n;
-}
-
-inline std::int64_t append_indices_in_range(const std::int32_t* lo, const std::int32_t* hi, std::int64_t count,
-                                            std::int32_t value, std::int32_t* out) {
-#if defined(__AVX512F__)
-  if (enabled()) {
-    const __m512i v = _mm512_set1_epi32(value), step = _mm512_set1_epi32(16);
-    __m512i index = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-    std::int64_t n = 0;
-    for (std::int64_t k = 0; k < count; k += 16, index = _mm512_add_epi32(index, step)) {
-      const __mmask16 live = count - k >= 16 ? __mmask16(0xffff) : __mmask16((1u << (count - k)) - 1);
-      const __m512i l = _mm512_maskz_loadu_epi32(live, lo + k), h = _mm512_maskz_loadu_epi32(live, hi + k);
-      const __mmask16 in = _mm512_mask_cmple_epi32_mask(live, l, v) & _mm512_mask_cmpge_epi32_mask(live, h, v);
-      _mm512_storeu_si512(out + n, _mm512_maskz_compress_epi32(in, index));
-      n += __builtin_popcount(unsigned(in));
-    }
-    return n;
-  }
-#endif
-  return append_indices_in_range_scalar(lo, hi, count, value, out);
-}
 
 }  // namespace simd
 }  // namespace v0
