@@ -12,6 +12,7 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/simd_dispatch.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/raster/constants.hpp"
 #include "flexsplat/raster/project.hpp"
@@ -26,6 +27,7 @@ struct RasterSkips {
   bool exact_tile_test = true;       // off: every tile of the bounding rectangle
   bool early_exit = true;            // off: pixel batches keep looping (masked) after every pixel terminated
   bool force_scalar = false;         // not a skip: run the scalar kernels even when SIMD is enabled (tests)
+  simd::DispatchLevel dispatch_cap = simd::DispatchLevel::avx512;  // not a skip: widest run-time dispatch (tests)
 };
 
 struct TileGrid {

@@ -8,12 +8,14 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <utility>
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/simd.hpp"
+#include "flexsplat/core/simd_dispatch.hpp"
 #include "flexsplat/raster/constants.hpp"
 #include "flexsplat/raster/intersect.hpp"
 #include "flexsplat/raster/project.hpp"
@@ -304,6 +306,44 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
   }
 }
 
+#if FLEXSPLAT_SIMD_DISPATCH
+// The float blend kernels compiled for AVX-512 / AVX2 inside an otherwise portable build (chosen at run time).
+template <class T, class... Args>
+__attribute__((target("avx512f,avx512bw,avx512dq,avx512vl,avx2,fma"), flatten)) void blend_tile_forward_avx512(
+    Args&&... args) {
+  if constexpr (sizeof(T) == 4) blend_tile_forward<simd::wide<T, 16>, T>(std::forward<Args>(args)...);
+}
+template <class T, class... Args>
+__attribute__((target("avx2,fma"), flatten)) void blend_tile_forward_avx2(Args&&... args) {
+  if constexpr (sizeof(T) == 4) blend_tile_forward<simd::wide<T, 8>, T>(std::forward<Args>(args)...);
+}
+template <class T, class... Args>
+__attribute__((target("avx512f,avx512bw,avx512dq,avx512vl,avx2,fma"), flatten)) void blend_tile_backward_avx512(
+    Args&&... args) {
+  if constexpr (sizeof(T) == 4) blend_tile_backward<simd::wide<T, 16>, T>(std::forward<Args>(args)...);
+}
+template <class T, class... Args>
+__attribute__((target("avx2,fma"), flatten)) void blend_tile_backward_avx2(Args&&... args) {
+  if constexpr (sizeof(T) == 4) blend_tile_backward<simd::wide<T, 8>, T>(std::forward<Args>(args)...);
+}
+#endif
+
+// Which blend kernel a render uses: the compile-time SIMD batches, a run-time dispatched wider one, or scalar.
+enum class BlendKernel { scalar, compiled, avx2, avx512 };
+
+template <class T>
+BlendKernel choose_blend_kernel(const RasterSkips& skips) {
+  if (skips.force_scalar || !simd::enabled()) return BlendKernel::scalar;
+#if FLEXSPLAT_SIMD_DISPATCH
+  const simd::DispatchLevel level = std::min(simd::dispatch_level(), skips.dispatch_cap);
+  const std::size_t compiled_bytes = simd::width<T> * sizeof(T);
+  // Dispatch is for float renders (its exp is accurate to float precision); double keeps the compiled batches.
+  if (sizeof(T) == 4 && level == simd::DispatchLevel::avx512 && compiled_bytes < 64) return BlendKernel::avx512;
+  if (sizeof(T) == 4 && level != simd::DispatchLevel::none && compiled_bytes < 32) return BlendKernel::avx2;
+#endif
+  return BlendKernel::compiled;
+}
+
 // Runs body(tile, worker) over all tiles; tiles are handed out dynamically (results do not depend on the order).
 template <class Body>
 void for_each_tile(index_t tiles, ThreadPool& pool, Body&& body) {
@@ -377,15 +417,29 @@ void rasterize_forward_prepared(const TileIntersections& ti, int C, const T* bac
   state.n_contrib.resize(pixels);
   ws.scratch.resize(std::size_t(pool.size()));
   for (auto& s : ws.scratch) s.reserve(C);
-  const bool use_simd = simd::enabled() && !skips.force_scalar;
+  const detail::BlendKernel kernel = detail::choose_blend_kernel<T>(skips);
   detail::for_each_tile(ti.grid.count(), pool, [&](index_t tile, int worker) {
     TileState<T>& st = ws.scratch[std::size_t(worker)];
-    if (use_simd)
-      detail::blend_tile_forward<simd::batch<T>, T>(ti, tile, ws.splat_records(), ws.splat_stride, st, C, background,
-                                                    skips, out_channels, state);
-    else
-      detail::blend_tile_forward<T, T>(ti, tile, ws.splat_records(), ws.splat_stride, st, C, background, skips,
-                                       out_channels, state);
+    const T* records = ws.splat_records();
+    switch (kernel) {
+#if FLEXSPLAT_SIMD_DISPATCH
+      case detail::BlendKernel::avx512:
+        detail::blend_tile_forward_avx512<T>(ti, tile, records, ws.splat_stride, st, C, background, skips,
+                                             out_channels, state);
+        break;
+      case detail::BlendKernel::avx2:
+        detail::blend_tile_forward_avx2<T>(ti, tile, records, ws.splat_stride, st, C, background, skips, out_channels,
+                                           state);
+        break;
+#endif
+      case detail::BlendKernel::compiled:
+        detail::blend_tile_forward<simd::batch<T>, T>(ti, tile, records, ws.splat_stride, st, C, background, skips,
+                                                      out_channels, state);
+        break;
+      default:
+        detail::blend_tile_forward<T, T>(ti, tile, records, ws.splat_stride, st, C, background, skips, out_channels,
+                                         state);
+    }
   });
 }
 
@@ -412,16 +466,31 @@ void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, 
   for (auto& s : ws.scratch) s.reserve(C);
   if (ws.splat_count != index_t(ti.gaussian_counts.size()) || ws.splat_channels != C)
     prepare_splats(ti, proj, channels, C, ws, pool);
-  const bool use_simd = simd::enabled() && !skips.force_scalar;
+  const detail::BlendKernel kernel = detail::choose_blend_kernel<T>(skips);
   detail::for_each_tile(ti.grid.count(), pool, [&](index_t tile, int worker) {
     TileState<T>& st = ws.scratch[std::size_t(worker)];
     if (ti.tile_offsets[tile + 1] == ti.tile_offsets[tile]) return;
-    if (use_simd)
-      detail::blend_tile_backward<simd::batch<T>, T>(ti, tile, ws.splat_records(), ws.splat_stride, st, C, background,
-                                                     state, d_out_channels, d_alpha, ws.entry_grads.data());
-    else
-      detail::blend_tile_backward<T, T>(ti, tile, ws.splat_records(), ws.splat_stride, st, C, background, state,
-                                        d_out_channels, d_alpha, ws.entry_grads.data());
+    const T* records = ws.splat_records();
+    T* grads = ws.entry_grads.data();
+    switch (kernel) {
+#if FLEXSPLAT_SIMD_DISPATCH
+      case detail::BlendKernel::avx512:
+        detail::blend_tile_backward_avx512<T>(ti, tile, records, ws.splat_stride, st, C, background, state,
+                                              d_out_channels, d_alpha, grads);
+        break;
+      case detail::BlendKernel::avx2:
+        detail::blend_tile_backward_avx2<T>(ti, tile, records, ws.splat_stride, st, C, background, state,
+                                            d_out_channels, d_alpha, grads);
+        break;
+#endif
+      case detail::BlendKernel::compiled:
+        detail::blend_tile_backward<simd::batch<T>, T>(ti, tile, records, ws.splat_stride, st, C, background, state,
+                                                       d_out_channels, d_alpha, grads);
+        break;
+      default:
+        detail::blend_tile_backward<T, T>(ti, tile, records, ws.splat_stride, st, C, background, state,
+                                          d_out_channels, d_alpha, grads);
+    }
   });
   // A Gaussian's entries are contiguous and in tile order: a fixed summation order for any thread count.
   parallel_for(n, [&](index_t gb, index_t ge, int) {

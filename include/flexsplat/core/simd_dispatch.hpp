@@ -1,0 +1,258 @@
+#pragma once
+// Run-time dispatch for kernels written against the lane helpers of core/simd.hpp: a portable build (compiled for
+// SSE2) still runs them 8 or 16 lanes wide on CPUs with AVX2 or AVX-512. `wide<T, N>` wraps a GCC vector-extension
+// vector with the lane-helper interface; a kernel instantiated with it and inlined (flatten) into a function
+// compiled for the wider target gets that target's instructions. The compile-time path (xsimd batches) and the
+// scalar path stay; tests compare all of them.
+#include <cmath>
+#include <cstdint>
+#include <cstdlib>
+#include <cstring>
+#include <type_traits>
+
+#include "flexsplat/core/simd.hpp"
+
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+#define FLEXSPLAT_SIMD_DISPATCH 1
+#include <immintrin.h>
+#else
+#define FLEXSPLAT_SIMD_DISPATCH 0
+#endif
+
+namespace flexsplat {
+inline namespace v0 {
+namespace simd {
+
+// Widest level the kernels may dispatch to: FLEXSPLAT_SIMD=scalar disables SIMD, =avx2 caps dispatch at AVX2.
+enum class DispatchLevel { none, avx2, avx512 };
+
+inline DispatchLevel dispatch_level() {
+  static const DispatchLevel level = [] {
+    if (!enabled()) return DispatchLevel::none;
+    const CpuFeatures& f = cpu_features();
+    const char* env = std::getenv("FLEXSPLAT_SIMD");
+    const bool cap_avx2 = env && std::strcmp(env, "avx2") == 0;
+    if (!cap_avx2 && f.avx512f && f.avx512bw && f.avx512dq && f.avx512vl && f.fma) return DispatchLevel::avx512;
+    if (f.avx2 && f.fma) return DispatchLevel::avx2;
+    return DispatchLevel::none;
+  }();
+  return level;
+}
+
+inline const char* dispatch_name(DispatchLevel level) {
+  return level == DispatchLevel::avx512 ? "avx512" : level == DispatchLevel::avx2 ? "avx2" : "none";
+}
+
+#if FLEXSPLAT_SIMD_DISPATCH
+
+namespace detail {
+template <class T>
+using lane_int = std::conditional_t<sizeof(T) == 4, std::int32_t, std::int64_t>;
+}
+
+template <class T, int N>
+struct wide_mask {
+  typedef detail::lane_int<T> native __attribute__((vector_size(sizeof(T) * N)));
+  native m;
+  wide_mask() = default;
+  static wide_mask make(native x) {
+    wide_mask w;
+    w.m = x;
+    return w;
+  }
+  friend wide_mask operator&(wide_mask a, wide_mask b) { return make(a.m & b.m); }
+  friend wide_mask operator|(wide_mask a, wide_mask b) { return make(a.m | b.m); }
+  friend wide_mask operator!(wide_mask a) { return make(~a.m); }
+};
+
+template <class T, int N>
+struct wide {
+  typedef T native __attribute__((vector_size(sizeof(T) * N)));
+  native v;
+  wide() = default;
+  wide(T x) : v(native{} + x) {}  // broadcast, like xsimd's batch(T)
+  static wide make(native x) {
+    wide w;
+    w.v = x;
+    return w;
+  }
+  static wide load_unaligned(const T* p) {
+    native x;
+    std::memcpy(&x, p, sizeof(x));
+    return make(x);
+  }
+  friend wide operator+(wide a, wide b) { return make(a.v + b.v); }
+  friend wide operator-(wide a, wide b) { return make(a.v - b.v); }
+  friend wide operator*(wide a, wide b) { return make(a.v * b.v); }
+  friend wide operator/(wide a, wide b) { return make(a.v / b.v); }
+  friend wide operator-(wide a) { return make(-a.v); }
+  friend wide operator*(T a, wide b) { return make(a * b.v); }
+  friend wide operator*(wide a, T b) { return make(a.v * b); }
+  friend wide_mask<T, N> operator<(wide a, wide b) { return wide_mask<T, N>::make(a.v < b.v); }
+  friend wide_mask<T, N> operator<=(wide a, wide b) { return wide_mask<T, N>::make(a.v <= b.v); }
+  friend wide_mask<T, N> operator>(wide a, wide b) { return wide_mask<T, N>::make(a.v > b.v); }
+  friend wide_mask<T, N> operator>=(wide a, wide b) { return wide_mask<T, N>::make(a.v >= b.v); }
+  friend wide_mask<T, N> operator!=(wide a, wide b) { return wide_mask<T, N>::make(a.v != b.v); }
+};
+
+template <class T, int N>
+struct lane_count<wide<T, N>> {
+  static constexpr std::size_t value = std::size_t(N);
+};
+
+template <class T, int N>
+inline wide<T, N> lane_select(wide_mask<T, N> c, wide<T, N> a, wide<T, N> b) {
+  return wide<T, N>::make(c.m ? a.v : b.v);
+}
+template <class T, int N>
+inline wide<T, N> lane_min(wide<T, N> a, wide<T, N> b) {
+  return wide<T, N>::make(a.v < b.v ? a.v : b.v);
+}
+template <class T, int N>
+inline wide<T, N> lane_max(wide<T, N> a, wide<T, N> b) {
+  return wide<T, N>::make(a.v < b.v ? b.v : a.v);
+}
+template <class T, int N>
+inline wide_mask<T, N> lane_not(wide_mask<T, N> c) {
+  return !c;
+}
+template <class T, int N>
+inline void lane_store(T* p, wide<T, N> x) {
+  std::memcpy(p, &x.v, sizeof(x.v));
+}
+template <class T, int N>
+inline T lane_sum(wide<T, N> x) {  // lanes in order, like reduce_add
+  T s = x.v[0];
+  for (int i = 1; i < N; ++i) s += x.v[i];
+  return s;
+}
+// Any / all through the sign bits of the mask lanes (256-bit vectors); the overload carries the AVX2 target of the
+// kernels that use it.
+__attribute__((target("avx2"))) inline bool lane_any(wide_mask<float, 8> c) {
+  __m256 x;
+  std::memcpy(&x, &c.m, sizeof(x));
+  return _mm256_movemask_ps(x) != 0;
+}
+template <class T, int N>
+inline bool lane_all(wide_mask<T, N> c) {
+  return !lane_any(!c);
+}
+
+// exp at float precision for the blending kernels: Cody-Waite reduction by ln 2, degree-6 Taylor polynomial on
+// |r| <= ln(2)/2 (relative error about 2e-7), scaled by 2^k through the exponent bits. Inputs below -87 give 0;
+// +inf and NaN are not expected (the kernels pass -sigma <= 0).
+template <class T, int N>
+inline wide<T, N> lane_exp(wide<T, N> x) {
+  static_assert(sizeof(T) == 4, "lane_exp of dispatch vectors is accurate to float precision only");
+  using W = typename wide<T, N>::native;
+  using I = typename wide_mask<T, N>::native;
+  constexpr T log2e = T(1.4426950408889634), ln2_hi = T(0.693145751953125), ln2_lo = T(1.4286068203094172e-06);
+  constexpr T lowest = T(-87.0);
+  constexpr T round_magic = T(12582912.0);  // 1.5 * 2^23: adding it rounds to an integer
+  const W clamped = x.v < lowest ? W{} + lowest : x.v;
+  const W k = (clamped * log2e + round_magic) - round_magic;  // round to nearest
+  const W r = (clamped - k * ln2_hi) - k * ln2_lo;
+  W p = W{} + T(1.0 / 720.0);
+  p = p * r + T(1.0 / 120.0);
+  p = p * r + T(1.0 / 24.0);
+  p = p * r + T(1.0 / 6.0);
+  p = p * r + T(0.5);
+  p = p * r + T(1.0);
+  p = p * r + T(1.0);
+  const I scale = (__builtin_convertvector(k, I) + 127) << 23;
+  W scale_value;
+  std::memcpy(&scale_value, &scale, sizeof(scale_value));
+  W result = p * scale_value;
+  result = x.v < lowest ? W{} : result;
+  return wide<T, N>::make(result);
+}
+
+// 16 floats with AVX-512 mask registers: GCC lowers vector-extension comparisons of 512-bit vectors lane by lane, so
+// this width is written with intrinsics (every function carries the AVX-512 target of the kernels that use it).
+#define FLEXSPLAT_AVX512_TARGET __attribute__((target("avx512f,avx512dq,avx512bw,avx512vl,avx2,fma")))
+template <>
+struct wide_mask<float, 16> {
+  __mmask16 m;
+  static FLEXSPLAT_AVX512_TARGET inline wide_mask make(__mmask16 x) {
+    wide_mask w;
+    w.m = x;
+    return w;
+  }
+  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator&(wide_mask a, wide_mask b) { return make(a.m & b.m); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator|(wide_mask a, wide_mask b) { return make(a.m | b.m); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator!(wide_mask a) { return make(__mmask16(~a.m)); }
+};
+
+template <>
+struct wide<float, 16> {
+  using mask = wide_mask<float, 16>;
+  __m512 v;
+  FLEXSPLAT_AVX512_TARGET wide() = default;
+  FLEXSPLAT_AVX512_TARGET wide(float x) : v(_mm512_set1_ps(x)) {}
+  static FLEXSPLAT_AVX512_TARGET inline wide make(__m512 x) {
+    wide w;
+    w.v = x;
+    return w;
+  }
+  static FLEXSPLAT_AVX512_TARGET inline wide load_unaligned(const float* p) { return make(_mm512_loadu_ps(p)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator+(wide a, wide b) { return make(_mm512_add_ps(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator-(wide a, wide b) { return make(_mm512_sub_ps(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(wide a, wide b) { return make(_mm512_mul_ps(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator/(wide a, wide b) { return make(_mm512_div_ps(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator-(wide a) { return make(_mm512_sub_ps(_mm512_setzero_ps(), a.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(float a, wide b) { return make(_mm512_mul_ps(_mm512_set1_ps(a), b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(wide a, float b) { return make(_mm512_mul_ps(a.v, _mm512_set1_ps(b))); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator<(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_LT_OQ)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator<=(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_LE_OQ)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator>(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_GT_OQ)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator>=(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_GE_OQ)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator!=(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_NEQ_UQ)); }
+};
+
+FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_select(wide_mask<float, 16> c, wide<float, 16> a, wide<float, 16> b) {
+  return wide<float, 16>::make(_mm512_mask_blend_ps(c.m, b.v, a.v));
+}
+FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_min(wide<float, 16> a, wide<float, 16> b) {
+  return lane_select(a < b, a, b);  // same lane choice as the generic a < b ? a : b
+}
+FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_max(wide<float, 16> a, wide<float, 16> b) {
+  return lane_select(a < b, b, a);
+}
+FLEXSPLAT_AVX512_TARGET inline void lane_store(float* p, wide<float, 16> x) { _mm512_storeu_ps(p, x.v); }
+template <>
+FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_load<wide<float, 16>, float>(const float* p) {
+  return wide<float, 16>::make(_mm512_loadu_ps(p));
+}
+FLEXSPLAT_AVX512_TARGET inline bool lane_any(wide_mask<float, 16> c) { return c.m != 0; }
+FLEXSPLAT_AVX512_TARGET inline bool lane_all(wide_mask<float, 16> c) { return c.m == 0xffff; }
+FLEXSPLAT_AVX512_TARGET inline float lane_sum(wide<float, 16> x) {  // lanes in order, like reduce_add
+  alignas(64) float lanes[16];
+  _mm512_store_ps(lanes, x.v);
+  float s = lanes[0];
+  for (int i = 1; i < 16; ++i) s += lanes[i];
+  return s;
+}
+// Same reduction and polynomial as the generic lane_exp (GCC 12's max/roundscale/scalef intrinsics trip
+// -Wmaybe-uninitialized in its own headers, so rounding and scaling use plain vector arithmetic).
+FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp(wide<float, 16> x) {
+  typedef float f16 __attribute__((vector_size(64)));
+  typedef std::int32_t i16 __attribute__((vector_size(64)));
+  const __m512 lowest = _mm512_set1_ps(-87.0f);
+  const __mmask16 underflow = _mm512_cmp_ps_mask(x.v, lowest, _CMP_LT_OQ);
+  const f16 clamped = f16(_mm512_mask_blend_ps(underflow, x.v, lowest));
+  const f16 k = (clamped * 1.4426950408889634f + 12582912.0f) - 12582912.0f;  // round to nearest
+  const f16 r = (clamped - k * 0.693145751953125f) - k * 1.4286068203094172e-06f;
+  f16 p = f16{} + 1.0f / 720.0f;
+  for (float c : {1.0f / 120.0f, 1.0f / 24.0f, 1.0f / 6.0f, 0.5f, 1.0f, 1.0f}) p = p * r + c;
+  const i16 bits = (__builtin_convertvector(k, i16) + 127) << 23;
+  f16 scale;
+  std::memcpy(&scale, &bits, sizeof(scale));
+  return wide<float, 16>::make(_mm512_mask_blend_ps(underflow, __m512(p * scale), _mm512_setzero_ps()));
+}
+#undef FLEXSPLAT_AVX512_TARGET
+
+#endif  // FLEXSPLAT_SIMD_DISPATCH
+
+}  // namespace simd
+}  // namespace v0
+}  // namespace flexsplat
