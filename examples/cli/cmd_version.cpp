@@ -3,6 +3,7 @@
 
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/simd.hpp"
+#include "flexsplat/core/simd_dispatch.hpp"
 #include "flexsplat/core/version.hpp"
 #include "registry.hpp"
 
@@ -17,6 +18,7 @@ int version(const Args& args) {
               simd::enabled() ? "" : ", scalar path forced by FLEXSPLAT_SIMD=scalar");
   std::printf("cpu: %s\n", simd::describe(features).c_str());
   std::printf("threads: %d\n", global_pool().size());
+  std::printf("run-time dispatch: %s\n", simd::dispatch_name(simd::dispatch_level()));
   simd::require_cpu_supports_build();
   return 0;
 }
