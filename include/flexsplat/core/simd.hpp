@@ -183,6 +183,15 @@ template <class T, class A>
 struct lane_count<xsimd::batch<T, A>> {
   static constexpr std::size_t value = xsimd::batch<T, A>::size;
 };
+// Scalar type of one lane.
+template <class V>
+struct lane_scalar {
+  using type = V;
+};
+template <class T, class A>
+struct lane_scalar<xsimd::batch<T, A>> {
+  using type = T;
+};
 template <class T>
 inline T lane_select(bool c, T a, T b) { return c ? a : b; }
 template <class T, class A>
@@ -222,6 +231,57 @@ template <class T, class A>
 inline xsimd::batch<T, A> lane_fma(const xsimd::batch<T, A>& a, const xsimd::batch<T, A>& b, const xsimd::batch<T, A>& c) {
   return xsimd::fma(a, b, c);
 }
+// a * b + c rounded the same way on both paths: fused where the target has FMA, a product then a sum otherwise
+// (xsimd::fma does the same), so lane bodies written with it match the scalar path bit for bit whatever the compiler
+// contracts elsewhere. (lane_fma leaves the scalar rounding to the compiler.)
+template <class T>
+inline T lane_mul_add(T a, T b, T c) {
+#if defined(__FMA__)
+  return std::fma(a, b, c);
+#else
+  return a * b + c;
+#endif
+}
+template <class T, class A>
+inline xsimd::batch<T, A> lane_mul_add(const xsimd::batch<T, A>& a, const xsimd::batch<T, A>& b,
+                                       const xsimd::batch<T, A>& c) {
+#if defined(__AVX512F__)
+  // xsimd 8.1 has no AVX-512 fma kernel: its generic a * b + c is fused or not as the compiler contracts
+  if constexpr (sizeof(xsimd::batch<T, A>) == 64 && std::is_same_v<T, float>) return _mm512_fmadd_ps(a, b, c);
+  else if constexpr (sizeof(xsimd::batch<T, A>) == 64 && std::is_same_v<T, double>) return _mm512_fmadd_pd(a, b, c);
+  else
+#endif
+    return xsimd::fma(a, b, c);
+}
+// Correctly rounded on both paths (IEEE sqrt), so lanes match the scalar path bit for bit.
+template <class T>
+inline T lane_sqrt(T v) { return std::sqrt(v); }
+template <class T, class A>
+inline xsimd::batch<T, A> lane_sqrt(const xsimd::batch<T, A>& v) { return xsimd::sqrt(v); }
+template <class T>
+inline T lane_abs(T v) { return std::abs(v); }
+template <class T, class A>
+inline xsimd::batch<T, A> lane_abs(const xsimd::batch<T, A>& v) { return xsimd::abs(v); }
+// Not correctly rounded: the batch log may differ from std::log in the last bit (use it for margins, not results).
+template <class T>
+inline T lane_log(T v) { return std::log(v); }
+template <class T, class A>
+inline xsimd::batch<T, A> lane_log(const xsimd::batch<T, A>& v) { return xsimd::log(v); }
+template <class T>
+inline T lane_ceil(T v) { return std::ceil(v); }
+template <class T, class A>
+inline xsimd::batch<T, A> lane_ceil(const xsimd::batch<T, A>& v) { return xsimd::ceil(v); }
+template <class T>
+inline T lane_floor(T v) { return std::floor(v); }
+template <class T, class A>
+inline xsimd::batch<T, A> lane_floor(const xsimd::batch<T, A>& v) { return xsimd::floor(v); }
+inline bool lane_isfinite(float v) { return std::isfinite(v); }
+inline bool lane_isfinite(double v) { return std::isfinite(v); }
+template <class T, class A>
+inline xsimd::batch_bool<T, A> lane_isfinite(const xsimd::batch<T, A>& v) { return xsimd::isfinite(v); }
+// Mask type of V (bool on the scalar path).
+template <class V>
+using lane_mask = decltype(V() < V());
 template <class V, class T>
 inline V lane_load(const T* p) {
   if constexpr (std::is_same_v<V, T>) return *p;
