@@ -292,6 +292,48 @@ inline void lane_store(T* p, T v) { *p = v; }
 template <class T, class A>
 inline void lane_store(T* p, const xsimd::batch<T, A>& v) { v.store_unaligned(p); }
 
+// Column loads of a row-major block: out[j] lane l = rows[l][j] for j < count (rows[l] may repeat a row). AVX-512
+// float: 16 x 16 in-register transposes of (masked) row loads, which never read past rows[l][count - 1]; otherwise
+// a scalar transpose through the stack.
+template <class V, class T>
+inline void load_columns(const T* const* rows, int count, V* out) {
+  constexpr int L = int(lane_count<V>::value);
+#if defined(__AVX512F__)
+  if constexpr (std::is_same_v<T, float> && L == 16) {
+    for (int j0 = 0; j0 < count; j0 += 16) {
+      const __mmask16 live = count - j0 >= 16 ? __mmask16(0xffff) : __mmask16((1u << (count - j0)) - 1);
+      __m512 r[16], t[16];
+      for (int l = 0; l < 16; ++l) r[l] = _mm512_maskz_loadu_ps(live, rows[l] + j0);
+      for (int i = 0; i < 8; ++i) {  // pairs of rows interleaved
+        t[2 * i] = _mm512_unpacklo_ps(r[2 * i], r[2 * i + 1]);
+        t[2 * i + 1] = _mm512_unpackhi_ps(r[2 * i], r[2 * i + 1]);
+      }
+      for (int g = 0; g < 4; ++g) {  // r[4g + c]: rows 4g..4g+3 of column 4k + c in 128-bit lane k
+        r[4 * g] = _mm512_shuffle_ps(t[4 * g], t[4 * g + 2], 0x44);
+        r[4 * g + 1] = _mm512_shuffle_ps(t[4 * g], t[4 * g + 2], 0xee);
+        r[4 * g + 2] = _mm512_shuffle_ps(t[4 * g + 1], t[4 * g + 3], 0x44);
+        r[4 * g + 3] = _mm512_shuffle_ps(t[4 * g + 1], t[4 * g + 3], 0xee);
+      }
+      for (int c = 0; c < 4; ++c) {  // gather the four row groups of each 128-bit lane
+        const __m512 lo01 = _mm512_shuffle_f32x4(r[c], r[4 + c], 0x88), hi01 = _mm512_shuffle_f32x4(r[c], r[4 + c], 0xdd);
+        const __m512 lo23 = _mm512_shuffle_f32x4(r[8 + c], r[12 + c], 0x88);
+        const __m512 hi23 = _mm512_shuffle_f32x4(r[8 + c], r[12 + c], 0xdd);
+        const __m512 col[4] = {_mm512_shuffle_f32x4(lo01, lo23, 0x88), _mm512_shuffle_f32x4(hi01, hi23, 0x88),
+                               _mm512_shuffle_f32x4(lo01, lo23, 0xdd), _mm512_shuffle_f32x4(hi01, hi23, 0xdd)};
+        for (int k = 0; k < 4; ++k)
+          if (j0 + 4 * k + c < count) out[j0 + 4 * k + c] = col[k];
+      }
+    }
+    return;
+  }
+#endif
+  alignas(64) T lanes[L];
+  for (int j = 0; j < count; ++j) {
+    for (int l = 0; l < L; ++l) lanes[l] = rows[l][j];
+    out[j] = lane_load<V>(lanes);
+  }
+}
+
 // Slack (elements) that append_indices_in_range may write past the last appended index.
 inline constexpr std::int64_t append_indices_slack = 16;
 

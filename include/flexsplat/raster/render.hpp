@@ -20,7 +20,6 @@
 // workspace must still hold the state of the matching render_forward call.
 #include <array>
 #include <atomic>
-#include <bit>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -294,16 +293,6 @@ FLEXSPLAT_ALWAYS_INLINE bool all_finite_lanes(const T* data, index_t count) {
   return simd::lane_all(acc == V(T(0))) && tail == T(0);
 }
 
-// T rounded up from a positive double (splat_params' conservative narrowing, without a libm call).
-template <class T>
-FLEXSPLAT_ALWAYS_INLINE T round_up_positive(double x) {
-  T narrow = T(x);
-  if constexpr (sizeof(T) == 4) {
-    if (double(narrow) < x) narrow = std::bit_cast<float>(std::bit_cast<std::uint32_t>(narrow) + 1u);
-  }
-  return narrow;
-}
-
 // Batched path: Gaussians [g0, g0 + L) (L = lanes of V; padding lanes past n repeat the last Gaussian and write
 // nothing) give the same projections, colours and channels as gaussian_one (same arithmetic per lane) and
 // conservative tiles and records computed in double lanes with one shared log. A block with a suspicious value runs
@@ -350,14 +339,10 @@ bool gaussian_block(const GaussianPass<T>& pass, index_t g0) {
   ProjectionLanes<V> p;
   const auto visible = project_forward_lanes<V, T>(m, q, sc, o, pass.cam, pass.set, p);
   // Colour from SH: coefficient (k, c) of every lane in one batch.
-  const int coeffs3 = sh_coeff_count(pass.degree) * 3;
-  alignas(64) T a_sh[16 * 3][L];
-  for (int l = 0; l < L; ++l) {
-    const T* src = in.sh.data() + (g0 + std::min(l, live - 1)) * K3;
-    for (int j = 0; j < coeffs3; ++j) a_sh[j][l] = src[j];
-  }
+  const T* sh_rows[L];
+  for (int l = 0; l < L; ++l) sh_rows[l] = in.sh.data() + (g0 + std::min(l, live - 1)) * K3;
   V coeffs[16 * 3];
-  for (int j = 0; j < coeffs3; ++j) coeffs[j] = simd::lane_load<V>(a_sh[j]);
+  simd::load_columns<V, T>(sh_rows, sh_coeff_count(pass.degree) * 3, coeffs);
   const V dir[3] = {m[0] - V(pass.campos[0]), m[1] - V(pass.campos[1]), m[2] - V(pass.campos[2])};
   V rgb[3];
   sh_forward_lanes<V>(pass.degree, 3, coeffs, dir, rgb);
@@ -437,7 +422,9 @@ bool gaussian_block(const GaussianPass<T>& pass, index_t g0) {
     VD rx = simd::lane_sqrt(r2s * qc / det) * margin + VD(cull_slack_absolute);
     VD ry = simd::lane_sqrt(r2s * qa / det) * margin + VD(cull_slack_absolute);
     const auto sane = (det > zero) & (qa > zero) & (qc > zero) & simd::lane_isfinite(rx) & simd::lane_isfinite(ry);
-    rx = simd::lane_select(sane, rx, VD(INFINITY)), ry = simd::lane_select(sane, ry, VD(INFINITY));
+    // Widened so that T(rx) >= rx after rounding to nearest: conservative in T (as splat_params' round-up).
+    const VD widen = VD(sizeof(T) < sizeof(double) ? 1.0 + 0x1p-22 : 1.0);
+    rx = simd::lane_select(sane, rx * widen, VD(INFINITY)), ry = simd::lane_select(sane, ry * widen, VD(INFINITY));
     // Back to lanes: rectangle, stored rows, counts, extents.
     alignas(64) double a_rect[4][LD], a_first[stored][LD], a_last[stored][LD], a_count[LD], a_hit[LD], a_rx[LD], a_ry[LD];
     simd::lane_store(a_rect[0], simd::lane_select(hit, rect.x0, zero));
@@ -466,7 +453,7 @@ bool gaussian_block(const GaussianPass<T>& pass, index_t g0) {
       record[0] = a_p[0][lane], record[1] = a_p[1][lane];
       record[2] = a_p[6][lane], record[3] = a_p[7][lane], record[4] = a_p[8][lane];
       record[5] = a_p[9][lane], record[6] = T(sigma_max[l]);
-      record[7] = round_up_positive<T>(a_rx[l]), record[8] = round_up_positive<T>(a_ry[l]);
+      record[7] = T(a_rx[l]), record[8] = T(a_ry[l]);
       const T* ch = &ws.channels[g * C];
       for (int c = 0; c < C; ++c) record[splat_fields + c] = ch[c];
     }
