@@ -311,6 +311,20 @@ bool gaussian_block(const GaussianPass<T>& pass, index_t g0) {
     for (int l = 0; l < live; ++l) ok &= gaussian_one(pass, g0 + l);
     return ok;
   };
+  // Inputs of the block `ahead` blocks on: a block is a lot of work per cache line, so the hardware prefetchers fall
+  // behind the streams (the inputs of a block are contiguous ranges).
+  constexpr index_t ahead = 2;
+  if (const index_t gp = g0 + ahead * L; gp + L <= pass.n) {
+    auto prefetch = [](const T* p, index_t count) {
+      for (index_t i = 0; i < count; i += index_t(64 / sizeof(T))) __builtin_prefetch(p + i);
+    };
+    prefetch(in.means.data() + gp * 3, L * 3);
+    prefetch(in.quats.data() + gp * 4, L * 4);
+    prefetch(in.scales.data() + gp * 3, L * 3);
+    prefetch(in.opacities.data() + gp, L);
+    prefetch(in.sh.data() + gp * K3, L * K3);
+    if (F > 0) prefetch(in.features.data() + gp * F, L * F);
+  }
   // Inputs of a block are contiguous ranges: one finiteness scan each.
   if (!(all_finite_lanes<V>(in.means.data() + g0 * 3, live * 3) &&
         all_finite_lanes<V>(in.quats.data() + g0 * 4, live * 4) &&
