@@ -112,7 +112,7 @@ TEMPLATE_TEST_CASE("project: batch lanes are bit-identical to project_forward_on
   cam.t[0] = T(0.1), cam.t[1] = T(-0.2), cam.t[2] = T(4);
   cam.fx = T(90), cam.fy = T(85), cam.cx = T(40.3), cam.cy = T(29.7), cam.width = T(80), cam.height = T(60);
   long visible = 0, culled = 0;
-  for (int trial = 0; trial < 400; ++trial) {
+  for (int trial = 0; trial < 6400 / L; ++trial) {  // 6400 Gaussians for any lane count
     ProjectSettings<T> set;
     set.antialiased = trial % 2 == 1;
     alignas(64) T m[3][L], q[4][L], s[3][L], o[L];
@@ -124,7 +124,8 @@ TEMPLATE_TEST_CASE("project: batch lanes are bit-identical to project_forward_on
       for (int i = 0; i < 3; ++i) s[i][l] = T(std::pow(10.0, -5 + 7 * u01(rng)));
       o[l] = T(u01(rng));
     }
-    if (trial == 7) m[2][0] = T(-4), m[2][1] = T(-3.99), o[2] = T(0), o[3] = T(1);  // on the near plane, behind
+    if (trial == 7) m[2][0] = T(-3.99), m[2][L - 1] = T(-4);  // just beyond the near plane, behind the camera
+    if (trial == 8) o[0] = T(0), o[L - 1] = T(1);
     V mv[3], qv[4], sv[3];
     for (int i = 0; i < 3; ++i) mv[i] = simd::lane_load<V>(m[i]), sv[i] = simd::lane_load<V>(s[i]);
     for (int i = 0; i < 4; ++i) qv[i] = simd::lane_load<V>(q[i]);
