@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <random>
 #include <vector>
 
@@ -50,6 +51,33 @@ TEMPLATE_TEST_CASE("simd load_columns transposes a block of rows", "[simd]", flo
     for (int j = 0; j < count; ++j) {
       simd::lane_store(lanes, out[j]);
       for (int l = 0; l < L; ++l) CHECK(lanes[l] == rows[l][j]);
+    }
+  }
+}
+
+// Values compare equal (the sign of a zero result may differ: xsimd's own SSE2 floor does not keep it either).
+TEMPLATE_TEST_CASE("simd lane_floor and lane_ceil match std::floor and std::ceil", "[simd]", float, double) {
+  using V = simd::batch<TestType>;
+  constexpr int L = int(V::size);
+  const TestType big = TestType(1) / std::numeric_limits<TestType>::epsilon();  // 2^52 (double), 2^23 (float)
+  std::vector<TestType> values = {TestType(0), -TestType(0), TestType(0.5), TestType(-0.5), TestType(1), TestType(-1),
+                                  TestType(2.5), TestType(-2.5), TestType(1e-30), TestType(-1e-30),
+                                  big, -big, big / 2 + TestType(0.5), -big / 2 - TestType(0.5), big * 3, -big * 3,
+                                  std::numeric_limits<TestType>::infinity(), -std::numeric_limits<TestType>::infinity(),
+                                  std::numeric_limits<TestType>::max(), std::numeric_limits<TestType>::denorm_min()};
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> uni(-1, 1);
+  for (int i = 0; i < 400; ++i) values.push_back(TestType(uni(rng) * std::pow(10.0, 8 * uni(rng))));
+  while (values.size() % L) values.push_back(TestType(0.75));
+  for (std::size_t i = 0; i < values.size(); i += L) {
+    alignas(64) TestType f[L], c[L];
+    simd::lane_store(f, simd::lane_floor(simd::lane_load<V>(&values[i])));
+    simd::lane_store(c, simd::lane_ceil(simd::lane_load<V>(&values[i])));
+    for (int l = 0; l < L; ++l) {
+      const TestType x = values[i + l], ef = std::floor(x), ec = std::ceil(x);
+      INFO(x);
+      CHECK(f[l] == ef);
+      CHECK(c[l] == ec);
     }
   }
 }

@@ -23,6 +23,7 @@
 #endif
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/inline.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -193,9 +194,9 @@ struct lane_scalar<xsimd::batch<T, A>> {
   using type = T;
 };
 template <class T>
-inline T lane_select(bool c, T a, T b) { return c ? a : b; }
+FLEXSPLAT_ALWAYS_INLINE T lane_select(bool c, T a, T b) { return c ? a : b; }
 template <class T, class A>
-inline xsimd::batch<T, A> lane_select(const xsimd::batch_bool<T, A>& c, const xsimd::batch<T, A>& a,
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_select(const xsimd::batch_bool<T, A>& c, const xsimd::batch<T, A>& a,
                                       const xsimd::batch<T, A>& b) {
   return xsimd::select(c, a, b);
 }
@@ -235,7 +236,7 @@ inline xsimd::batch<T, A> lane_fma(const xsimd::batch<T, A>& a, const xsimd::bat
 // (xsimd::fma does the same), so lane bodies written with it match the scalar path bit for bit whatever the compiler
 // contracts elsewhere. (lane_fma leaves the scalar rounding to the compiler.)
 template <class T>
-inline T lane_mul_add(T a, T b, T c) {
+FLEXSPLAT_ALWAYS_INLINE T lane_mul_add(T a, T b, T c) {
 #if defined(__FMA__)
   return std::fma(a, b, c);
 #else
@@ -243,7 +244,7 @@ inline T lane_mul_add(T a, T b, T c) {
 #endif
 }
 template <class T, class A>
-inline xsimd::batch<T, A> lane_mul_add(const xsimd::batch<T, A>& a, const xsimd::batch<T, A>& b,
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_mul_add(const xsimd::batch<T, A>& a, const xsimd::batch<T, A>& b,
                                        const xsimd::batch<T, A>& c) {
 #if defined(__AVX512F__)
   // xsimd 8.1 has no AVX-512 fma kernel: its generic a * b + c is fused or not as the compiler contracts
@@ -255,30 +256,49 @@ inline xsimd::batch<T, A> lane_mul_add(const xsimd::batch<T, A>& a, const xsimd:
 }
 // Correctly rounded on both paths (IEEE sqrt), so lanes match the scalar path bit for bit.
 template <class T>
-inline T lane_sqrt(T v) { return std::sqrt(v); }
+FLEXSPLAT_ALWAYS_INLINE T lane_sqrt(T v) { return std::sqrt(v); }
 template <class T, class A>
-inline xsimd::batch<T, A> lane_sqrt(const xsimd::batch<T, A>& v) { return xsimd::sqrt(v); }
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_sqrt(const xsimd::batch<T, A>& v) { return xsimd::sqrt(v); }
 template <class T>
-inline T lane_abs(T v) { return std::abs(v); }
+FLEXSPLAT_ALWAYS_INLINE T lane_abs(T v) { return std::abs(v); }
 template <class T, class A>
-inline xsimd::batch<T, A> lane_abs(const xsimd::batch<T, A>& v) { return xsimd::abs(v); }
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_abs(const xsimd::batch<T, A>& v) { return xsimd::abs(v); }
 // Not correctly rounded: the batch log may differ from std::log in the last bit (use it for margins, not results).
 template <class T>
-inline T lane_log(T v) { return std::log(v); }
+FLEXSPLAT_ALWAYS_INLINE T lane_log(T v) { return std::log(v); }
 template <class T, class A>
-inline xsimd::batch<T, A> lane_log(const xsimd::batch<T, A>& v) { return xsimd::log(v); }
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_log(const xsimd::batch<T, A>& v) { return xsimd::log(v); }
 template <class T>
-inline T lane_ceil(T v) { return std::ceil(v); }
+FLEXSPLAT_ALWAYS_INLINE T lane_floor(T v) { return std::floor(v); }
 template <class T, class A>
-inline xsimd::batch<T, A> lane_ceil(const xsimd::batch<T, A>& v) { return xsimd::ceil(v); }
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_floor(const xsimd::batch<T, A>& v) {
+#if defined(__SSE2__) && !defined(__SSE4_1__)
+  if constexpr (std::is_same_v<T, double>) {
+    // Without roundpd xsimd truncates through an emulated 64-bit integer conversion; adding and subtracting 2^52
+    // rounds |v| < 2^52 to an integer exactly (larger values, infinities and NaN are their own floor).
+    using B = xsimd::batch<double, A>;
+    const B big = B(0x1p52), a = xsimd::abs(v);
+    B r = xsimd::copysign((a + big) - big, v);
+    r = xsimd::select(r > v, r - B(1.0), r);
+    return xsimd::select(a < big, r, v);
+  } else
+#endif
+    return xsimd::floor(v);
+}
 template <class T>
-inline T lane_floor(T v) { return std::floor(v); }
+FLEXSPLAT_ALWAYS_INLINE T lane_ceil(T v) { return std::ceil(v); }
 template <class T, class A>
-inline xsimd::batch<T, A> lane_floor(const xsimd::batch<T, A>& v) { return xsimd::floor(v); }
-inline bool lane_isfinite(float v) { return std::isfinite(v); }
-inline bool lane_isfinite(double v) { return std::isfinite(v); }
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_ceil(const xsimd::batch<T, A>& v) {
+#if defined(__SSE2__) && !defined(__SSE4_1__)
+  if constexpr (std::is_same_v<T, double>) return -lane_floor(-v);
+  else
+#endif
+    return xsimd::ceil(v);
+}
+FLEXSPLAT_ALWAYS_INLINE bool lane_isfinite(float v) { return std::isfinite(v); }
+FLEXSPLAT_ALWAYS_INLINE bool lane_isfinite(double v) { return std::isfinite(v); }
 template <class T, class A>
-inline xsimd::batch_bool<T, A> lane_isfinite(const xsimd::batch<T, A>& v) { return xsimd::isfinite(v); }
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch_bool<T, A> lane_isfinite(const xsimd::batch<T, A>& v) { return xsimd::isfinite(v); }
 // Mask type of V (bool on the scalar path).
 template <class V>
 using lane_mask = decltype(V() < V());
