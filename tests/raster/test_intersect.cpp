@@ -98,3 +98,70 @@ TEST_CASE("intersect: opacity-aware extent and tile lists of a single Gaussian",
   CHECK(ti.gaussian_counts[0] == 0);
   CHECK(ti.tile_entries.empty());
 }
+
+TEST_CASE("intersect: lane rectangles and row spans agree with the scalar ones", "[raster][intersect]") {
+  using VD = simd::batch<double>;
+  constexpr int L = int(VD::size);
+  std::mt19937 rng(41);
+  std::uniform_real_distribution<double> uni(-1, 1);
+  const TileGrid grid(150, 110);
+  long same_rect = 0, kept = 0, dropped = 0;
+  for (int trial = 0; trial < 3200 / L; ++trial) {  // 3200 Gaussians for any lane count
+    alignas(64) double u[L], v[L], cov[3][L], conic[3][L], r2[L];
+    float uf[L], vf[L], covf[L][3], conicf[L][3], opacity[L];
+    for (int l = 0; l < L; ++l) {
+      // Random 2D covariance (some needle-thin) plus blur, its float conic, a mean on or beside the image.
+      const double l1 = std::exp(5 * uni(rng)), l2 = std::exp(5 * uni(rng)), th = 3.2 * uni(rng);
+      const double c = std::cos(th), s = std::sin(th);
+      const double a = c * c * l1 + s * s * l2 + 0.3, b = c * s * (l1 - l2), cc = s * s * l1 + c * c * l2 + 0.3;
+      const double det = a * cc - b * b;
+      covf[l][0] = float(a), covf[l][1] = float(b), covf[l][2] = float(cc);
+      conicf[l][0] = float(cc / det), conicf[l][1] = float(-b / det), conicf[l][2] = float(a / det);
+      uf[l] = float(75 + 100 * uni(rng)), vf[l] = float(55 + 80 * uni(rng));
+      opacity[l] = float(0.5 + 0.5 * uni(rng) + 0.004);
+      u[l] = uf[l], v[l] = vf[l];
+      for (int i = 0; i < 3; ++i) cov[i][l] = covf[l][i], conic[i][l] = conicf[l][i];
+      r2[l] = cull_radius2(double(opacity[l]), true);
+    }
+    auto load = [](const double* p) { return simd::lane_load<VD>(p); };
+    TileRectLanes<VD> rect;
+    const auto hit = tile_rect_lanes(load(u), load(v), load(cov[0]), load(cov[2]), load(r2), grid, rect);
+    const EllipseRowsLanes<VD> e = ellipse_rows_lanes(load(u), load(v), load(conic[0]), load(conic[1]), load(conic[2]),
+                                                      load(r2));
+    alignas(64) double hits[L], x0[L], y0[L], x1[L], y1[L];
+    simd::lane_store(hits, simd::lane_select(hit, VD(1.0), VD(0.0)));
+    simd::lane_store(x0, rect.x0), simd::lane_store(y0, rect.y0), simd::lane_store(x1, rect.x1), simd::lane_store(y1, rect.y1);
+    for (int l = 0; l < L; ++l) {
+      TileRect expect;
+      double r2_scalar = 0;
+      const bool scalar_hit = gaussian_tile_rect(uf[l], vf[l], covf[l], opacity[l], grid, true, expect, r2_scalar);
+      REQUIRE(scalar_hit == (hits[l] != 0));
+      if (!scalar_hit) continue;
+      CHECK(expect.x0 == int(x0[l]));
+      CHECK(expect.y0 == int(y0[l]));
+      CHECK(expect.x1 == int(x1[l]));
+      CHECK(expect.y1 == int(y1[l]));
+      ++same_rect;
+    }
+    // Every row of the grid: never drops a tile the exact test keeps, keeps only tiles a slightly larger ellipse touches.
+    const TileRectLanes<VD> full{VD(0.0), VD(0.0), VD(double(grid.tiles_x - 1)), VD(double(grid.tiles_y - 1))};
+    for (int ty = 0; ty < grid.tiles_y; ++ty) {
+      VD first, last;
+      const auto reached = tile_row_span_lanes(e, grid, full, VD(double(ty)), first, last);
+      alignas(64) double any[L], f[L], g[L];
+      simd::lane_store(any, simd::lane_select(reached, VD(1.0), VD(0.0)));
+      simd::lane_store(f, first), simd::lane_store(g, last);
+      for (int l = 0; l < L; ++l)
+        for (int tx = 0; tx < grid.tiles_x; ++tx) {
+          const bool in_span = any[l] != 0 && tx >= f[l] && tx <= g[l];
+          if (gaussian_touches_tile(uf[l], vf[l], conicf[l], r2[l], grid, tx, ty)) CHECK(in_span);
+          if (in_span) CHECK(gaussian_touches_tile(uf[l], vf[l], conicf[l], r2[l] * 1.01 + 0.01, grid, tx, ty));
+          kept += in_span;
+          dropped += !in_span;
+        }
+    }
+  }
+  CHECK(same_rect > 500);
+  CHECK(kept > 1000);
+  CHECK(dropped > 1000);
+}

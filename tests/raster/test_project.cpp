@@ -1,5 +1,7 @@
 #include <catch2/catch.hpp>
 
+#include <cmath>
+#include <cstring>
 #include <random>
 #include <vector>
 
@@ -94,4 +96,62 @@ TEST_CASE("project: culls behind the near plane and far plane, keeps a Gaussian 
   CHECK(p.cov[0] == Approx(2.5 * 2.5 + 0.3));
   CHECK(p.conic[0] == Approx(1.0 / (2.5 * 2.5 + 0.3)));
   CHECK_FALSE(project_forward_one(front, q, s, 0.5 / 255, cam, set, p));  // can never reach alpha 1/255
+}
+
+TEMPLATE_TEST_CASE("project: batch lanes are bit-identical to project_forward_one", "[raster][project]", float, double) {
+  using T = TestType;
+  using V = simd::batch<T>;
+  constexpr int L = int(V::size);
+  std::mt19937 rng(23);
+  std::uniform_real_distribution<double> uni(-1, 1), u01(0, 1);
+  std::normal_distribution<double> normal;
+  CameraParams<T> cam;
+  const double a = 0.3, c = std::cos(a), si = std::sin(a);
+  const double R[9] = {c, -si, 0, si, c, 0.1, 0, -0.1, 1};
+  for (int i = 0; i < 9; ++i) cam.R[i] = T(R[i]);
+  cam.t[0] = T(0.1), cam.t[1] = T(-0.2), cam.t[2] = T(4);
+  cam.fx = T(90), cam.fy = T(85), cam.cx = T(40.3), cam.cy = T(29.7), cam.width = T(80), cam.height = T(60);
+  long visible = 0, culled = 0;
+  for (int trial = 0; trial < 6400 / L; ++trial) {  // 6400 Gaussians for any lane count
+    ProjectSettings<T> set;
+    set.antialiased = trial % 2 == 1;
+    alignas(64) T m[3][L], q[4][L], s[3][L], o[L];
+    for (int l = 0; l < L; ++l) {
+      // Inside and far outside the field of view (clamp), behind the camera, tiny to huge scales, all opacities.
+      const double reach = trial % 3 == 0 ? 8.0 : 1.5;
+      for (int i = 0; i < 3; ++i) m[i][l] = T(reach * uni(rng));
+      for (int i = 0; i < 4; ++i) q[i][l] = T(normal(rng));
+      for (int i = 0; i < 3; ++i) s[i][l] = T(std::pow(10.0, -5 + 7 * u01(rng)));
+      o[l] = T(u01(rng));
+    }
+    if (trial == 7) m[2][0] = T(-3.99), m[2][L - 1] = T(-4);  // just beyond the near plane, behind the camera
+    if (trial == 8) o[0] = T(0), o[L - 1] = T(1);
+    V mv[3], qv[4], sv[3];
+    for (int i = 0; i < 3; ++i) mv[i] = simd::lane_load<V>(m[i]), sv[i] = simd::lane_load<V>(s[i]);
+    for (int i = 0; i < 4; ++i) qv[i] = simd::lane_load<V>(q[i]);
+    ProjectionLanes<V> pl;
+    const auto mask = project_forward_lanes<V, T>(mv, qv, sv, simd::lane_load<V>(o), cam, set, pl);
+    alignas(64) T f[10][L];
+    const V* fields[10] = {&pl.u, &pl.v, &pl.z, &pl.cov[0], &pl.cov[1], &pl.cov[2], &pl.conic[0], &pl.conic[1],
+                           &pl.conic[2], &pl.opacity};
+    for (int i = 0; i < 10; ++i) simd::lane_store(f[i], *fields[i]);
+    alignas(64) T vis[L];
+    simd::lane_store(vis, simd::lane_select(mask, V(T(1)), V(T(0))));
+    for (int l = 0; l < L; ++l) {
+      const T ml[3] = {m[0][l], m[1][l], m[2][l]}, ql[4] = {q[0][l], q[1][l], q[2][l], q[3][l]};
+      const T sl[3] = {s[0][l], s[1][l], s[2][l]};
+      Projection<T> p;
+      const bool one = project_forward_one(ml, ql, sl, o[l], cam, set, p);
+      REQUIRE(one == (vis[l] != T(0)));
+      visible += one, culled += !one;
+      if (!one) continue;
+      const T expect[10] = {p.u, p.v, p.z, p.cov[0], p.cov[1], p.cov[2], p.conic[0], p.conic[1], p.conic[2], p.opacity};
+      for (int i = 0; i < 10; ++i) {
+        INFO("trial " << trial << " lane " << l << " field " << i << ": " << expect[i] << " vs " << f[i][l]);
+        CHECK(std::memcmp(&expect[i], &f[i][l], sizeof(T)) == 0);
+      }
+    }
+  }
+  CHECK(visible > 1000);
+  CHECK(culled > 100);
 }

@@ -20,6 +20,7 @@
 #include <xsimd/xsimd.hpp>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/inline.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -180,10 +181,19 @@ template <class T, class A>
 struct lane_count<xsimd::batch<T, A>> {
   static constexpr std::size_t value = xsimd::batch<T, A>::size;
 };
-template <class T>
-inline T lane_select(bool c, T a, T b) { return c ? a : b; }
+// Scalar type of one lane.
+template <class V>
+struct lane_scalar {
+  using type = V;
+};
 template <class T, class A>
-inline xsimd::batch<T, A> lane_select(const xsimd::batch_bool<T, A>& c, const xsimd::batch<T, A>& a,
+struct lane_scalar<xsimd::batch<T, A>> {
+  using type = T;
+};
+template <class T>
+FLEXSPLAT_ALWAYS_INLINE T lane_select(bool c, T a, T b) { return c ? a : b; }
+template <class T, class A>
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_select(const xsimd::batch_bool<T, A>& c, const xsimd::batch<T, A>& a,
                                       const xsimd::batch<T, A>& b) {
   return xsimd::select(c, a, b);
 }
@@ -219,6 +229,76 @@ template <class T, class A>
 inline xsimd::batch<T, A> lane_fma(const xsimd::batch<T, A>& a, const xsimd::batch<T, A>& b, const xsimd::batch<T, A>& c) {
   return xsimd::fma(a, b, c);
 }
+// a * b + c rounded the same way on both paths: fused where the target has FMA, a product then a sum otherwise
+// (xsimd::fma does the same), so lane bodies written with it match the scalar path bit for bit whatever the compiler
+// contracts elsewhere. (lane_fma leaves the scalar rounding to the compiler.)
+template <class T>
+FLEXSPLAT_ALWAYS_INLINE T lane_mul_add(T a, T b, T c) {
+#if defined(__FMA__)
+  return std::fma(a, b, c);
+#else
+  return a * b + c;
+#endif
+}
+template <class T, class A>
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_mul_add(const xsimd::batch<T, A>& a, const xsimd::batch<T, A>& b,
+                                       const xsimd::batch<T, A>& c) {
+#if defined(__AVX512F__)
+  // xsimd 8.1 has no AVX-512 fma kernel: its generic a * b + c is fused or not as the compiler contracts
+  if constexpr (sizeof(xsimd::batch<T, A>) == 64 && std::is_same_v<T, float>) return _mm512_fmadd_ps(a, b, c);
+  else if constexpr (sizeof(xsimd::batch<T, A>) == 64 && std::is_same_v<T, double>) return _mm512_fmadd_pd(a, b, c);
+  else
+#endif
+    return xsimd::fma(a, b, c);
+}
+// Correctly rounded on both paths (IEEE sqrt), so lanes match the scalar path bit for bit.
+template <class T>
+FLEXSPLAT_ALWAYS_INLINE T lane_sqrt(T v) { return std::sqrt(v); }
+template <class T, class A>
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_sqrt(const xsimd::batch<T, A>& v) { return xsimd::sqrt(v); }
+template <class T>
+FLEXSPLAT_ALWAYS_INLINE T lane_abs(T v) { return std::abs(v); }
+template <class T, class A>
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_abs(const xsimd::batch<T, A>& v) { return xsimd::abs(v); }
+// Not correctly rounded: the batch log may differ from std::log in the last bit (use it for margins, not results).
+template <class T>
+FLEXSPLAT_ALWAYS_INLINE T lane_log(T v) { return std::log(v); }
+template <class T, class A>
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_log(const xsimd::batch<T, A>& v) { return xsimd::log(v); }
+template <class T>
+FLEXSPLAT_ALWAYS_INLINE T lane_floor(T v) { return std::floor(v); }
+template <class T, class A>
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_floor(const xsimd::batch<T, A>& v) {
+#if defined(__SSE2__) && !defined(__SSE4_1__)
+  if constexpr (std::is_same_v<T, double>) {
+    // Without roundpd xsimd truncates through an emulated 64-bit integer conversion; adding and subtracting 2^52
+    // rounds |v| < 2^52 to an integer exactly (larger values, infinities and NaN are their own floor).
+    using B = xsimd::batch<double, A>;
+    const B big = B(0x1p52), a = xsimd::abs(v);
+    B r = xsimd::copysign((a + big) - big, v);
+    r = xsimd::select(r > v, r - B(1.0), r);
+    return xsimd::select(a < big, r, v);
+  } else
+#endif
+    return xsimd::floor(v);
+}
+template <class T>
+FLEXSPLAT_ALWAYS_INLINE T lane_ceil(T v) { return std::ceil(v); }
+template <class T, class A>
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch<T, A> lane_ceil(const xsimd::batch<T, A>& v) {
+#if defined(__SSE2__) && !defined(__SSE4_1__)
+  if constexpr (std::is_same_v<T, double>) return -lane_floor(-v);
+  else
+#endif
+    return xsimd::ceil(v);
+}
+FLEXSPLAT_ALWAYS_INLINE bool lane_isfinite(float v) { return std::isfinite(v); }
+FLEXSPLAT_ALWAYS_INLINE bool lane_isfinite(double v) { return std::isfinite(v); }
+template <class T, class A>
+FLEXSPLAT_ALWAYS_INLINE xsimd::batch_bool<T, A> lane_isfinite(const xsimd::batch<T, A>& v) { return xsimd::isfinite(v); }
+// Mask type of V (bool on the scalar path).
+template <class V>
+using lane_mask = decltype(V() < V());
 template <class V, class T>
 inline V lane_load(const T* p) {
   if constexpr (std::is_same_v<V, T>) return *p;
@@ -228,6 +308,48 @@ template <class T>
 inline void lane_store(T* p, T v) { *p = v; }
 template <class T, class A>
 inline void lane_store(T* p, const xsimd::batch<T, A>& v) { v.store_unaligned(p); }
+
+// Column loads of a row-major block: out[j] lane l = rows[l][j] for j < count (rows[l] may repeat a row). AVX-512
+// float: 16 x 16 in-register transposes of (masked) row loads, which never read past rows[l][count - 1]; otherwise
+// a scalar transpose through the stack.
+template <class V, class T>
+inline void load_columns(const T* const* rows, int count, V* out) {
+  constexpr int L = int(lane_count<V>::value);
+#if defined(__AVX512F__)
+  if constexpr (std::is_same_v<T, float> && L == 16) {
+    for (int j0 = 0; j0 < count; j0 += 16) {
+      const __mmask16 live = count - j0 >= 16 ? __mmask16(0xffff) : __mmask16((1u << (count - j0)) - 1);
+      __m512 r[16], t[16];
+      for (int l = 0; l < 16; ++l) r[l] = _mm512_maskz_loadu_ps(live, rows[l] + j0);
+      for (int i = 0; i < 8; ++i) {  // pairs of rows interleaved
+        t[2 * i] = _mm512_unpacklo_ps(r[2 * i], r[2 * i + 1]);
+        t[2 * i + 1] = _mm512_unpackhi_ps(r[2 * i], r[2 * i + 1]);
+      }
+      for (int g = 0; g < 4; ++g) {  // r[4g + c]: rows 4g..4g+3 of column 4k + c in 128-bit lane k
+        r[4 * g] = _mm512_shuffle_ps(t[4 * g], t[4 * g + 2], 0x44);
+        r[4 * g + 1] = _mm512_shuffle_ps(t[4 * g], t[4 * g + 2], 0xee);
+        r[4 * g + 2] = _mm512_shuffle_ps(t[4 * g + 1], t[4 * g + 3], 0x44);
+        r[4 * g + 3] = _mm512_shuffle_ps(t[4 * g + 1], t[4 * g + 3], 0xee);
+      }
+      for (int c = 0; c < 4; ++c) {  // gather the four row groups of each 128-bit lane
+        const __m512 lo01 = _mm512_shuffle_f32x4(r[c], r[4 + c], 0x88), hi01 = _mm512_shuffle_f32x4(r[c], r[4 + c], 0xdd);
+        const __m512 lo23 = _mm512_shuffle_f32x4(r[8 + c], r[12 + c], 0x88);
+        const __m512 hi23 = _mm512_shuffle_f32x4(r[8 + c], r[12 + c], 0xdd);
+        const __m512 col[4] = {_mm512_shuffle_f32x4(lo01, lo23, 0x88), _mm512_shuffle_f32x4(hi01, hi23, 0x88),
+                               _mm512_shuffle_f32x4(lo01, lo23, 0xdd), _mm512_shuffle_f32x4(hi01, hi23, 0xdd)};
+        for (int k = 0; k < 4; ++k)
+          if (j0 + 4 * k + c < count) out[j0 + 4 * k + c] = col[k];
+      }
+    }
+    return;
+  }
+#endif
+  alignas(64) T lanes[L];
+  for (int j = 0; j < count; ++j) {
+    for (int l = 0; l < L; ++l) lanes[l] = rows[l][j];
+    out[j] = lane_load<V>(lanes);
+  }
+}
 
 }  // namespace simd
 }  // namespace v0

@@ -1,7 +1,8 @@
 #pragma once
-// Reference path without any skip: every Gaussian in front of the near plane is evaluated at every pixel (no
-// tiles, no extent, no opacity cull, no early exit), scalar code, sorted with std::stable_sort. Tests compare the
-// tiled renderer with it; it is slow by design.
+// Reference path without any skip: every projected Gaussian is evaluated at every pixel (no tiles, no extent, no
+// early exit), scalar code, sorted with std::stable_sort. Tests compare the tiled renderer with it; it is slow by
+// design. Projection and colour are the renderer's own (project_forward_one and sh_forward, whose SIMD lanes are
+// bit-identical), so pixel counts compare exactly.
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -29,19 +30,18 @@ void render_brute_force(const GaussianInputs<T>& in, const Camera<T>& camera, co
     std::vector<T> ch;
   };
   std::vector<Splat> splats;
+  ProjectSettings<T> set;
+  set.eps2d = T(opt.eps2d), set.near_plane = T(opt.near_plane), set.far_plane = T(opt.far_plane);
+  set.antialiased = opt.antialiased;
   for (index_t g = 0; g < n; ++g) {
     const T* m = in.means.data() + g * 3;
-    ProjectionTrace<T> tr;
-    projection_trace(m, in.quats.data() + g * 4, in.scales.data() + g * 3, cam, T(opt.eps2d), tr);
-    const T z = tr.p[2];
-    if (!(z >= T(opt.near_plane)) || z > T(opt.far_plane) || !(tr.det_b > T(0))) continue;
+    Projection<T> p;
+    if (!project_forward_one(m, in.quats.data() + g * 4, in.scales.data() + g * 3, in.opacities.data()[g], cam, set, p))
+      continue;
     Splat s;
-    s.u = cam.fx * tr.p[0] / z + cam.cx;
-    s.v = cam.fy * tr.p[1] / z + cam.cy;
-    s.z = z;
-    const T a = tr.cov2d[0] + T(opt.eps2d), b = tr.cov2d[1], c = tr.cov2d[2] + T(opt.eps2d);
-    s.qa = c / tr.det_b, s.qb = -b / tr.det_b, s.qc = a / tr.det_b;
-    s.o = in.opacities.data()[g] * (opt.antialiased ? tr.comp : T(1));
+    s.u = p.u, s.v = p.v, s.z = p.z;
+    s.qa = p.conic[0], s.qb = p.conic[1], s.qc = p.conic[2];
+    s.o = p.opacity;
     const T dir[3] = {m[0] - campos[0], m[1] - campos[1], m[2] - campos[2]};
     T rgb[3];
     sh_forward(degree, 3, in.sh.data() + g * K * 3, dir, rgb);

@@ -11,7 +11,9 @@
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/simd.hpp"
 #include "flexsplat/core/simd_dispatch.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/raster/constants.hpp"
@@ -162,6 +164,88 @@ bool tile_row_span(T u, T v, const T conic[3], double r2, const TileGrid& grid, 
   return tile_row_span(ellipse_rows(u, v, conic, r2), grid, rect, ty, tx_first, tx_last);
 }
 
+// Lane versions (VD = double or simd::batch<double>, one Gaussian per lane) of gaussian_tile_rect, ellipse_rows and
+// tile_row_span for the batched per-Gaussian pass: the same formulas for a given r2, tile coordinates kept as doubles
+// (exact small integers). Lanes whose mask is false hold unspecified values.
+template <class VD>
+struct TileRectLanes {
+  VD x0, y0, x1, y1;  // inclusive tile rectangle
+};
+
+template <class VD>
+FLEXSPLAT_ALWAYS_INLINE simd::lane_mask<VD> tile_rect_lanes(VD u, VD v, VD cov_a, VD cov_c, VD r2, const TileGrid& grid,
+                                                            TileRectLanes<VD>& rect) {
+  const VD grow = VD(1.0 + cull_slack_relative), pad = VD(cull_slack_absolute), half = VD(pixel_centre_offset);
+  const VD rx = simd::lane_sqrt(r2 * cov_a) * grow + pad, ry = simd::lane_sqrt(r2 * cov_c) * grow + pad;
+  // Pixel px is in range when |px + 0.5 - u| <= rx.
+  const VD px0 = simd::lane_ceil(u - rx - half), px1 = simd::lane_floor(u + rx - half);
+  const VD py0 = simd::lane_ceil(v - ry - half), py1 = simd::lane_floor(v + ry - half);
+  const VD zero = VD(0.0), last_x = VD(double(grid.width - 1)), last_y = VD(double(grid.height - 1));
+  const auto hit = (r2 > zero) & (px1 >= zero) & (py1 >= zero) & (px0 <= last_x) & (py0 <= last_y);
+  const VD ix0 = simd::lane_max(zero, px0), ix1 = simd::lane_min(last_x, px1);
+  const VD iy0 = simd::lane_max(zero, py0), iy1 = simd::lane_min(last_y, py1);
+  const VD per_tile = VD(1.0 / tile_size);  // exact: tile_size is a power of two
+  rect.x0 = simd::lane_floor(ix0 * per_tile), rect.x1 = simd::lane_floor(ix1 * per_tile);
+  rect.y0 = simd::lane_floor(iy0 * per_tile), rect.y1 = simd::lane_floor(iy1 * per_tile);
+  return hit & (ix1 >= ix0) & (iy1 >= iy0);
+}
+
+template <class VD>
+struct EllipseRowsLanes {
+  VD u, v, qb, inv_qa, det, r2qa, rx, ry, dy_leftmost, slack_x, slack_y;
+  simd::lane_mask<VD> degenerate;  // keep whole rows
+};
+
+template <class VD>
+FLEXSPLAT_ALWAYS_INLINE EllipseRowsLanes<VD> ellipse_rows_lanes(VD u, VD v, VD qa, VD qb, VD qc, VD r2) {
+  EllipseRowsLanes<VD> e;
+  e.u = u, e.v = v, e.qb = qb, e.det = qa * qc - qb * qb;
+  e.rx = simd::lane_sqrt(r2 * qc / e.det), e.ry = simd::lane_sqrt(r2 * qa / e.det);
+  const VD zero = VD(0.0);
+  e.degenerate = simd::lane_not((e.det > zero) & (qa > zero) & (qc > zero) & simd::lane_isfinite(e.rx) &
+                                simd::lane_isfinite(e.ry));
+  e.inv_qa = VD(1.0) / qa, e.r2qa = r2 * qa;
+  e.dy_leftmost = qb * e.rx / qc;
+  e.slack_x = VD(cull_slack_absolute) + VD(cull_slack_relative) * e.rx;
+  e.slack_y = VD(cull_slack_absolute) + VD(cull_slack_relative) * e.ry;
+  return e;
+}
+
+// Tile columns [first, last] of row ty of every lane (tile_row_span); false where the row holds none.
+template <class VD>
+FLEXSPLAT_ALWAYS_INLINE simd::lane_mask<VD> tile_row_span_lanes(const EllipseRowsLanes<VD>& e, const TileGrid& grid,
+                                                                const TileRectLanes<VD>& rect, VD ty, VD& first,
+                                                                VD& last) {
+  const VD size = VD(double(tile_size)), half = VD(pixel_centre_offset), zero = VD(0.0);
+  const VD dy0 = ty * size + half - e.v;
+  const VD dy1 = simd::lane_min(VD(double(grid.height)), (ty + VD(1.0)) * size) - VD(1.0) + half - e.v;
+  auto reached = simd::lane_not(dy0 > e.ry + e.slack_y) & simd::lane_not(dy1 < -e.ry - e.slack_y);
+  VD lo = VD(INFINITY), hi = VD(-INFINITY);
+  for (VD dy : {dy0, dy1}) {
+    dy = simd::lane_select(dy < -e.ry, -e.ry, simd::lane_select(e.ry < dy, e.ry, dy));  // std::clamp
+    // std::max / std::min spelled as selects: the same result as tile_row_span even for a NaN operand
+    const VD chord2 = e.r2qa - e.det * dy * dy;
+    const VD half_chord = simd::lane_sqrt(simd::lane_select(zero < chord2, chord2, zero));
+    const VD x0 = (-e.qb * dy - half_chord) * e.inv_qa, x1 = (-e.qb * dy + half_chord) * e.inv_qa;
+    lo = simd::lane_select(x0 < lo, x0, lo);
+    hi = simd::lane_select(hi < x1, x1, hi);
+  }
+  lo = simd::lane_select((e.dy_leftmost >= dy0) & (e.dy_leftmost <= dy1), -e.rx, lo);
+  hi = simd::lane_select((-e.dy_leftmost >= dy0) & (-e.dy_leftmost <= dy1), e.rx, hi);
+  const VD x_lo = e.u + lo - e.slack_x, x_hi = e.u + hi + e.slack_x;
+  reached = reached & simd::lane_not(x_lo > VD(grid.width - pixel_centre_offset)) & simd::lane_not(x_hi < half);
+  // Tile tx holds the pixel centres [tx * tile_size + 0.5, tx * tile_size + tile_size - 0.5].
+  const VD per_tile = VD(1.0 / tile_size);
+  first = simd::lane_ceil((x_lo - VD(double(tile_size - 1)) - half) * per_tile);
+  last = simd::lane_floor((x_hi - half) * per_tile);
+  first = simd::lane_select(rect.x0 < first, first, rect.x0);
+  last = simd::lane_select(last < rect.x1, last, rect.x1);
+  reached = reached & (first <= last);
+  first = simd::lane_select(e.degenerate, rect.x0, simd::lane_select(reached, first, VD(1.0)));
+  last = simd::lane_select(e.degenerate, rect.x1, simd::lane_select(reached, last, zero));
+  return reached | e.degenerate;
+}
+
 // Stable LSD radix sort of non-negative floating-point keys carrying int32 values (ties keep input order).
 template <class T>
 void radix_sort_positive(std::vector<T>& keys, std::vector<std::int32_t>& values, std::vector<T>& key_tmp,
@@ -234,6 +318,23 @@ std::int64_t count_gaussian_tiles(const Projection<T>& p, const TileGrid& grid, 
   return count;
 }
 
+// Calls f(tile index) for the tiles of the rows after the stored ones (recomputed from p; the batched pass counts
+// them through this function too, so counts and emitted tiles always agree).
+template <class T, class F>
+void for_each_later_row_tile(const Projection<T>& p, const GaussianTiles& t, const TileGrid& grid,
+                             const RasterSkips& skips, F&& f) {
+  const TileRect& rect = t.rect;
+  if (rect.y1 - rect.y0 < GaussianTiles::stored_rows) return;
+  const bool exact = uses_row_test(skips, rect);
+  const double r2 = cull_radius2(double(p.opacity), skips.opacity_aware_extent);
+  const EllipseRows rows = exact ? ellipse_rows(p.u, p.v, p.conic, r2) : EllipseRows{};
+  for (int ty = rect.y0 + GaussianTiles::stored_rows; ty <= rect.y1; ++ty) {
+    int tx0 = rect.x0, tx1 = rect.x1;
+    if (exact && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) continue;
+    for (int tx = tx0; tx <= tx1; ++tx) f(ty * grid.tiles_x + tx);
+  }
+}
+
 // Calls f(tile index) for every tile of the Gaussian, row by row, in the order count_gaussian_tiles counted them.
 template <class T, class F>
 void for_each_gaussian_tile(const Projection<T>& p, const GaussianTiles& t, const TileGrid& grid,
@@ -242,15 +343,7 @@ void for_each_gaussian_tile(const Projection<T>& p, const GaussianTiles& t, cons
   const int stored_last_row = std::min(rect.y1, rect.y0 + GaussianTiles::stored_rows - 1);
   for (int ty = rect.y0; ty <= stored_last_row; ++ty)
     for (int tx = t.first[ty - rect.y0]; tx <= t.last[ty - rect.y0]; ++tx) f(ty * grid.tiles_x + tx);
-  if (stored_last_row == rect.y1) return;
-  const bool exact = uses_row_test(skips, rect);
-  const double r2 = cull_radius2(double(p.opacity), skips.opacity_aware_extent);
-  const EllipseRows rows = exact ? ellipse_rows(p.u, p.v, p.conic, r2) : EllipseRows{};
-  for (int ty = stored_last_row + 1; ty <= rect.y1; ++ty) {
-    int tx0 = rect.x0, tx1 = rect.x1;
-    if (exact && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) continue;
-    for (int tx = tx0; tx <= tx1; ++tx) f(ty * grid.tiles_x + tx);
-  }
+  for_each_later_row_tile(p, t, grid, skips, f);
 }
 
 // Result of the intersection stage: tile t owns entries [tile_offsets[t], tile_offsets[t+1]) of tile_entries,

@@ -4,6 +4,7 @@
 #include <cmath>
 
 #include "flexsplat/core/inline.hpp"
+#include "flexsplat/core/simd.hpp"
 #include "flexsplat/raster/constants.hpp"
 
 namespace flexsplat {
@@ -169,27 +170,102 @@ FLEXSPLAT_ALWAYS_INLINE void projection_trace(const T m[3], const T q[4], const 
   tr.comp = tr.det0 > T(0) && tr.det_b > T(0) ? std::sqrt(tr.det0 / tr.det_b) : T(0);
 }
 
+// The forward projection with one Gaussian per lane of V (V = T: one Gaussian). Every sum of products is spelled
+// with simd::lane_mul_add and no product meets a sum otherwise, so compiler contraction cannot differ between the
+// paths: the lanes of a batch are bit-identical to the scalar path (project_forward_one). The values agree with
+// projection_trace (used by the backward pass) up to rounding. Returns the visibility mask; the outputs of culled
+// lanes are unspecified.
+template <class V>
+struct ProjectionLanes {
+  V u, v, z, cov[3], conic[3], opacity;
+};
+
+namespace detail {
+template <class V>
+FLEXSPLAT_ALWAYS_INLINE V dot3_lanes(V a0, V b0, V a1, V b1, V a2, V b2) {
+  return simd::lane_mul_add(a2, b2, simd::lane_mul_add(a1, b1, a0 * b0));
+}
+}  // namespace detail
+
+template <class V, class T>
+FLEXSPLAT_ALWAYS_INLINE simd::lane_mask<V> project_forward_lanes(const V m[3], const V q[4], const V s[3], V opacity,
+                                                                 const CameraParams<T>& cam,
+                                                                 const ProjectSettings<T>& set, ProjectionLanes<V>& out) {
+  using detail::dot3_lanes;
+  using simd::lane_mul_add;
+  // World covariance R(q/|q|) diag(s)^2 R^T.
+  const V len = simd::lane_sqrt(lane_mul_add(q[3], q[3], lane_mul_add(q[2], q[2], lane_mul_add(q[1], q[1], q[0] * q[0]))));
+  const V w = q[0] / len, x = q[1] / len, y = q[2] / len, z = q[3] / len;
+  const V one = V(T(1)), two = V(T(2)), minus_two = V(T(-2));
+  const V R[9] = {lane_mul_add(minus_two, lane_mul_add(y, y, z * z), one), two * lane_mul_add(x, y, -(w * z)),
+                  two * lane_mul_add(x, z, w * y),
+                  two * lane_mul_add(x, y, w * z), lane_mul_add(minus_two, lane_mul_add(x, x, z * z), one),
+                  two * lane_mul_add(y, z, -(w * x)),
+                  two * lane_mul_add(x, z, -(w * y)), two * lane_mul_add(y, z, w * x),
+                  lane_mul_add(minus_two, lane_mul_add(x, x, y * y), one)};
+  V M[9], cw[9];
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) M[i * 3 + j] = R[i * 3 + j] * s[j];
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      cw[i * 3 + j] = dot3_lanes(M[i * 3], M[j * 3], M[i * 3 + 1], M[j * 3 + 1], M[i * 3 + 2], M[j * 3 + 2]);
+  // Camera-space mean and covariance Rc cw Rc^T.
+  V Rc[9], p[3], tmp[9], cc[9];
+  for (int i = 0; i < 9; ++i) Rc[i] = V(cam.R[i]);
+  for (int i = 0; i < 3; ++i) p[i] = dot3_lanes(Rc[i * 3], m[0], Rc[i * 3 + 1], m[1], Rc[i * 3 + 2], m[2]) + V(cam.t[i]);
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      tmp[i * 3 + j] = dot3_lanes(Rc[i * 3], cw[j], Rc[i * 3 + 1], cw[3 + j], Rc[i * 3 + 2], cw[6 + j]);
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      cc[i * 3 + j] = dot3_lanes(tmp[i * 3], Rc[j * 3], tmp[i * 3 + 1], Rc[j * 3 + 1], tmp[i * 3 + 2], Rc[j * 3 + 2]);
+  // Jacobian of the perspective projection with x/z and y/z clamped to 1.3x the field of view.
+  const V zc = p[2], rz = one / zc;
+  T lxp, lxn, lyp, lyn;
+  fov_limits(cam, lxp, lxn, lyp, lyn);
+  const V xr = p[0] * rz, yr = p[1] * rz;
+  const V x_lo = simd::lane_select(V(-lxn) < xr, xr, V(-lxn)), y_lo = simd::lane_select(V(-lyn) < yr, yr, V(-lyn));
+  const V txr = simd::lane_select(x_lo < V(lxp), x_lo, V(lxp)), tyr = simd::lane_select(y_lo < V(lyp), y_lo, V(lyp));
+  const V fx = V(cam.fx), fy = V(cam.fy);
+  const V J00 = fx * rz, J02 = -fx * txr * rz, J11 = fy * rz, J12 = -fy * tyr * rz;  // J01 = J10 = 0
+  // cov2d = J cc J^T
+  V JC0[3], JC1[3];
+  for (int j = 0; j < 3; ++j) {
+    JC0[j] = lane_mul_add(J02, cc[6 + j], J00 * cc[j]);
+    JC1[j] = lane_mul_add(J12, cc[6 + j], J11 * cc[3 + j]);
+  }
+  const V c00 = lane_mul_add(JC0[2], J02, JC0[0] * J00), c01 = lane_mul_add(JC0[2], J12, JC0[1] * J11);
+  const V c11 = lane_mul_add(JC1[2], J12, JC1[1] * J11);
+  const V eps = V(set.eps2d);
+  const V a = c00 + eps, b = c01, c = c11 + eps;
+  const V det_b = lane_mul_add(a, c, -(b * b));
+  const V inv = one / det_b;
+  out.cov[0] = a, out.cov[1] = b, out.cov[2] = c;
+  out.conic[0] = c * inv, out.conic[1] = -b * inv, out.conic[2] = a * inv;
+  out.opacity = opacity;
+  if (set.antialiased) {  // opacity times sqrt(det(cov2d) / det(cov2d + eps2d I))
+    const V zero = V(T(0)), det0 = lane_mul_add(c00, c11, -(b * b));
+    out.opacity = opacity * simd::lane_select((det0 > zero) & (det_b > zero), simd::lane_sqrt(det0 / det_b), zero);
+  }
+  out.z = zc;
+  out.u = fx * p[0] / zc + V(cam.cx);
+  out.v = fy * p[1] / zc + V(cam.cy);
+  using simd::lane_isfinite;
+  return (zc >= V(set.near_plane)) & simd::lane_not(zc > V(set.far_plane)) & (det_b > V(T(0))) & lane_isfinite(det_b) &
+         (out.opacity >= V(T(alpha_threshold))) & lane_isfinite(out.conic[0]) & lane_isfinite(out.conic[1]) &
+         lane_isfinite(out.conic[2]) & lane_isfinite(out.u) & lane_isfinite(out.v);
+}
+
 // Projects one Gaussian; false when it is culled (near/far, degenerate, or too transparent to reach the alpha
 // threshold anywhere).
 template <class T>
 bool project_forward_one(const T m[3], const T q[4], const T s[3], T opacity, const CameraParams<T>& cam,
                          const ProjectSettings<T>& set, Projection<T>& out) {
-  T z = cam.R[6] * m[0] + cam.R[7] * m[1] + cam.R[8] * m[2] + cam.t[2];
-  if (!(z >= set.near_plane) || z > set.far_plane) return false;
-  ProjectionTrace<T> tr;
-  projection_trace(m, q, s, cam, set.eps2d, tr);
-  if (!(tr.det_b > T(0)) || !std::isfinite(tr.det_b)) return false;
-  const T a = tr.cov2d[0] + set.eps2d, b = tr.cov2d[1], c = tr.cov2d[2] + set.eps2d;
-  const T inv = T(1) / tr.det_b;
-  out.cov[0] = a, out.cov[1] = b, out.cov[2] = c;
-  out.conic[0] = c * inv, out.conic[1] = -b * inv, out.conic[2] = a * inv;
-  out.opacity = set.antialiased ? opacity * tr.comp : opacity;
-  if (!(out.opacity >= T(alpha_threshold))) return false;
-  if (!std::isfinite(out.conic[0]) || !std::isfinite(out.conic[1]) || !std::isfinite(out.conic[2])) return false;
-  out.z = tr.p[2];
-  out.u = cam.fx * tr.p[0] / tr.p[2] + cam.cx;
-  out.v = cam.fy * tr.p[1] / tr.p[2] + cam.cy;
-  return std::isfinite(out.u) && std::isfinite(out.v);
+  ProjectionLanes<T> p;
+  const bool visible = project_forward_lanes<T, T>(m, q, s, opacity, cam, set, p);
+  out.u = p.u, out.v = p.v, out.z = p.z, out.opacity = p.opacity;
+  for (int i = 0; i < 3; ++i) out.cov[i] = p.cov[i], out.conic[i] = p.conic[i];
+  return visible;
 }
 
 // Cotangents of one visible Gaussian's projection.

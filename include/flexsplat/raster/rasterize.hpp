@@ -368,21 +368,27 @@ void begin_splats(index_t n, int C, RasterWorkspace<T>& ws) {
   ws.splat_stride = stride, ws.splat_channels = C, ws.splat_count = n;
 }
 
+// Record fields 7-10: the image pixels within the half-extents rx, ry of (u, v) (pixel x is in range when
+// |x + 0.5 - u| <= rx), computed once per Gaussian so tiles only clamp integers.
 template <class T>
-void write_splat_record(const Projection<T>& p, const T* channels, int C, const TileGrid& grid, T* record) {
-  SplatParams<T> sp;
-  splat_params(p, sp);
-  record[0] = sp.u, record[1] = sp.v, record[2] = sp.ca, record[3] = sp.cb, record[4] = sp.cc;
-  record[5] = sp.opacity, record[6] = sp.sigma_max;
-  // Pixel x is in range when |x + 0.5 - u| <= rx; computed once here so tiles only clamp integers.
+void write_record_pixels(double u, double v, double rx, double ry, const TileGrid& grid, T* record) {
   auto pixel_range = [](double centre, double half, int size, T* out) {
     const double first = std::ceil(centre - pixel_centre_offset - half);
     const double last = std::floor(centre - pixel_centre_offset + half);
     out[0] = T(std::clamp(first, 0.0, double(size)));
     out[1] = T(std::clamp(last, -1.0, double(size - 1)));
   };
-  pixel_range(double(sp.u), double(sp.rx), grid.width, record + 7);
-  pixel_range(double(sp.v), double(sp.ry), grid.height, record + 9);
+  pixel_range(u, rx, grid.width, record + 7);
+  pixel_range(v, ry, grid.height, record + 9);
+}
+
+template <class T>
+void write_splat_record(const Projection<T>& p, const T* channels, int C, const TileGrid& grid, T* record) {
+  SplatParams<T> sp;
+  splat_params(p, sp);
+  record[0] = sp.u, record[1] = sp.v, record[2] = sp.ca, record[3] = sp.cb, record[4] = sp.cc;
+  record[5] = sp.opacity, record[6] = sp.sigma_max;
+  write_record_pixels(double(sp.u), double(sp.v), double(sp.rx), double(sp.ry), grid, record);
   for (int c = 0; c < C; ++c) record[splat_fields + c] = channels[c];
 }
 

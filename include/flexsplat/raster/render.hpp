@@ -26,7 +26,9 @@
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/simd.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/raster/constants.hpp"
 #include "flexsplat/raster/intersect.hpp"
@@ -231,6 +233,250 @@ bool gaussian_values_ok(const GaussianInputs<T>& in, index_t g) {
   return ok && len2 > T(0) && std::isfinite(len2) && o >= T(0) && o <= T(1);
 }
 
+// Everything the per-Gaussian pass of render_forward reads, shared by its scalar and batched paths.
+template <class T>
+struct GaussianPass {
+  const GaussianInputs<T>* in = nullptr;
+  RenderWorkspace<T>* ws = nullptr;
+  CameraParams<T> cam;
+  ProjectSettings<T> set;
+  TileGrid grid;
+  RasterSkips skips;
+  int degree = 0, F = 0, C = 0;
+  index_t n = 0, K = 0;
+  T campos[3] = {0, 0, 0};
+  T* records = nullptr;
+  int record_stride = 0;
+};
+
+// Scalar path, one Gaussian: value checks, projection, colour, channels, tiles, kernel record; false if a value is bad.
+template <class T>
+bool gaussian_one(const GaussianPass<T>& pass, index_t g) {
+  const GaussianInputs<T>& in = *pass.in;
+  RenderWorkspace<T>& ws = *pass.ws;
+  if (!gaussian_values_ok(in, g)) return false;
+  const T* m = in.means.data() + g * 3;
+  Projection<T>& p = ws.projections[g];
+  if (!project_forward_one(m, in.quats.data() + g * 4, in.scales.data() + g * 3, in.opacities.data()[g], pass.cam,
+                           pass.set, p))
+    return true;
+  ws.visible[g] = 1;
+  const int C = pass.C, F = pass.F;
+  T* ch = &ws.channels[g * C];
+  const T dir[3] = {m[0] - pass.campos[0], m[1] - pass.campos[1], m[2] - pass.campos[2]};
+  T rgb[3];
+  sh_forward(pass.degree, 3, in.sh.data() + g * pass.K * 3, dir, rgb);
+  for (int c = 0; c < 3; ++c) {
+    const T value = rgb[c] + T(sh_color_offset);
+    ws.color_positive[g * 3 + c] = value > T(0);
+    ch[c] = value > T(0) ? value : T(0);
+  }
+  ch[3] = p.z;
+  for (int f = 0; f < F; ++f) ch[4 + f] = in.features.data()[g * F + f];
+  const std::int64_t tiles = count_gaussian_tiles(p, pass.grid, pass.skips, ws.tiles.gaussian_tiles[g]);
+  ws.tiles.gaussian_counts[g] = tiles;
+  if (tiles > 0) write_splat_record(p, ch, C, pass.grid, pass.records + g * pass.record_stride);
+  return true;
+}
+
+// Whether every value of data[0, count) is finite: x - x is 0 for a finite x and NaN otherwise, and NaN survives sums.
+template <class V, class T>
+FLEXSPLAT_ALWAYS_INLINE bool all_finite_lanes(const T* data, index_t count) {
+  constexpr index_t L = index_t(simd::lane_count<V>::value);
+  V acc = V(T(0));
+  index_t i = 0;
+  for (; i + L <= count; i += L) {
+    const V x = simd::lane_load<V>(data + i);
+    acc += x - x;
+  }
+  T tail = T(0);
+  for (; i < count; ++i) tail += data[i] - data[i];
+  return simd::lane_all(acc == V(T(0))) && tail == T(0);
+}
+
+// Batched path: Gaussians [g0, g0 + L) (L = lanes of V; padding lanes past n repeat the last Gaussian and write
+// nothing) give the same projections, colours and channels as gaussian_one (same arithmetic per lane) and
+// conservative tiles and records computed in double lanes with one shared log. A block with a suspicious value runs
+// gaussian_one per Gaussian, so errors are found exactly as on the scalar path.
+template <class V, class T>
+bool gaussian_block(const GaussianPass<T>& pass, index_t g0) {
+  using VD = simd::batch<double>;
+  constexpr int L = int(simd::lane_count<V>::value), LD = int(simd::lane_count<VD>::value);
+  static_assert(L % LD == 0, "a block splits into whole double batches");
+  const GaussianInputs<T>& in = *pass.in;
+  RenderWorkspace<T>& ws = *pass.ws;
+  const int live = int(std::min<index_t>(L, pass.n - g0));
+  const index_t K3 = pass.K * 3, F = pass.F;
+  auto per_gaussian = [&] {
+    bool ok = true;
+    for (int l = 0; l < live; ++l) ok &= gaussian_one(pass, g0 + l);
+    return ok;
+  };
+  // Inputs of the block `ahead` blocks on: a block is a lot of work per cache line, so the hardware prefetchers fall
+  // behind the streams (the inputs of a block are contiguous ranges).
+  constexpr index_t ahead = 2;
+  if (const index_t gp = g0 + ahead * L; gp + L <= pass.n) {
+    auto prefetch = [](const T* p, index_t count) {
+      for (index_t i = 0; i < count; i += index_t(64 / sizeof(T))) __builtin_prefetch(p + i);
+    };
+    prefetch(in.means.data() + gp * 3, L * 3);
+    prefetch(in.quats.data() + gp * 4, L * 4);
+    prefetch(in.scales.data() + gp * 3, L * 3);
+    prefetch(in.opacities.data() + gp, L);
+    prefetch(in.sh.data() + gp * K3, L * K3);
+    if (F > 0) prefetch(in.features.data() + gp * F, L * F);
+  }
+  // Inputs of a block are contiguous ranges: one finiteness scan each.
+  if (!(all_finite_lanes<V>(in.means.data() + g0 * 3, live * 3) &&
+        all_finite_lanes<V>(in.quats.data() + g0 * 4, live * 4) &&
+        all_finite_lanes<V>(in.scales.data() + g0 * 3, live * 3) &&
+        all_finite_lanes<V>(in.opacities.data() + g0, live) && all_finite_lanes<V>(in.sh.data() + g0 * K3, live * K3) &&
+        (F == 0 || all_finite_lanes<V>(in.features.data() + g0 * F, live * F))))
+    return per_gaussian();
+  // Structure of arrays of the block (transposed through the stack).
+  alignas(64) T a_m[3][L], a_q[4][L], a_s[3][L], a_o[L];
+  for (int l = 0; l < L; ++l) {
+    const index_t g = g0 + std::min(l, live - 1);
+    for (int i = 0; i < 3; ++i) a_m[i][l] = in.means.data()[g * 3 + i];
+    for (int i = 0; i < 4; ++i) a_q[i][l] = in.quats.data()[g * 4 + i];
+    for (int i = 0; i < 3; ++i) a_s[i][l] = in.scales.data()[g * 3 + i];
+    a_o[l] = in.opacities.data()[g];
+  }
+  V m[3], q[4], sc[3];
+  for (int i = 0; i < 3; ++i) m[i] = simd::lane_load<V>(a_m[i]), sc[i] = simd::lane_load<V>(a_s[i]);
+  for (int i = 0; i < 4; ++i) q[i] = simd::lane_load<V>(a_q[i]);
+  const V o = simd::lane_load<V>(a_o);
+  // Quaternion length and opacity range. gaussian_values_ok rounds |q|^2 its own way: far from 0 and overflow every
+  // rounding agrees, so only a block with a length in doubt takes the per-Gaussian checks.
+  const V len2 = simd::lane_mul_add(q[3], q[3], simd::lane_mul_add(q[2], q[2], simd::lane_mul_add(q[1], q[1], q[0] * q[0])));
+  if (!simd::lane_all((len2 > V(T(1e-30))) & (len2 < V(T(1e30))) & (o >= V(T(0))) & (o <= V(T(1)))))
+    return per_gaussian();
+  ProjectionLanes<V> p;
+  const auto visible = project_forward_lanes<V, T>(m, q, sc, o, pass.cam, pass.set, p);
+  // Colour from SH: coefficient (k, c) of every lane in one batch.
+  const T* sh_rows[L];
+  for (int l = 0; l < L; ++l) sh_rows[l] = in.sh.data() + (g0 + std::min(l, live - 1)) * K3;
+  V coeffs[16 * 3];
+  simd::load_columns<V, T>(sh_rows, sh_coeff_count(pass.degree) * 3, coeffs);
+  const V dir[3] = {m[0] - V(pass.campos[0]), m[1] - V(pass.campos[1]), m[2] - V(pass.campos[2])};
+  V rgb[3];
+  sh_forward_lanes<V>(pass.degree, 3, coeffs, dir, rgb);
+  // Lane values back to arrays: projection, clamped colour and its sign, visibility.
+  alignas(64) T a_p[10][L], a_rgb[3][L], a_pos[3][L], a_vis[L];
+  const V* fields[10] = {&p.u, &p.v, &p.z, &p.cov[0], &p.cov[1], &p.cov[2], &p.conic[0], &p.conic[1], &p.conic[2],
+                         &p.opacity};
+  for (int i = 0; i < 10; ++i) simd::lane_store(a_p[i], *fields[i]);
+  for (int c = 0; c < 3; ++c) {
+    const V value = rgb[c] + V(T(sh_color_offset));
+    const auto positive = value > V(T(0));
+    simd::lane_store(a_rgb[c], simd::lane_select(positive, value, V(T(0))));
+    simd::lane_store(a_pos[c], simd::lane_select(positive, V(T(1)), V(T(0))));
+  }
+  simd::lane_store(a_vis, simd::lane_select(visible, V(T(1)), V(T(0))));
+  const int C = pass.C;
+  for (int l = 0; l < live; ++l) {
+    if (a_vis[l] == T(0)) continue;
+    const index_t g = g0 + l;
+    ws.visible[g] = 1;
+    Projection<T>& pr = ws.projections[g];
+    pr.u = a_p[0][l], pr.v = a_p[1][l], pr.z = a_p[2][l];
+    for (int i = 0; i < 3; ++i) pr.cov[i] = a_p[3 + i][l], pr.conic[i] = a_p[6 + i][l];
+    pr.opacity = a_p[9][l];
+    T* ch = &ws.channels[g * C];
+    for (int c = 0; c < 3; ++c) ch[c] = a_rgb[c][l], ws.color_positive[g * 3 + c] = a_pos[c][l] != T(0);
+    ch[3] = a_p[2][l];
+    for (int f = 0; f < F; ++f) ch[4 + f] = in.features.data()[g * F + f];
+  }
+  // Tiles and kernel records in double lanes (conservative extents, as count_gaussian_tiles and splat_params).
+  alignas(64) double d_p[10][L], d_vis[L];
+  for (int i = 0; i < 10; ++i)
+    for (int l = 0; l < L; ++l) d_p[i][l] = double(a_p[i][l]);
+  for (int l = 0; l < L; ++l) d_vis[l] = double(a_vis[l]);
+  const TileGrid& grid = pass.grid;
+  const bool aware = pass.skips.opacity_aware_extent, row_test = pass.skips.exact_tile_test;
+  const VD r2_opaque = VD(cull_radius2(1.0, false));
+  constexpr int stored = GaussianTiles::stored_rows;
+  for (int base = 0; base < L; base += LD) {
+    auto load = [&](const double* a) { return simd::lane_load<VD>(a + base); };
+    const VD u = load(d_p[0]), v = load(d_p[1]), qa = load(d_p[6]), qb = load(d_p[7]), qc = load(d_p[8]);
+    const VD opacity = load(d_p[9]);
+    // One log for the tile extent and the kernel's sigma_max: log(o / alpha_threshold).
+    const VD lg = simd::lane_log(opacity / VD(alpha_threshold));
+    const VD r2 = aware ? VD(2.0) * lg * VD(1.0 + cull_slack_relative) + VD(cull_slack_absolute) : r2_opaque;
+    TileRectLanes<VD> rect;
+    const auto hit = tile_rect_lanes(u, v, load(d_p[3]), load(d_p[5]), r2, grid, rect) & (load(d_vis) != VD(0.0));
+    if (!simd::lane_any(hit)) continue;
+    const VD zero = VD(0.0), one = VD(1.0);
+    const auto no_lane = zero != zero;
+    const auto exact = row_test ? hit & (rect.x1 > rect.x0) & (rect.y1 > rect.y0) : no_lane;  // uses_row_test
+    // Tiles of the stored rows (later rows are counted per Gaussian below, as for_each_gaussian_tile emits them).
+    const VD stored_rows = simd::lane_min(rect.y1 - rect.y0 + one, VD(double(stored)));
+    VD count = simd::lane_select(hit & simd::lane_not(exact), stored_rows * (rect.x1 - rect.x0 + one), zero);
+    VD first[stored], last[stored];
+    for (int i = 0; i < stored; ++i) first[i] = rect.x0, last[i] = rect.x1;
+    if (simd::lane_any(exact)) {
+      const EllipseRowsLanes<VD> e = ellipse_rows_lanes(u, v, qa, qb, qc, r2);
+      for (int i = 0; i < stored; ++i) {
+        const VD ty = rect.y0 + VD(double(i));
+        const auto active = exact & (ty <= rect.y1);
+        if (!simd::lane_any(active)) break;
+        VD f, l;
+        const auto reached = tile_row_span_lanes(e, grid, rect, ty, f, l);
+        first[i] = simd::lane_select(exact, f, first[i]), last[i] = simd::lane_select(exact, l, last[i]);
+        count += simd::lane_select(active & reached, l - f + one, zero);
+      }
+    }
+    // Kernel extent (splat_params): sigma_max rounded to T first, as the kernels compare against that value.
+    alignas(64) double sigma_max[LD];
+    simd::lane_store(sigma_max, lg * VD(1.0 + cull_slack_relative) + VD(cull_slack_absolute));
+    for (int l = 0; l < LD; ++l) sigma_max[l] = double(T(sigma_max[l]));
+    const VD sm = simd::lane_load<VD>(sigma_max);
+    const VD r2s = VD(2.0) * simd::lane_select(sm < zero, zero, sm);
+    const VD det = qa * qc - qb * qb, trace = qa + qc;
+    const VD margin = VD(1.0 + cull_slack_relative) + VD(cull_slack_conditioning) * trace * trace / det;
+    VD rx = simd::lane_sqrt(r2s * qc / det) * margin + VD(cull_slack_absolute);
+    VD ry = simd::lane_sqrt(r2s * qa / det) * margin + VD(cull_slack_absolute);
+    const auto sane = (det > zero) & (qa > zero) & (qc > zero) & simd::lane_isfinite(rx) & simd::lane_isfinite(ry);
+    // Widened so that T(rx) >= rx after rounding to nearest: conservative in T (as splat_params' round-up).
+    const VD widen = VD(sizeof(T) < sizeof(double) ? 1.0 + 0x1p-22 : 1.0);
+    rx = simd::lane_select(sane, rx * widen, VD(INFINITY)), ry = simd::lane_select(sane, ry * widen, VD(INFINITY));
+    // Back to lanes: rectangle, stored rows, counts, extents.
+    alignas(64) double a_rect[4][LD], a_first[stored][LD], a_last[stored][LD], a_count[LD], a_hit[LD], a_rx[LD], a_ry[LD];
+    simd::lane_store(a_rect[0], simd::lane_select(hit, rect.x0, zero));
+    simd::lane_store(a_rect[1], simd::lane_select(hit, rect.y0, zero));
+    simd::lane_store(a_rect[2], simd::lane_select(hit, rect.x1, zero));
+    simd::lane_store(a_rect[3], simd::lane_select(hit, rect.y1, zero));
+    for (int i = 0; i < stored; ++i) {
+      simd::lane_store(a_first[i], simd::lane_select(hit, first[i], zero));
+      simd::lane_store(a_last[i], simd::lane_select(hit, last[i], zero));
+    }
+    simd::lane_store(a_count, simd::lane_select(hit, count, zero));
+    simd::lane_store(a_hit, simd::lane_select(hit, one, zero));
+    simd::lane_store(a_rx, rx), simd::lane_store(a_ry, ry);
+    for (int l = 0; l < LD && base + l < live; ++l) {
+      if (a_hit[l] == 0.0) continue;
+      const int lane = base + l;
+      const index_t g = g0 + lane;
+      GaussianTiles& t = ws.tiles.gaussian_tiles[g];
+      t.rect = TileRect{int(a_rect[0][l]), int(a_rect[1][l]), int(a_rect[2][l]), int(a_rect[3][l])};
+      for (int i = 0; i < stored; ++i) t.first[i] = std::int16_t(a_first[i][l]), t.last[i] = std::int16_t(a_last[i][l]);
+      std::int64_t tiles = std::int64_t(a_count[l]);
+      for_each_later_row_tile(ws.projections[g], t, grid, pass.skips, [&](std::int64_t) { ++tiles; });
+      ws.tiles.gaussian_counts[g] = tiles;
+      if (tiles == 0) continue;
+      T* record = pass.records + g * pass.record_stride;
+      record[0] = a_p[0][lane], record[1] = a_p[1][lane];
+      record[2] = a_p[6][lane], record[3] = a_p[7][lane], record[4] = a_p[8][lane];
+      record[5] = a_p[9][lane], record[6] = T(sigma_max[l]);
+      write_record_pixels(double(a_p[0][lane]), double(a_p[1][lane]), double(T(a_rx[l])), double(T(a_ry[l])), grid,
+                          record);
+      const T* ch = &ws.channels[g * C];
+      for (int c = 0; c < C; ++c) record[splat_fields + c] = ch[c];
+    }
+  }
+  return true;
+}
+
 template <class T, class Tensor_, std::size_t R>
 void ensure_shape(Tensor_& t, const Shape<R>& shape) {
   if (t.shape() != shape) t.resize(shape);
@@ -275,33 +521,24 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
   begin_splats(n, C, ws.raster);
   T* records = ws.raster.splat_storage.data() + ws.raster.splat_offset;
   std::atomic<bool> value_failed{false};
-  parallel_for(n, [&](index_t begin, index_t end, int) {
-    for (index_t g = begin; g < end; ++g) {
-      if (!detail::gaussian_values_ok(in, g)) {
-        value_failed.store(true, std::memory_order_relaxed);
-        continue;
-      }
-      const T* m = in.means.data() + g * 3;
-      Projection<T>& p = ws.projections[g];
-      if (!project_forward_one(m, in.quats.data() + g * 4, in.scales.data() + g * 3, in.opacities.data()[g], cam, set, p))
-        continue;
-      ws.visible[g] = 1;
-      T* ch = &ws.channels[g * C];
-      const T dir[3] = {m[0] - campos[0], m[1] - campos[1], m[2] - campos[2]};
-      T rgb[3];
-      sh_forward(degree, 3, in.sh.data() + g * K * 3, dir, rgb);
-      for (int c = 0; c < 3; ++c) {
-        const T value = rgb[c] + T(sh_color_offset);
-        ws.color_positive[g * 3 + c] = value > T(0);
-        ch[c] = value > T(0) ? value : T(0);
-      }
-      ch[3] = p.z;
-      for (int f = 0; f < F; ++f) ch[4 + f] = in.features.data()[g * F + f];
-      const std::int64_t tiles = count_gaussian_tiles(p, grid, opt.skips, ws.tiles.gaussian_tiles[g]);
-      ws.tiles.gaussian_counts[g] = tiles;
-      if (tiles > 0) write_splat_record(p, ch, C, grid, records + g * ws.raster.splat_stride);
-    }
-  }, pool);
+  detail::GaussianPass<T> pass;
+  pass.in = &in, pass.ws = &ws, pass.cam = cam, pass.set = set, pass.grid = grid, pass.skips = opt.skips;
+  pass.degree = degree, pass.F = F, pass.C = C, pass.n = n, pass.K = K;
+  for (int i = 0; i < 3; ++i) pass.campos[i] = campos[i];
+  pass.records = records, pass.record_stride = ws.raster.splat_stride;
+  if (simd::enabled() && !opt.skips.force_scalar) {
+    // Blocks of L Gaussians at fixed positions: the same lanes for any number of threads.
+    constexpr index_t L = index_t(simd::lane_count<simd::batch<T>>::value);
+    parallel_for((n + L - 1) / L, [&](index_t begin, index_t end, int) {
+      for (index_t b = begin; b < end; ++b)
+        if (!detail::gaussian_block<simd::batch<T>, T>(pass, b * L)) value_failed.store(true, std::memory_order_relaxed);
+    }, pool);
+  } else {
+    parallel_for(n, [&](index_t begin, index_t end, int) {
+      for (index_t g = begin; g < end; ++g)
+        if (!detail::gaussian_one(pass, g)) value_failed.store(true, std::memory_order_relaxed);
+    }, pool);
+  }
   if (value_failed.load()) {
     detail::validate_values(in);
     throw Error("render: an input value failed validation");  // validate_values names it first; not reached

@@ -4,6 +4,7 @@
 #include <cmath>
 
 #include "flexsplat/core/inline.hpp"
+#include "flexsplat/core/simd.hpp"
 #include "flexsplat/raster/constants.hpp"
 
 namespace flexsplat {
@@ -11,6 +12,38 @@ inline namespace v0 {
 namespace raster {
 
 inline constexpr int sh_coeff_count(int degree) { return (degree + 1) * (degree + 1); }
+
+// Basis values b[k] for unit directions n, one per lane of V (T: one direction); bands above degree are not written.
+// Sums of products go through simd::lane_mul_add (the same rounding on the scalar and batch paths).
+template <class V>
+FLEXSPLAT_ALWAYS_INLINE void sh_basis_values(int degree, const V n[3], V* b) {
+  using S = typename simd::lane_scalar<V>::type;
+  using simd::lane_mul_add;
+  const V x = n[0], y = n[1], z = n[2];
+  b[0] = V(S(sh_c0));
+  if (degree < 1) return;
+  const V c1 = V(S(sh_c1));
+  b[1] = -c1 * y;
+  b[2] = c1 * z;
+  b[3] = -c1 * x;
+  if (degree < 2) return;
+  const V yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+  const V xx_yy = lane_mul_add(x, x, yy), xx_m_yy = lane_mul_add(x, x, -yy);  // x^2 + y^2, x^2 - y^2
+  b[4] = V(S(sh_c2[0])) * xy;
+  b[5] = V(S(sh_c2[1])) * yz;
+  b[6] = V(S(sh_c2[2])) * lane_mul_add(V(S(2)), zz, -xx_yy);
+  b[7] = V(S(sh_c2[3])) * xz;
+  b[8] = V(S(sh_c2[4])) * xx_m_yy;
+  if (degree < 3) return;
+  const V xx = x * x;
+  b[9] = V(S(sh_c3[0])) * y * lane_mul_add(V(S(3)), xx, -yy);
+  b[10] = V(S(sh_c3[1])) * xy * z;
+  b[11] = V(S(sh_c3[2])) * y * lane_mul_add(V(S(4)), zz, -xx_yy);
+  b[12] = V(S(sh_c3[3])) * z * lane_mul_add(V(S(2)), zz, V(S(-3)) * xx_yy);
+  b[13] = V(S(sh_c3[4])) * x * lane_mul_add(V(S(4)), zz, -xx_yy);
+  b[14] = V(S(sh_c3[5])) * z * xx_m_yy;
+  b[15] = V(S(sh_c3[6])) * x * lane_mul_add(V(S(-3)), yy, xx);
+}
 
 // Basis values b[k] for a unit direction n, and (optionally) their gradients g[k][3] with respect to n.
 template <class T>
@@ -76,18 +109,30 @@ T sh_normalize(const T dir[3], T n[3]) {
   return len;
 }
 
+// sh_forward with one Gaussian per lane of V: coeffs[k * channels + c] holds coefficient (k, c) of every lane. The
+// scalar path (sh_forward) is this body with V = T, so lanes are bit-identical to it.
+template <class V>
+FLEXSPLAT_ALWAYS_INLINE void sh_forward_lanes(int degree, int channels, const V* coeffs, const V dir[3], V* out) {
+  using S = typename simd::lane_scalar<V>::type;
+  using simd::lane_mul_add;
+  const V len = simd::lane_sqrt(lane_mul_add(dir[2], dir[2], lane_mul_add(dir[1], dir[1], dir[0] * dir[0])));
+  const auto toward = len > V(S(0));  // else the +z direction, as sh_normalize
+  const V n[3] = {simd::lane_select(toward, dir[0] / len, V(S(0))), simd::lane_select(toward, dir[1] / len, V(S(0))),
+                  simd::lane_select(toward, dir[2] / len, V(S(1)))};
+  V b[16];
+  sh_basis_values(degree, n, b);
+  const int k_count = sh_coeff_count(degree);
+  for (int c = 0; c < channels; ++c) {
+    V s = V(S(0));
+    for (int k = 0; k < k_count; ++k) s = lane_mul_add(b[k], coeffs[k * channels + c], s);
+    out[c] = s;
+  }
+}
+
 // out[c] = sum_k b_k(dir / |dir|) * coeffs[k * channels + c]; no offset, no clamp.
 template <class T>
 void sh_forward(int degree, int channels, const T* coeffs, const T dir[3], T* out) {
-  T n[3], b[16];
-  sh_normalize(dir, n);
-  sh_basis<T>(degree, n, b, nullptr);
-  const int k_count = sh_coeff_count(degree);
-  for (int c = 0; c < channels; ++c) {
-    T s = 0;
-    for (int k = 0; k < k_count; ++k) s += b[k] * coeffs[k * channels + c];
-    out[c] = s;
-  }
+  sh_forward_lanes<T>(degree, channels, coeffs, dir, out);
 }
 
 // Adds d(coeffs) and d(dir) for the cotangent d_out[channels]; d_dir may be null.
