@@ -366,6 +366,8 @@ struct TileIntersections {
   std::vector<std::int32_t> order_tmp;
   std::vector<std::int64_t> tile_cursor;      // [chunks * tiles]
   std::vector<std::int32_t> chunk_bounds;     // [chunks + 1] positions in order
+  std::vector<std::uint8_t> depth_chunk;      // [N] chunk of each Gaussian with tiles
+  std::vector<std::int64_t> worker_counts;    // [workers * chunks * tiles]
 };
 
 // Sizes the per-Gaussian arrays for n Gaussians on grid (counts zero) before count_gaussian_tiles fills them.
@@ -404,26 +406,31 @@ void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, T
   out.total_entries = total;
   // Chunks of the depth order with about equal entry counts.
   const index_t tiles = grid.count();
-  const int chunks = int(std::clamp<std::int64_t>(total / 65536, 1, pool.size()));
+  const int chunks = int(std::clamp<std::int64_t>(total / 65536, 1, std::min(pool.size(), 255)));
   out.chunk_bounds.assign(std::size_t(chunks) + 1, std::int32_t(out.order.size()));
   out.chunk_bounds[0] = 0;
   for (int w = 1, i = 0; w < chunks; ++w) {
     while (i < int(out.order.size()) && out.gaussian_offsets[out.order[i]] < total * w / chunks) ++i;
     out.chunk_bounds[w] = i;
   }
-  out.tile_cursor.assign(std::size_t(chunks) * std::size_t(tiles), 0);
-  constexpr std::int32_t prefetch_distance = 16;  // Gaussians are visited in depth order: random reads
-  parallel_for(chunks, [&](index_t wb, index_t we, int) {
-    for (index_t w = wb; w < we; ++w) {
-      std::int64_t* counts = &out.tile_cursor[std::size_t(w * tiles)];
-      for (std::int32_t i = out.chunk_bounds[w]; i < out.chunk_bounds[w + 1]; ++i) {
-        if (i + prefetch_distance < out.chunk_bounds[w + 1])
-          __builtin_prefetch(&out.gaussian_tiles[std::size_t(out.order[i + prefetch_distance])]);
-        const std::int32_t g = out.order[i];
-        for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) { ++counts[tile]; });
-      }
+  // Entries per (chunk, tile), counted in index order (sequential reads) into per-worker histograms.
+  out.depth_chunk.resize(std::size_t(n));
+  for (int w = 0; w < chunks; ++w)
+    for (std::int32_t i = out.chunk_bounds[w]; i < out.chunk_bounds[w + 1]; ++i) out.depth_chunk[out.order[i]] = std::uint8_t(w);
+  const std::size_t histogram = std::size_t(chunks) * std::size_t(tiles);
+  out.worker_counts.assign(std::size_t(pool.size()) * histogram, 0);
+  parallel_for(n, [&](index_t begin, index_t end, int worker) {
+    std::int64_t* counts = &out.worker_counts[std::size_t(worker) * histogram];
+    for (index_t g = begin; g < end; ++g) {
+      if (out.gaussian_counts[g] == 0) continue;
+      std::int64_t* chunk_counts = counts + std::size_t(out.depth_chunk[g]) * std::size_t(tiles);
+      for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) { ++chunk_counts[tile]; });
     }
   }, pool);
+  out.tile_cursor.assign(histogram, 0);
+  for (int worker = 0; worker < pool.size(); ++worker)
+    for (std::size_t i = 0; i < histogram; ++i) out.tile_cursor[i] += out.worker_counts[std::size_t(worker) * histogram + i];
+  constexpr std::int32_t prefetch_distance = 16;  // the scatter visits Gaussians in depth order: random reads
   out.tile_offsets.assign(std::size_t(tiles) + 1, 0);
   out.max_tile_entries = 0;
   std::int64_t running = 0;
