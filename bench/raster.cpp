@@ -2,6 +2,7 @@
 // 1 and 2 threads, the error of each float32 configuration against a float64 run of the same scene, and what each
 // skip saves on the target scene. Writes a CSV and an SVG plot of run time against error.
 // Usage: raster [out.csv] [out.svg] [--quick (no 1M)] [--target-only (only the skip table of the target scene)]
+//              [--rounds R (interleaved rounds of the skip table, default 5)]
 //              [--profile R (only the target scene with all skips, R repetitions: for perf/callgrind)]
 #include <algorithm>
 #include <chrono>
@@ -204,12 +205,13 @@ int main(int argc, char** argv) {
   simd::require_cpu_supports_build();
   std::string csv_path = "raster_bench.csv", svg_path = "raster_bench.svg";
   bool quick = false, target_only = false;
-  int profile_reps = 0;
+  int profile_reps = 0, rounds = 5;
   std::vector<std::string> pos;
   for (int i = 1; i < argc; ++i) {
     if (std::string(argv[i]) == "--quick") quick = true;
     else if (std::string(argv[i]) == "--profile" && i + 1 < argc) profile_reps = std::max(1, std::atoi(argv[++i]));
     else if (std::string(argv[i]) == "--target-only") target_only = true;
+    else if (std::string(argv[i]) == "--rounds" && i + 1 < argc) rounds = std::max(1, std::atoi(argv[++i]));
     else pos.push_back(argv[i]);
   }
   if (pos.size() > 0) csv_path = pos[0];
@@ -272,21 +274,40 @@ int main(int argc, char** argv) {
 
   // What each skip saves on the target scene (100K Gaussians, 512^2, SH 3, 2 threads).
   const auto target = make_scene<float>(100000, 512, 3);
-  std::printf("\nskips on the target scene (100K, 512^2, SH 3, 2 threads); cpu = process CPU time (both threads)\n"
-              "%-26s %9s %9s %9s %9s %12s\n", "configuration", "fwd_ms", "bwd_ms", "fwd_cpu", "bwd_cpu", "tile_entries");
+  // Variants run in interleaved rounds so that a slow phase of a shared machine hits all of them alike.
+  std::printf("\nskips on the target scene (100K, 512^2, SH 3, 2 threads), %d interleaved rounds of 5 repetitions: "
+              "median over rounds [min]; cpu = process CPU time (both threads)\n"
+              "%-26s %21s %21s %9s %9s %12s\n", rounds, "configuration", "fwd_ms", "bwd_ms", "fwd_cpu", "bwd_cpu",
+              "tile_entries");
   struct Variant { const char* name; bool opacity, exact, early; };
-  for (const Variant& v : {Variant{"all skips", true, true, true}, Variant{"no opacity-aware extent", false, true, true},
-                           Variant{"no exact tile test", true, false, true}, Variant{"no early exit", true, true, false},
-                           Variant{"no skips", false, false, false}}) {
-    RenderOptions opt;
-    opt.background = {1, 1, 1};
-    opt.pool = &two;
-    opt.skips.opacity_aware_extent = v.opacity;
-    opt.skips.exact_tile_test = v.exact;
-    opt.skips.early_exit = v.early;
-    const auto r = run(target, opt, 5);
-    std::printf("%-26s %9.2f %9.2f %9.2f %9.2f %12.0f\n", v.name, r.forward_ms, r.backward_ms, r.forward_cpu_ms,
-                r.backward_cpu_ms, r.entries);
+  const Variant variants[] = {{"all skips", true, true, true}, {"no opacity-aware extent", false, true, true},
+                              {"no exact tile test", true, false, true}, {"no early exit", true, true, false},
+                              {"no skips", false, false, false}};
+  std::vector<std::vector<Result<float>>> results(std::size(variants));
+  for (int round = 0; round < rounds; ++round)
+    for (std::size_t i = 0; i < std::size(variants); ++i) {
+      RenderOptions opt;
+      opt.background = {1, 1, 1};
+      opt.pool = &two;
+      opt.skips.opacity_aware_extent = variants[i].opacity;
+      opt.skips.exact_tile_test = variants[i].exact;
+      opt.skips.early_exit = variants[i].early;
+      results[i].push_back(run(target, opt, 5));
+      results[i].back().out = {};  // keep only the timings
+    }
+  auto stat = [](const std::vector<Result<float>>& rs, double Result<float>::*field, bool minimum) {
+    std::vector<double> v;
+    for (const auto& r : rs) v.push_back(r.*field);
+    std::sort(v.begin(), v.end());
+    return minimum ? v.front() : v[v.size() / 2];
+  };
+  for (std::size_t i = 0; i < std::size(variants); ++i) {
+    const auto& rs = results[i];
+    std::printf("%-26s %12.2f [%6.2f] %12.2f [%6.2f] %9.2f %9.2f %12.0f\n", variants[i].name,
+                stat(rs, &Result<float>::forward_ms, false), stat(rs, &Result<float>::forward_ms, true),
+                stat(rs, &Result<float>::backward_ms, false), stat(rs, &Result<float>::backward_ms, true),
+                stat(rs, &Result<float>::forward_cpu_ms, false), stat(rs, &Result<float>::backward_cpu_ms, false),
+                rs.front().entries);
   }
   return 0;
 }
