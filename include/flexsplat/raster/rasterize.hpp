@@ -59,8 +59,8 @@ struct TileState {
 template <class T>
 struct RasterWorkspace {
   std::vector<TileState<T>> scratch;  // one per worker
-  // Per-Gaussian records (SplatParams fields, then the C channels), one or more whole cache lines each so a tile
-  // entry misses once; filled by rasterize_forward, reused by rasterize_backward.
+  // Per-Gaussian records (the splat_fields values, then the C channels), one or more whole cache lines each so a
+  // tile entry misses once; filled by render_forward / rasterize_forward, reused by rasterize_backward.
   std::vector<T> splat_storage;
   std::size_t splat_offset = 0;  // first record, 64-byte aligned
   int splat_stride = 0, splat_channels = 0;
