@@ -204,16 +204,32 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
     }
     if (skips.early_exit && active_batches == 0) break;
   }
-  for (int row = 0; row < f.rows_here; ++row)
-    for (int x = 0; x < f.width_here; ++x) {
+  // Out: whole batches as vectors (channel planes are contiguous along a row), the image's right edge lane by lane.
+  const std::int64_t plane = std::int64_t(grid.width) * grid.height;
+  for (int row = 0; row < f.rows_here; ++row) {
+    const std::int64_t pix0 = std::int64_t(f.y_base + row) * grid.width + f.x_base;
+    for (int x = 0; x < f.width_here; x += L) {
       const int i = row * tile_size + x;
-      const std::int64_t pix = std::int64_t(f.y_base + row) * grid.width + f.x_base + x;
-      const T trans = st.transmittance[i];
-      state.final_transmittance[pix] = trans;
-      state.n_contrib[pix] = std::int32_t(st.n_contrib[i]);
-      state.last_entry[pix] = std::int32_t(st.last[i]);
-      for (int c = 0; c < C; ++c) out_channels[pix * C + c] = st.channels[c * P + i] + trans * background[c];
+      if (x + L <= f.width_here) {
+        const V trans = simd::lane_load<V>(&st.transmittance[i]);
+        simd::lane_store(&state.final_transmittance[pix0 + x], trans);
+        for (int c = 0; c < C; ++c)
+          simd::lane_store(&out_channels[c * plane + pix0 + x],
+                           simd::lane_load<V>(&st.channels[c * P + i]) + trans * V(background[c]));
+      } else {
+        for (int l = x; l < f.width_here; ++l) {
+          const T trans = st.transmittance[row * tile_size + l];
+          state.final_transmittance[pix0 + l] = trans;
+          for (int c = 0; c < C; ++c)
+            out_channels[c * plane + pix0 + l] = st.channels[c * P + row * tile_size + l] + trans * background[c];
+        }
+      }
     }
+    for (int x = 0; x < f.width_here; ++x) {
+      state.n_contrib[pix0 + x] = std::int32_t(st.n_contrib[row * tile_size + x]);
+      state.last_entry[pix0 + x] = std::int32_t(st.last[row * tile_size + x]);
+    }
+  }
 }
 
 // Writes the gradient record (6 + C values) of every entry of the tile into entry_grads at the entry's emission
@@ -229,6 +245,7 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
   const TileFrame f(grid, tile);
   const std::int64_t begin = ti.tile_offsets[tile], count = ti.tile_offsets[tile + 1] - begin;
   const std::int32_t* gaussians = ti.tile_gaussian.data() + begin;
+  const std::int64_t plane = std::int64_t(grid.width) * grid.height;
   const int stride = entry_grad_fixed + C;
   const V iota = lane_offsets<V, T>();
   std::int32_t max_last = 0;
@@ -242,7 +259,7 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
       st.last[i] = inside ? T(state.last_entry[pix]) : T(0);
       st.d_alpha[i] = inside && d_alpha ? d_alpha[pix] : T(0);
       for (int c = 0; c < C; ++c) {
-        st.d_channels[c * P + i] = inside ? d_out_channels[pix * C + c] : T(0);
+        st.d_channels[c * P + i] = inside ? d_out_channels[c * plane + pix] : T(0);
         st.behind[c * P + i] = t_final * background[c];
       }
       if (inside) max_last = std::max(max_last, state.last_entry[pix]);
@@ -449,7 +466,8 @@ void rasterize_forward_prepared(const TileIntersections& ti, int C, const T* bac
   });
 }
 
-// Blends C channels of the visible Gaussians into out_channels [H*W*C] (background included) and fills state.
+// Blends C channels of the visible Gaussians into out_channels (planar: channel c of pixel p at [c * H * W + p],
+// background included) and fills state.
 template <class T>
 void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
                        const T* background, const RasterSkips& skips, RasterWorkspace<T>& ws, T* out_channels,
@@ -460,7 +478,7 @@ void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, c
 }
 
 // Adds into the per-Gaussian cotangents (grads [N, 6 + C], same record layout as an entry) from d_out_channels
-// [H*W*C] and d_alpha [H*W] (may be null). Zero the caller's buffer once; this accumulates.
+// (planar, as out_channels) and d_alpha [H*W] (may be null). Zero the caller's buffer once; this accumulates.
 template <class T>
 void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
                         const T* background, const BlendState<T>& state, const T* d_out_channels, const T* d_alpha,

@@ -558,14 +558,15 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
   detail::ensure_shape<T>(out.n_contrib, Shape<2>{H, W});
   detail::ensure_shape<T>(out.features, Shape<3>{H, W, F});
   parallel_for(pixels, [&](index_t begin, index_t end, int) {
+    const T* planes = ws.out_channels.data();  // channel c of pixel p at [c * pixels + p]
     for (index_t p = begin; p < end; ++p) {
-      const T* src = &ws.out_channels[p * C];
-      for (int c = 0; c < 3; ++c) out.image.data()[p * 3 + c] = src[c];
+      for (int c = 0; c < 3; ++c) out.image.data()[p * 3 + c] = planes[c * pixels + p];
       const T a = T(1) - ws.blend.final_transmittance[p];
+      const T depth = planes[3 * pixels + p];
       out.alpha.data()[p] = a;
-      out.depth.data()[p] = opt.expected_depth ? (a > T(0) ? src[3] / a : T(0)) : src[3];
+      out.depth.data()[p] = opt.expected_depth ? (a > T(0) ? depth / a : T(0)) : depth;
       out.n_contrib.data()[p] = ws.blend.n_contrib[p];
-      for (int f = 0; f < F; ++f) out.features.data()[p * F + f] = src[4 + f];
+      for (int f = 0; f < F; ++f) out.features.data()[p * F + f] = planes[(4 + f) * pixels + p];
     }
   }, pool);
   stage_end(ws.forward_times.output);
@@ -597,27 +598,27 @@ void render_backward(const GaussianInputs<T>& in, const Camera<T>& camera, const
   ws.d_out_channels.resize(std::size_t(pixels * C));
   ws.d_alpha.resize(std::size_t(pixels));
   parallel_for(pixels, [&](index_t begin, index_t end, int) {
+    T* planes = ws.d_out_channels.data();  // channel c of pixel p at [c * pixels + p]
     for (index_t p = begin; p < end; ++p) {
-      T* d = &ws.d_out_channels[p * C];
-      std::fill_n(d, C, T(0));
+      for (int c = 0; c < C; ++c) planes[c * pixels + p] = T(0);
       ws.d_alpha[p] = T(0);
       if (!d_out.image.empty())
-        for (int c = 0; c < 3; ++c) d[c] = d_out.image.data()[p * 3 + c];
+        for (int c = 0; c < 3; ++c) planes[c * pixels + p] = d_out.image.data()[p * 3 + c];
       if (!d_out.alpha.empty()) ws.d_alpha[p] = d_out.alpha.data()[p];
       if (!d_out.depth.empty()) {
         const T dd = d_out.depth.data()[p];
         if (opt.expected_depth) {
           const T a = T(1) - ws.blend.final_transmittance[p];
           if (a > T(0)) {
-            d[3] = dd / a;
-            ws.d_alpha[p] -= dd * ws.out_channels[p * C + 3] / (a * a);
+            planes[3 * pixels + p] = dd / a;
+            ws.d_alpha[p] -= dd * ws.out_channels[3 * pixels + p] / (a * a);
           }
         } else {
-          d[3] = dd;
+          planes[3 * pixels + p] = dd;
         }
       }
       if (!d_out.features.empty())
-        for (int f = 0; f < F; ++f) d[4 + f] = d_out.features.data()[p * F + f];
+        for (int f = 0; f < F; ++f) planes[(4 + f) * pixels + p] = d_out.features.data()[p * F + f];
     }
   }, pool);
   const int stride = entry_grad_fixed + C;
