@@ -4,10 +4,12 @@
 // front-to-back ordering by camera depth (stable radix sort, ties by Gaussian index), and per-tile ranges.
 // Every test is conservative: a (Gaussian, pixel) pair whose alpha can reach alpha_threshold is never dropped.
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <type_traits>
+#include <utility>
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
@@ -246,38 +248,72 @@ FLEXSPLAT_ALWAYS_INLINE simd::lane_mask<VD> tile_row_span_lanes(const EllipseRow
   return reached | e.degenerate;
 }
 
-// Stable LSD radix sort of non-negative floating-point keys carrying int32 values (ties keep input order).
+// Depth key of a tile entry: the bits of a non-negative float or double order like its value.
 template <class T>
-void radix_sort_positive(std::vector<T>& keys, std::vector<std::int32_t>& values, std::vector<T>& key_tmp,
-                         std::vector<std::int32_t>& value_tmp) {
-  using U = std::conditional_t<sizeof(T) == 4, std::uint32_t, std::uint64_t>;
-  const std::size_t n = keys.size();
-  key_tmp.resize(n);
-  value_tmp.resize(n);
-  std::size_t counts[256];
-  for (unsigned shift = 0; shift < sizeof(U) * 8; shift += 8) {
-    std::fill(counts, counts + 256, std::size_t(0));
-    for (std::size_t i = 0; i < n; ++i) {
-      U bits;
-      std::memcpy(&bits, &keys[i], sizeof(U));
-      ++counts[(bits >> shift) & 0xff];
-    }
-    if (n == 0 || *std::max_element(counts, counts + 256) == n) continue;  // this digit is the same everywhere
-    std::size_t sum = 0;
-    for (auto& c : counts) {
-      const std::size_t k = c;
-      c = sum;
+using depth_key_t = std::conditional_t<sizeof(T) == 4, std::uint32_t, std::uint64_t>;
+
+template <class T>
+depth_key_t<T> depth_key(T z) {
+  depth_key_t<T> bits;
+  std::memcpy(&bits, &z, sizeof(bits));
+  return bits;
+}
+
+// Scratch of sort_by_depth_key (one per worker).
+template <class U>
+struct DepthSortScratch {
+  std::vector<U> keys;
+  std::vector<std::int32_t> positions, entries, gaussians;
+};
+
+// Stable LSD radix sort (8-bit digits, digits equal everywhere skipped) of one tile's list by depth key, permuting
+// entries and gaussians alike; ties keep their input order.
+template <class U>
+void sort_by_depth_key(U* keys, std::int32_t* entries, std::int32_t* gaussians, std::int64_t count,
+                       DepthSortScratch<U>& s) {
+  if (count < 2) return;
+  if (s.keys.size() < std::size_t(count)) {
+    s.keys.resize(std::size_t(count));
+    s.positions.resize(std::size_t(count) * 2);
+    s.entries.resize(std::size_t(count));
+    s.gaussians.resize(std::size_t(count));
+  }
+  constexpr int digits = int(sizeof(U));
+  std::uint32_t counts[digits][256] = {};
+  for (std::int64_t i = 0; i < count; ++i)
+    for (int d = 0; d < digits; ++d) ++counts[d][(keys[i] >> (8 * d)) & 0xff];
+  // Sort positions (keys follow them); entries and gaussians are permuted once at the end.
+  std::int32_t* from = s.positions.data();
+  std::int32_t* to = s.positions.data() + count;
+  U* key_from = keys;
+  U* key_to = s.keys.data();
+  for (std::int64_t i = 0; i < count; ++i) from[i] = std::int32_t(i);
+  bool moved = false;
+  for (int d = 0; d < digits; ++d) {
+    std::uint32_t* c = counts[d];
+    if (*std::max_element(c, c + 256) == std::uint32_t(count)) continue;
+    std::uint32_t sum = 0;
+    for (int v = 0; v < 256; ++v) {
+      const std::uint32_t k = c[v];
+      c[v] = sum;
       sum += k;
     }
-    for (std::size_t i = 0; i < n; ++i) {
-      U bits;
-      std::memcpy(&bits, &keys[i], sizeof(U));
-      const std::size_t dst = counts[(bits >> shift) & 0xff]++;
-      key_tmp[dst] = keys[i];
-      value_tmp[dst] = values[i];
+    for (std::int64_t i = 0; i < count; ++i) {
+      const std::uint32_t dst = c[(key_from[i] >> (8 * d)) & 0xff]++;
+      key_to[dst] = key_from[i];
+      to[dst] = from[i];
     }
-    keys.swap(key_tmp);
-    values.swap(value_tmp);
+    std::swap(from, to);
+    std::swap(key_from, key_to);
+    moved = true;
+  }
+  if (!moved) return;
+  if (key_from != keys) std::copy(key_from, key_from + count, keys);
+  std::copy(entries, entries + count, s.entries.data());
+  std::copy(gaussians, gaussians + count, s.gaussians.data());
+  for (std::int64_t i = 0; i < count; ++i) {
+    entries[i] = s.entries[std::size_t(from[i])];
+    gaussians[i] = s.gaussians[std::size_t(from[i])];
   }
 }
 
@@ -353,7 +389,6 @@ struct TileIntersections {
   TileGrid grid;
   std::vector<GaussianTiles> gaussian_tiles;   // [N] filled by count_gaussian_tiles
   std::vector<std::int64_t> gaussian_counts;   // [N] tiles of each Gaussian (0 when culled)
-  std::vector<std::int32_t> order;             // Gaussians with tiles, front to back
   std::vector<std::int64_t> gaussian_offsets;  // [N] first emission of each Gaussian
   std::int64_t total_entries = 0;
   std::vector<std::int64_t> tile_offsets;      // [tiles+1]
@@ -361,13 +396,11 @@ struct TileIntersections {
   std::vector<std::int32_t> tile_gaussian;     // [E] Gaussian of each tile_entries element (one indirection less)
   std::int64_t max_tile_entries = 0;
   // Scratch
-  std::vector<double> depth_keys_d, depth_tmp_d;
-  std::vector<float> depth_keys_f, depth_tmp_f;
-  std::vector<std::int32_t> order_tmp;
+  std::vector<std::uint32_t> tile_keys_f;
+  std::vector<std::uint64_t> tile_keys_d;
+  std::vector<DepthSortScratch<std::uint32_t>> sort_scratch_f;
+  std::vector<DepthSortScratch<std::uint64_t>> sort_scratch_d;
   std::vector<std::int64_t> tile_cursor;      // [chunks * tiles]
-  std::vector<std::int32_t> chunk_bounds;     // [chunks + 1] positions in order
-  std::vector<std::uint8_t> depth_chunk;      // [N] chunk of each Gaussian with tiles
-  std::vector<std::int64_t> worker_counts;    // [workers * chunks * tiles]
 };
 
 // Sizes the per-Gaussian arrays for n Gaussians on grid (counts zero) before count_gaussian_tiles fills them.
@@ -377,60 +410,34 @@ inline void begin_intersections(index_t n, const TileGrid& grid, TileIntersectio
   out.gaussian_counts.assign(std::size_t(n), 0);
 }
 
-// From the per-Gaussian counts: front-to-back order, then every Gaussian's tiles written straight into per-tile
-// lists. The depth order is cut into chunks; chunk w's entries of a tile follow chunk w-1's, so each tile's list is
-// front to back for any number of threads.
+// From the per-Gaussian counts: every Gaussian's tiles written into per-tile lists in index order (one contiguous
+// index chunk per worker; chunk w's entries of a tile follow chunk w-1's), then each tile's list sorted by camera
+// depth with a stable sort, so ties keep index order and the lists do not depend on the number of threads.
 template <class T>
 void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, TileIntersections& out,
                ThreadPool& pool = global_pool()) {
   const TileGrid& grid = out.grid;
-  auto sort_by_depth = [&](auto& keys, auto& tmp) {
-    keys.clear();
-    out.order.clear();
-    for (index_t g = 0; g < n; ++g)
-      if (out.gaussian_counts[g] > 0) {
-        keys.push_back(static_cast<std::remove_reference_t<decltype(keys[0])>>(proj[g].z));
-        out.order.push_back(std::int32_t(g));
-      }
-    radix_sort_positive(keys, out.order, tmp, out.order_tmp);
-  };
-  if constexpr (sizeof(T) == 4) sort_by_depth(out.depth_keys_f, out.depth_tmp_f);
-  else sort_by_depth(out.depth_keys_d, out.depth_tmp_d);
-  out.gaussian_offsets.assign(std::size_t(n), 0);
+  const index_t tiles = grid.count();
+  out.gaussian_offsets.resize(std::size_t(n));
   std::int64_t total = 0;
-  for (std::int32_t g : out.order) {
+  for (index_t g = 0; g < n; ++g) {
     out.gaussian_offsets[g] = total;
     total += out.gaussian_counts[g];
   }
   require(total < (std::int64_t(1) << 31), "raster: ", total, " tile intersections exceed the 2^31 limit");
   out.total_entries = total;
-  // Chunks of the depth order with about equal entry counts.
-  const index_t tiles = grid.count();
-  const int chunks = int(std::clamp<std::int64_t>(total / 65536, 1, std::min(pool.size(), 255)));
-  out.chunk_bounds.assign(std::size_t(chunks) + 1, std::int32_t(out.order.size()));
-  out.chunk_bounds[0] = 0;
-  for (int w = 1, i = 0; w < chunks; ++w) {
-    while (i < int(out.order.size()) && out.gaussian_offsets[out.order[i]] < total * w / chunks) ++i;
-    out.chunk_bounds[w] = i;
-  }
-  // Entries per (chunk, tile), counted in index order (sequential reads) into per-worker histograms.
-  out.depth_chunk.resize(std::size_t(n));
-  for (int w = 0; w < chunks; ++w)
-    for (std::int32_t i = out.chunk_bounds[w]; i < out.chunk_bounds[w + 1]; ++i) out.depth_chunk[out.order[i]] = std::uint8_t(w);
-  const std::size_t histogram = std::size_t(chunks) * std::size_t(tiles);
-  out.worker_counts.assign(std::size_t(pool.size()) * histogram, 0);
-  parallel_for(n, [&](index_t begin, index_t end, int worker) {
-    std::int64_t* counts = &out.worker_counts[std::size_t(worker) * histogram];
-    for (index_t g = begin; g < end; ++g) {
-      if (out.gaussian_counts[g] == 0) continue;
-      std::int64_t* chunk_counts = counts + std::size_t(out.depth_chunk[g]) * std::size_t(tiles);
-      for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) { ++chunk_counts[tile]; });
+  const int chunks = int(std::clamp<std::int64_t>(n, 1, pool.size()));
+  auto chunk_range = [&](index_t w) { return std::pair{n * w / chunks, n * (w + 1) / chunks}; };
+  out.tile_cursor.assign(std::size_t(chunks) * std::size_t(tiles), 0);
+  parallel_for(chunks, [&](index_t wb, index_t we, int) {
+    for (index_t w = wb; w < we; ++w) {
+      std::int64_t* counts = &out.tile_cursor[std::size_t(w * tiles)];
+      const auto [g0, g1] = chunk_range(w);
+      for (index_t g = g0; g < g1; ++g)
+        if (out.gaussian_counts[g] > 0)
+          for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) { ++counts[tile]; });
     }
   }, pool);
-  out.tile_cursor.assign(histogram, 0);
-  for (int worker = 0; worker < pool.size(); ++worker)
-    for (std::size_t i = 0; i < histogram; ++i) out.tile_cursor[i] += out.worker_counts[std::size_t(worker) * histogram + i];
-  constexpr std::int32_t prefetch_distance = 16;  // the scatter visits Gaussians in depth order: random reads
   out.tile_offsets.assign(std::size_t(tiles) + 1, 0);
   out.max_tile_entries = 0;
   std::int64_t running = 0;
@@ -447,22 +454,40 @@ void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, T
   out.tile_offsets[tiles] = running;
   out.tile_entries.resize(std::size_t(total));
   out.tile_gaussian.resize(std::size_t(total));
+  using U = depth_key_t<T>;
+  std::vector<U>& keys = [&]() -> std::vector<U>& {
+    if constexpr (sizeof(T) == 4) return out.tile_keys_f;
+    else return out.tile_keys_d;
+  }();
+  keys.resize(std::size_t(total));
   parallel_for(chunks, [&](index_t wb, index_t we, int) {
     for (index_t w = wb; w < we; ++w) {
       std::int64_t* cursor = &out.tile_cursor[std::size_t(w * tiles)];
-      for (std::int32_t i = out.chunk_bounds[w]; i < out.chunk_bounds[w + 1]; ++i) {
-        if (i + prefetch_distance < out.chunk_bounds[w + 1]) {
-          __builtin_prefetch(&out.gaussian_tiles[std::size_t(out.order[i + prefetch_distance])]);
-          __builtin_prefetch(&out.gaussian_offsets[std::size_t(out.order[i + prefetch_distance])]);
-        }
-        const std::int32_t g = out.order[i];
+      const auto [g0, g1] = chunk_range(w);
+      for (index_t g = g0; g < g1; ++g) {
+        if (out.gaussian_counts[g] == 0) continue;
         std::int64_t e = out.gaussian_offsets[g];
+        const U key = depth_key(proj[g].z);
         for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) {
           const std::int64_t slot = cursor[tile]++;
           out.tile_entries[slot] = std::int32_t(e++);
-          out.tile_gaussian[slot] = g;
+          out.tile_gaussian[slot] = std::int32_t(g);
+          keys[slot] = key;
         });
       }
+    }
+  }, pool);
+  auto& scratch = [&]() -> auto& {
+    if constexpr (sizeof(T) == 4) return out.sort_scratch_f;
+    else return out.sort_scratch_d;
+  }();
+  scratch.resize(std::size_t(pool.size()));
+  std::atomic<index_t> next{0};
+  parallel_for(pool.size(), [&](index_t, index_t, int worker) {
+    for (index_t t; (t = next.fetch_add(1, std::memory_order_relaxed)) < tiles;) {
+      const std::int64_t begin = out.tile_offsets[t], count = out.tile_offsets[t + 1] - begin;
+      sort_by_depth_key(keys.data() + begin, out.tile_entries.data() + begin, out.tile_gaussian.data() + begin, count,
+                        scratch[std::size_t(worker)]);
     }
   }, pool);
 }
