@@ -136,6 +136,22 @@ CameraParams<T> camera_params(const Camera<T>& cam) {
 }
 
 template <class T>
+ProjectSettings<T> project_settings(const RenderOptions& opt) {
+  ProjectSettings<T> set;
+  set.eps2d = T(opt.eps2d), set.near_plane = T(opt.near_plane), set.far_plane = T(opt.far_plane);
+  set.antialiased = opt.antialiased;
+  return set;
+}
+
+// Camera centre in world coordinates, -R^T t: SH colours are evaluated in the direction mean - centre.
+template <class T>
+std::array<T, 3> camera_centre(const CameraParams<T>& cam) {
+  std::array<T, 3> c;
+  for (int i = 0; i < 3; ++i) c[i] = -(cam.R[i] * cam.t[0] + cam.R[3 + i] * cam.t[1] + cam.R[6 + i] * cam.t[2]);
+  return c;
+}
+
+template <class T>
 void require_finite(const T* data, index_t count, const char* what) {
   // Branch-free scan first (vectorises); the index is looked up only when something is wrong.
   bool all_finite = true;
@@ -244,7 +260,7 @@ struct GaussianPass {
   RasterSkips skips;
   int degree = 0, F = 0, C = 0;
   index_t n = 0, K = 0;
-  T campos[3] = {0, 0, 0};
+  std::array<T, 3> campos{};
   T* records = nullptr;
   int record_stride = 0;
 };
@@ -510,11 +526,8 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
   ws.background.assign(std::size_t(C), T(0));
   for (int c = 0; c < 3; ++c) ws.background[c] = T(opt.background[c]);
   const CameraParams<T> cam = detail::camera_params(camera);
-  ProjectSettings<T> set;
-  set.eps2d = T(opt.eps2d), set.near_plane = T(opt.near_plane), set.far_plane = T(opt.far_plane);
-  set.antialiased = opt.antialiased;
-  T campos[3];
-  for (int i = 0; i < 3; ++i) campos[i] = -(cam.R[i] * cam.t[0] + cam.R[3 + i] * cam.t[1] + cam.R[6 + i] * cam.t[2]);
+  const ProjectSettings<T> set = detail::project_settings<T>(opt);
+  const std::array<T, 3> campos = detail::camera_centre(cam);
   // One pass per Gaussian while its data is in cache: value checks, projection, colour, tiles, kernel record.
   const TileGrid grid(camera.width, camera.height);
   begin_intersections(n, grid, ws.tiles);
@@ -524,7 +537,7 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
   detail::GaussianPass<T> pass;
   pass.in = &in, pass.ws = &ws, pass.cam = cam, pass.set = set, pass.grid = grid, pass.skips = opt.skips;
   pass.degree = degree, pass.F = F, pass.C = C, pass.n = n, pass.K = K;
-  for (int i = 0; i < 3; ++i) pass.campos[i] = campos[i];
+  pass.campos = campos;
   pass.records = records, pass.record_stride = ws.raster.splat_stride;
   if (simd::enabled() && !opt.skips.force_scalar) {
     // Blocks of L Gaussians at fixed positions: the same lanes for any number of threads.
@@ -626,11 +639,8 @@ void render_backward(const GaussianInputs<T>& in, const Camera<T>& camera, const
   rasterize_backward(ws.tiles, ws.projections.data(), ws.channels.data(), C, ws.background.data(), ws.blend,
                      ws.d_out_channels.data(), ws.d_alpha.data(), opt.skips, ws.raster, n, ws.gaussian_grads.data(), pool);
   const CameraParams<T> cam = detail::camera_params(camera);
-  ProjectSettings<T> set;
-  set.eps2d = T(opt.eps2d), set.near_plane = T(opt.near_plane), set.far_plane = T(opt.far_plane);
-  set.antialiased = opt.antialiased;
-  T campos[3];
-  for (int i = 0; i < 3; ++i) campos[i] = -(cam.R[i] * cam.t[0] + cam.R[3 + i] * cam.t[1] + cam.R[6 + i] * cam.t[2]);
+  const ProjectSettings<T> set = detail::project_settings<T>(opt);
+  const std::array<T, 3> campos = detail::camera_centre(cam);
   const index_t K = in.sh.shape(1);
   // Camera gradients: partial sums over fixed blocks of Gaussians, then summed in block order (thread-independent).
   constexpr index_t block = 256;
