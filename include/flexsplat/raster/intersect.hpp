@@ -390,7 +390,6 @@ struct TileIntersections {
   std::vector<GaussianTiles> gaussian_tiles;   // [N] filled by count_gaussian_tiles
   std::vector<std::int64_t> gaussian_counts;   // [N] tiles of each Gaussian (0 when culled)
   std::vector<std::int64_t> gaussian_offsets;  // [N] first emission of each Gaussian
-  std::int64_t total_entries = 0;
   std::vector<std::int64_t> tile_offsets;      // [tiles+1]
   std::vector<std::int32_t> tile_entries;      // [E] emission indices sorted by (tile, depth)
   std::vector<std::int32_t> tile_gaussian;     // [E] Gaussian of each tile_entries element (one indirection less)
@@ -425,7 +424,6 @@ void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, T
     total += out.gaussian_counts[g];
   }
   require(total < (std::int64_t(1) << 31), "raster: ", total, " tile intersections exceed the 2^31 limit");
-  out.total_entries = total;
   const int chunks = int(std::clamp<std::int64_t>(n, 1, pool.size()));
   auto chunk_range = [&](index_t w) { return std::pair{n * w / chunks, n * (w + 1) / chunks}; };
   out.tile_cursor.assign(std::size_t(chunks) * std::size_t(tiles), 0);

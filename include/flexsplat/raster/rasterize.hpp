@@ -485,7 +485,7 @@ void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, 
                         const RasterSkips& skips, RasterWorkspace<T>& ws, index_t n, T* gaussian_grads,
                         ThreadPool& pool = global_pool()) {
   const int stride = entry_grad_fixed + C;
-  ws.entry_grads.resize(std::size_t(ti.total_entries) * std::size_t(stride));
+  ws.entry_grads.resize(std::size_t(ti.tile_offsets.back()) * std::size_t(stride));
   ws.scratch.resize(std::size_t(pool.size()));
   for (auto& s : ws.scratch) s.reserve(C);
   if (ws.splat_count != index_t(ti.gaussian_counts.size()) || ws.splat_channels != C)
