@@ -8,6 +8,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -323,28 +324,6 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
   }
 }
 
-#if FLEXSPLAT_SIMD_DISPATCH
-// The float blend kernels compiled for AVX-512 / AVX2 inside an otherwise portable build (chosen at run time).
-template <class T, class... Args>
-__attribute__((target("avx512f,avx512bw,avx512dq,avx512vl,avx2,fma"), flatten)) void blend_tile_forward_avx512(
-    Args&&... args) {
-  if constexpr (sizeof(T) == 4) blend_tile_forward<simd::wide<T, 16>, T>(std::forward<Args>(args)...);
-}
-template <class T, class... Args>
-__attribute__((target("avx2,fma"), flatten)) void blend_tile_forward_avx2(Args&&... args) {
-  if constexpr (sizeof(T) == 4) blend_tile_forward<simd::wide<T, 8>, T>(std::forward<Args>(args)...);
-}
-template <class T, class... Args>
-__attribute__((target("avx512f,avx512bw,avx512dq,avx512vl,avx2,fma"), flatten)) void blend_tile_backward_avx512(
-    Args&&... args) {
-  if constexpr (sizeof(T) == 4) blend_tile_backward<simd::wide<T, 16>, T>(std::forward<Args>(args)...);
-}
-template <class T, class... Args>
-__attribute__((target("avx2,fma"), flatten)) void blend_tile_backward_avx2(Args&&... args) {
-  if constexpr (sizeof(T) == 4) blend_tile_backward<simd::wide<T, 8>, T>(std::forward<Args>(args)...);
-}
-#endif
-
 // Which blend kernel a render uses: the compile-time SIMD batches, a run-time dispatched wider one, or scalar.
 enum class BlendKernel { scalar, compiled, avx2, avx512 };
 
@@ -359,6 +338,32 @@ BlendKernel choose_blend_kernel(const RasterSkips& skips) {
   if (sizeof(T) == 4 && level != simd::DispatchLevel::none && compiled_bytes < 32) return BlendKernel::avx2;
 #endif
   return BlendKernel::compiled;
+}
+
+#if FLEXSPLAT_SIMD_DISPATCH
+// body(V*) compiled for AVX-512 / AVX2 inside an otherwise portable build: flatten inlines the kernel into these
+// functions, so it gets their instruction set.
+template <class Body>
+__attribute__((target("avx512f,avx512bw,avx512dq,avx512vl,avx2,fma"), flatten)) void run_avx512(Body& body) {
+  body(static_cast<simd::wide<float, 16>*>(nullptr));
+}
+template <class Body>
+__attribute__((target("avx2,fma"), flatten)) void run_avx2(Body& body) {
+  body(static_cast<simd::wide<float, 8>*>(nullptr));
+}
+#endif
+
+// Calls body(V*) with the lane type V of the chosen kernel (the pointer only carries the type).
+template <class T, class Body>
+void with_blend_lanes(BlendKernel kernel, Body&& body) {
+#if FLEXSPLAT_SIMD_DISPATCH
+  if constexpr (sizeof(T) == 4) {
+    if (kernel == BlendKernel::avx512) return run_avx512(body);
+    if (kernel == BlendKernel::avx2) return run_avx2(body);
+  }
+#endif
+  if (kernel == BlendKernel::compiled) body(static_cast<simd::batch<T>*>(nullptr));
+  else body(static_cast<T*>(nullptr));
 }
 
 // Runs body(tile, worker) over all tiles; tiles are handed out dynamically (results do not depend on the order).
@@ -444,25 +449,10 @@ void rasterize_forward_prepared(const TileIntersections& ti, int C, const T* bac
   detail::for_each_tile(ti.grid.count(), pool, [&](index_t tile, int worker) {
     TileState<T>& st = ws.scratch[std::size_t(worker)];
     const T* records = ws.splat_records();
-    switch (kernel) {
-#if FLEXSPLAT_SIMD_DISPATCH
-      case detail::BlendKernel::avx512:
-        detail::blend_tile_forward_avx512<T>(ti, tile, records, ws.splat_stride, st, C, background, skips,
-                                             out_channels, state);
-        break;
-      case detail::BlendKernel::avx2:
-        detail::blend_tile_forward_avx2<T>(ti, tile, records, ws.splat_stride, st, C, background, skips, out_channels,
-                                           state);
-        break;
-#endif
-      case detail::BlendKernel::compiled:
-        detail::blend_tile_forward<simd::batch<T>, T>(ti, tile, records, ws.splat_stride, st, C, background, skips,
-                                                      out_channels, state);
-        break;
-      default:
-        detail::blend_tile_forward<T, T>(ti, tile, records, ws.splat_stride, st, C, background, skips, out_channels,
-                                         state);
-    }
+    detail::with_blend_lanes<T>(kernel, [&](auto* lanes) {
+      using V = std::remove_pointer_t<decltype(lanes)>;
+      detail::blend_tile_forward<V, T>(ti, tile, records, ws.splat_stride, st, C, background, skips, out_channels, state);
+    });
   });
 }
 
@@ -496,25 +486,11 @@ void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, 
     if (ti.tile_offsets[tile + 1] == ti.tile_offsets[tile]) return;
     const T* records = ws.splat_records();
     T* grads = ws.entry_grads.data();
-    switch (kernel) {
-#if FLEXSPLAT_SIMD_DISPATCH
-      case detail::BlendKernel::avx512:
-        detail::blend_tile_backward_avx512<T>(ti, tile, records, ws.splat_stride, st, C, background, state,
-                                              d_out_channels, d_alpha, grads);
-        break;
-      case detail::BlendKernel::avx2:
-        detail::blend_tile_backward_avx2<T>(ti, tile, records, ws.splat_stride, st, C, background, state,
-                                            d_out_channels, d_alpha, grads);
-        break;
-#endif
-      case detail::BlendKernel::compiled:
-        detail::blend_tile_backward<simd::batch<T>, T>(ti, tile, records, ws.splat_stride, st, C, background, state,
-                                                       d_out_channels, d_alpha, grads);
-        break;
-      default:
-        detail::blend_tile_backward<T, T>(ti, tile, records, ws.splat_stride, st, C, background, state,
-                                          d_out_channels, d_alpha, grads);
-    }
+    detail::with_blend_lanes<T>(kernel, [&](auto* lanes) {
+      using V = std::remove_pointer_t<decltype(lanes)>;
+      detail::blend_tile_backward<V, T>(ti, tile, records, ws.splat_stride, st, C, background, state, d_out_channels,
+                                        d_alpha, grads);
+    });
   });
   // A Gaussian's entries are contiguous and in tile order: a fixed summation order for any thread count.
   parallel_for(n, [&](index_t gb, index_t ge, int) {
