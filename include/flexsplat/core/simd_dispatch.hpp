@@ -138,9 +138,9 @@ inline bool lane_all(wide_mask<T, N> c) {
   return !lane_any(!c);
 }
 
-// exp at float precision for the blending kernels: Cody-Waite reduction by ln 2, degree-6 Taylor polynomial on
-// |r| <= ln(2)/2 (relative error about 2e-7), scaled by 2^k through the exponent bits. Inputs below -87 give 0;
-// +inf and NaN are not expected (the kernels pass -sigma <= 0).
+// exp at float precision for the blending kernels: Cody-Waite reduction by ln 2, degree-7 Taylor polynomial on
+// |r| <= ln(2)/2 (truncation 1e-8, below float rounding), scaled by 2^k through the exponent bits. Inputs below -87
+// give 0; +inf and NaN are not expected (the kernels pass -sigma <= 0).
 template <class T, int N>
 inline wide<T, N> lane_exp(wide<T, N> x) {
   static_assert(sizeof(T) == 4, "lane_exp of dispatch vectors is accurate to float precision only");
@@ -152,7 +152,8 @@ inline wide<T, N> lane_exp(wide<T, N> x) {
   const W clamped = x.v < lowest ? W{} + lowest : x.v;
   const W k = (clamped * log2e + round_magic) - round_magic;  // round to nearest
   const W r = (clamped - k * ln2_hi) - k * ln2_lo;
-  W p = W{} + T(1.0 / 720.0);
+  W p = W{} + T(1.0 / 5040.0);
+  p = p * r + T(1.0 / 720.0);
   p = p * r + T(1.0 / 120.0);
   p = p * r + T(1.0 / 24.0);
   p = p * r + T(1.0 / 6.0);
@@ -232,26 +233,43 @@ FLEXSPLAT_AVX512_TARGET inline float lane_sum(wide<float, 16> x) {  // lanes in 
   for (int i = 1; i < 16; ++i) s += lanes[i];
   return s;
 }
-// Same reduction and polynomial as the generic lane_exp (GCC 12's max/roundscale/scalef intrinsics trip
-// -Wmaybe-uninitialized in its own headers, so rounding and scaling use plain vector arithmetic).
+// exp of float lanes with AVX-512's own rounding and scaling: k = round(x log2 e), r = x - k ln 2 in two parts,
+// degree-7 Taylor polynomial on |r| <= ln(2)/2 (truncation 1e-8, below float rounding), times 2^k by scalef. Inputs
+// below -87 give 0, as lane_exp. The masked intrinsic forms keep GCC 12 from warning about its own headers.
+FLEXSPLAT_AVX512_TARGET inline __m512 exp_avx512(__m512 x) {
+  constexpr __mmask16 all = 0xffff;
+  const __mmask16 in_range = _mm512_cmp_ps_mask(x, _mm512_set1_ps(-87.0f), _CMP_GE_OQ);
+  const __m512 k = _mm512_mask_roundscale_ps(x, all, _mm512_mul_ps(x, _mm512_set1_ps(1.4426950408889634f)),
+                                             _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+  __m512 r = _mm512_fnmadd_ps(k, _mm512_set1_ps(0.693145751953125f), x);
+  r = _mm512_fnmadd_ps(k, _mm512_set1_ps(1.4286068203094172e-06f), r);
+  __m512 p = _mm512_set1_ps(1.0f / 5040.0f);
+  for (float c : {1.0f / 720.0f, 1.0f / 120.0f, 1.0f / 24.0f, 1.0f / 6.0f, 0.5f, 1.0f, 1.0f})
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(c));
+  return _mm512_maskz_scalef_ps(in_range, p, k);
+}
 FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp(wide<float, 16> x) {
-  typedef float f16 __attribute__((vector_size(64)));
-  typedef std::int32_t i16 __attribute__((vector_size(64)));
-  const __m512 lowest = _mm512_set1_ps(-87.0f);
-  const __mmask16 underflow = _mm512_cmp_ps_mask(x.v, lowest, _CMP_LT_OQ);
-  const f16 clamped = f16(_mm512_mask_blend_ps(underflow, x.v, lowest));
-  const f16 k = (clamped * 1.4426950408889634f + 12582912.0f) - 12582912.0f;  // round to nearest
-  const f16 r = (clamped - k * 0.693145751953125f) - k * 1.4286068203094172e-06f;
-  f16 p = f16{} + 1.0f / 720.0f;
-  for (float c : {1.0f / 120.0f, 1.0f / 24.0f, 1.0f / 6.0f, 0.5f, 1.0f, 1.0f}) p = p * r + c;
-  const i16 bits = (__builtin_convertvector(k, i16) + 127) << 23;
-  f16 scale;
-  std::memcpy(&scale, &bits, sizeof(scale));
-  return wide<float, 16>::make(_mm512_mask_blend_ps(underflow, __m512(p * scale), _mm512_setzero_ps()));
+  return wide<float, 16>::make(exp_avx512(x.v));
 }
 #undef FLEXSPLAT_AVX512_TARGET
 
 #endif  // FLEXSPLAT_SIMD_DISPATCH
+
+template <class V>
+struct is_avx512_float_batch : std::false_type {};
+template <class A>
+struct is_avx512_float_batch<xsimd::batch<float, A>> : std::bool_constant<std::is_base_of_v<xsimd::avx512f, A>> {};
+
+// exp at float precision for the blending kernels: exp_avx512 on the AVX-512 float batches of a native build (half
+// the instructions of xsimd::exp), lane_exp elsewhere.
+template <class V>
+FLEXSPLAT_ALWAYS_INLINE V lane_exp_blend(V x) {
+#if FLEXSPLAT_SIMD_DISPATCH && defined(__AVX512F__)
+  if constexpr (is_avx512_float_batch<V>::value) return V(exp_avx512(x));
+  else
+#endif
+    return lane_exp(x);
+}
 
 }  // namespace simd
 }  // namespace v0

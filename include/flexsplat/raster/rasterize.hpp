@@ -48,7 +48,9 @@ struct SplatParams {
 template <class T>
 struct TileState {
   static constexpr int tile_pixels = tile_size * tile_size;
-  std::vector<T> transmittance, n_contrib, last, done, final_transmittance, d_alpha, channels, d_channels, behind;
+  // Cache-line aligned: every lane batch is one whole line, so loads never split lines and stores forward to them.
+  using Buffer = std::vector<T, AlignedAllocator<T>>;
+  Buffer transmittance, n_contrib, last, done, final_transmittance, d_alpha, channels, d_channels, behind;
   std::vector<std::uint8_t> batch_done;
   void reserve(int channel_count) {
     for (auto* a : {&transmittance, &n_contrib, &last, &done, &final_transmittance, &d_alpha}) a->resize(tile_pixels);
@@ -156,6 +158,14 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
     st.batch_done[j] = 0;
   }
   constexpr std::int64_t prefetch_distance = 8;
+  // Raw pointers: through st the compiler reloads every buffer's address after each store.
+  T* const trans_p = st.transmittance.data();
+  T* const n_p = st.n_contrib.data();
+  T* const last_p = st.last.data();
+  T* const done_p = st.done.data();
+  T* const chan_p = st.channels.data();
+  std::uint8_t* const batch_done_p = st.batch_done.data();
+  const bool early_exit = skips.early_exit;
   for (std::int64_t k = 0; k < count; ++k) {
     if (k + prefetch_distance < count)
       __builtin_prefetch(records + std::int64_t(gaussians[k + prefetch_distance]) * record_stride);
@@ -169,35 +179,35 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
       const V pyc = V(T(f.y_base + row) + T(pixel_centre_offset));
       for (int column = px.x0 / L; column <= px.x1 / L; ++column) {
         const int j = row * batches_per_row + column;
-        if (skips.early_exit && st.batch_done[j]) continue;
+        if (early_exit && batch_done_p[j]) continue;
         const V pxc = iota + V(T(f.x_base + column * L) + T(pixel_centre_offset));
         const V dx = u - pxc, dy = v - pyc;
         const V sigma = T(0.5) * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
-        const auto done = simd::lane_load<V>(&st.done[j * L]) != V(T(0));
+        const auto done = simd::lane_load<V>(&done_p[j * L]) != V(T(0));
         auto maybe = (sigma <= smax) & simd::lane_not(done);
         if (!simd::lane_any(maybe)) continue;
-        const V alpha = simd::lane_min(V(T(max_alpha)), opacity * simd::lane_exp(-sigma));
+        const V alpha = simd::lane_min(V(T(max_alpha)), opacity * simd::lane_exp_blend(-sigma));
         auto valid = maybe & (sigma >= V(T(0))) & (alpha >= V(T(alpha_threshold)));
         if (!simd::lane_any(valid)) continue;
-        const V trans = simd::lane_load<V>(&st.transmittance[j * L]);
+        const V trans = simd::lane_load<V>(&trans_p[j * L]);
         const V next_T = trans * (V(T(1)) - alpha);
         const auto stop = valid & (next_T <= V(T(transmittance_stop)));
         valid = valid & simd::lane_not(stop);
         const V w = simd::lane_select(valid, alpha * trans, V(T(0)));
         for (int c = 0; c < C; ++c) {
-          T* acc = &st.channels[c * P + j * L];
+          T* acc = &chan_p[c * P + j * L];
           simd::lane_store(acc, simd::lane_load<V>(acc) + w * V(ch[c]));
         }
-        simd::lane_store(&st.transmittance[j * L], simd::lane_select(valid, next_T, trans));
-        const V n = simd::lane_load<V>(&st.n_contrib[j * L]);
-        simd::lane_store(&st.n_contrib[j * L], simd::lane_select(valid, n + V(T(1)), n));
-        const V last = simd::lane_load<V>(&st.last[j * L]);
-        simd::lane_store(&st.last[j * L], simd::lane_select(valid, entry_index, last));
+        simd::lane_store(&trans_p[j * L], simd::lane_select(valid, next_T, trans));
+        const V n = simd::lane_load<V>(&n_p[j * L]);
+        simd::lane_store(&n_p[j * L], simd::lane_select(valid, n + V(T(1)), n));
+        const V last = simd::lane_load<V>(&last_p[j * L]);
+        simd::lane_store(&last_p[j * L], simd::lane_select(valid, entry_index, last));
         if (simd::lane_any(stop)) {
           const auto now_done = done | stop;
-          simd::lane_store(&st.done[j * L], simd::lane_select(now_done, V(T(1)), V(T(0))));
+          simd::lane_store(&done_p[j * L], simd::lane_select(now_done, V(T(1)), V(T(0))));
           if (simd::lane_all(now_done)) {
-            st.batch_done[j] = 1;
+            batch_done_p[j] = 1;
             --active_batches;
           }
         }
@@ -290,7 +300,7 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
         const V sigma = T(0.5) * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
         auto maybe = (sigma <= smax) & (entry_position < simd::lane_load<V>(&st.last[j * L]));
         if (!simd::lane_any(maybe)) continue;
-        const V raw = opacity * simd::lane_exp(-sigma);
+        const V raw = opacity * simd::lane_exp_blend(-sigma);
         const V alpha = simd::lane_min(V(T(max_alpha)), raw);
         const auto valid = maybe & (sigma >= V(T(0))) & (alpha >= V(T(alpha_threshold)));
         if (!simd::lane_any(valid)) continue;
