@@ -66,37 +66,42 @@ TEST_CASE("intersect: per-row tile spans agree with the exact ellipse-tile test"
   CHECK(dropped > 1000);
 }
 
-TEST_CASE("intersect: per-tile depth sort is ordered, stable and permutes entries with their Gaussians",
-          "[raster][intersect]") {
+// Runs sort_items_by_depth on (key, gaussian = input position, emission = 100 + position) items; the Gaussians in
+// sorted order, with every item's fields checked to travel together.
+template <class U>
+std::vector<std::int32_t> sorted_positions(const std::vector<U>& keys) {
+  std::vector<TileItem<U>> items(keys.size()), scratch(keys.size());
+  for (std::size_t i = 0; i < keys.size(); ++i) items[i] = {keys[i], std::int32_t(i), std::int32_t(100 + i)};
+  const TileItem<U>* sorted = sort_items_by_depth(items.data(), scratch.data(), std::int64_t(keys.size()));
+  std::vector<std::int32_t> order;
+  for (std::size_t i = 0; i < keys.size(); ++i) {
+    CHECK(sorted[i].emission == 100 + sorted[i].gaussian);
+    CHECK(sorted[i].key == keys[std::size_t(sorted[i].gaussian)]);
+    order.push_back(sorted[i].gaussian);
+  }
+  return order;
+}
+
+TEST_CASE("intersect: per-tile depth sort is ordered, stable and moves whole entries", "[raster][intersect]") {
   const std::vector<float> depths = {3.f, 1.f, 2.f, 1.f, 1e-3f, 70000.f, 2.f};
   std::vector<std::uint32_t> keys;
   for (float z : depths) keys.push_back(depth_key(z));
-  std::vector<std::int32_t> entries = {10, 11, 12, 13, 14, 15, 16}, gaussians = {0, 1, 2, 3, 4, 5, 6};
-  DepthSortScratch<std::uint32_t> scratch;
-  sort_by_depth_key(keys.data(), entries.data(), gaussians.data(), std::int64_t(keys.size()), scratch);
-  CHECK(gaussians == std::vector<std::int32_t>{4, 1, 3, 2, 6, 0, 5});  // ties (1, 2) keep input order
-  CHECK(entries == std::vector<std::int32_t>{14, 11, 13, 12, 16, 10, 15});
-  for (std::size_t i = 0; i < keys.size(); ++i) CHECK(keys[i] == depth_key(depths[std::size_t(gaussians[i])]));
-  // double keys, and a long random list against std::stable_sort
-  std::vector<double> dz = {0.5, 0.25, 0.5, 1e6};
+  CHECK(sorted_positions(keys) == std::vector<std::int32_t>{4, 1, 3, 2, 6, 0, 5});  // ties (1, 2) keep input order
+  // double keys, equal keys only, and a long random list against std::stable_sort
   std::vector<std::uint64_t> dk;
-  for (double z : dz) dk.push_back(depth_key(z));
-  std::vector<std::int32_t> de = {0, 1, 2, 3}, dg = {0, 1, 2, 3};
-  DepthSortScratch<std::uint64_t> dscratch;
-  sort_by_depth_key(dk.data(), de.data(), dg.data(), 4, dscratch);
-  CHECK(dg == std::vector<std::int32_t>{1, 0, 2, 3});
+  for (double z : {0.5, 0.25, 0.5, 1e6}) dk.push_back(depth_key(z));
+  CHECK(sorted_positions(dk) == std::vector<std::int32_t>{1, 0, 2, 3});
+  CHECK(sorted_positions(std::vector<std::uint32_t>(5, depth_key(2.f))) == std::vector<std::int32_t>{0, 1, 2, 3, 4});
   std::mt19937 rng(5);
   std::uniform_int_distribution<int> level(0, 40);
   std::vector<float> z(1000);
   for (auto& v : z) v = 0.01f * float(level(rng));  // many ties
   std::vector<std::uint32_t> k;
-  std::vector<std::int32_t> e(z.size()), g(z.size()), expected(z.size());
-  for (std::size_t i = 0; i < z.size(); ++i) k.push_back(depth_key(z[i])), e[i] = std::int32_t(i), g[i] = std::int32_t(i);
+  for (float v : z) k.push_back(depth_key(v));
+  std::vector<std::int32_t> expected(z.size());
   std::iota(expected.begin(), expected.end(), 0);
   std::stable_sort(expected.begin(), expected.end(), [&](int a, int b) { return z[std::size_t(a)] < z[std::size_t(b)]; });
-  sort_by_depth_key(k.data(), e.data(), g.data(), std::int64_t(z.size()), scratch);
-  CHECK(g == expected);
-  CHECK(e == expected);
+  CHECK(sorted_positions(k) == expected);
 }
 
 TEST_CASE("intersect: opacity-aware extent and tile lists of a single Gaussian", "[raster][intersect]") {

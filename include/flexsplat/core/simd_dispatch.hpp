@@ -251,6 +251,8 @@ FLEXSPLAT_AVX512_TARGET inline __m512 exp_avx512(__m512 x) {
 FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp(wide<float, 16> x) {
   return wide<float, 16>::make(exp_avx512(x.v));
 }
+// (An overload with the target: a 64-byte vector passed to a function without it draws a GCC ABI note.)
+FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp_blend(wide<float, 16> x) { return lane_exp(x); }
 #undef FLEXSPLAT_AVX512_TARGET
 
 #endif  // FLEXSPLAT_SIMD_DISPATCH

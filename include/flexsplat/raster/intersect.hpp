@@ -259,36 +259,25 @@ depth_key_t<T> depth_key(T z) {
   return bits;
 }
 
-// Scratch of sort_by_depth_key (one per worker).
+// One tile entry while binning: the Gaussian's depth key, the Gaussian and its emission index.
 template <class U>
-struct DepthSortScratch {
-  std::vector<U> keys;
-  std::vector<std::int32_t> positions, entries, gaussians;
+struct TileItem {
+  U key;
+  std::int32_t gaussian, emission;
 };
 
-// Stable LSD radix sort (8-bit digits, digits equal everywhere skipped) of one tile's list by depth key, permuting
-// entries and gaussians alike; ties keep their input order.
+// Stable LSD radix sort (8-bit digits; digits equal in every key are skipped) of count items by depth key, using
+// scratch (at least count items); returns the buffer that holds the result (items or scratch). Ties keep their
+// input order.
 template <class U>
-void sort_by_depth_key(U* keys, std::int32_t* entries, std::int32_t* gaussians, std::int64_t count,
-                       DepthSortScratch<U>& s) {
-  if (count < 2) return;
-  if (s.keys.size() < std::size_t(count)) {
-    s.keys.resize(std::size_t(count));
-    s.positions.resize(std::size_t(count) * 2);
-    s.entries.resize(std::size_t(count));
-    s.gaussians.resize(std::size_t(count));
-  }
+TileItem<U>* sort_items_by_depth(TileItem<U>* items, TileItem<U>* scratch, std::int64_t count) {
+  if (count < 2) return items;
   constexpr int digits = int(sizeof(U));
   std::uint32_t counts[digits][256] = {};
   for (std::int64_t i = 0; i < count; ++i)
-    for (int d = 0; d < digits; ++d) ++counts[d][(keys[i] >> (8 * d)) & 0xff];
-  // Sort positions (keys follow them); entries and gaussians are permuted once at the end.
-  std::int32_t* from = s.positions.data();
-  std::int32_t* to = s.positions.data() + count;
-  U* key_from = keys;
-  U* key_to = s.keys.data();
-  for (std::int64_t i = 0; i < count; ++i) from[i] = std::int32_t(i);
-  bool moved = false;
+    for (int d = 0; d < digits; ++d) ++counts[d][(items[i].key >> (8 * d)) & 0xff];
+  TileItem<U>* from = items;
+  TileItem<U>* to = scratch;
   for (int d = 0; d < digits; ++d) {
     std::uint32_t* c = counts[d];
     if (*std::max_element(c, c + 256) == std::uint32_t(count)) continue;
@@ -298,23 +287,10 @@ void sort_by_depth_key(U* keys, std::int32_t* entries, std::int32_t* gaussians, 
       c[v] = sum;
       sum += k;
     }
-    for (std::int64_t i = 0; i < count; ++i) {
-      const std::uint32_t dst = c[(key_from[i] >> (8 * d)) & 0xff]++;
-      key_to[dst] = key_from[i];
-      to[dst] = from[i];
-    }
+    for (std::int64_t i = 0; i < count; ++i) to[c[(from[i].key >> (8 * d)) & 0xff]++] = from[i];
     std::swap(from, to);
-    std::swap(key_from, key_to);
-    moved = true;
   }
-  if (!moved) return;
-  if (key_from != keys) std::copy(key_from, key_from + count, keys);
-  std::copy(entries, entries + count, s.entries.data());
-  std::copy(gaussians, gaussians + count, s.gaussians.data());
-  for (std::int64_t i = 0; i < count; ++i) {
-    entries[i] = s.entries[std::size_t(from[i])];
-    gaussians[i] = s.gaussians[std::size_t(from[i])];
-  }
+  return from;
 }
 
 // Tiles one Gaussian reaches: its tile rectangle and the column span of its first rows (later rows are recomputed).
@@ -382,6 +358,13 @@ void for_each_gaussian_tile(const Projection<T>& p, const GaussianTiles& t, cons
   for_each_later_row_tile(p, t, grid, skips, f);
 }
 
+// Per-key-type binning scratch: one item bucket per (index chunk, tile), and two sort buffers per worker.
+template <class U>
+struct BinScratch {
+  std::vector<std::vector<TileItem<U>>> buckets;  // [chunks * tiles]
+  std::vector<std::vector<TileItem<U>>> sort_a, sort_b;
+};
+
 // Result of the intersection stage: tile t owns entries [tile_offsets[t], tile_offsets[t+1]) of tile_entries,
 // each an emission index e; the entries of one tile are front to back. Emission indices of one Gaussian are
 // contiguous (gaussian_offsets), so per-entry gradients reduce per Gaussian in a fixed order.
@@ -395,11 +378,8 @@ struct TileIntersections {
   std::vector<std::int32_t> tile_gaussian;     // [E] Gaussian of each tile_entries element (one indirection less)
   std::int64_t max_tile_entries = 0;
   // Scratch
-  std::vector<std::uint32_t> tile_keys_f;
-  std::vector<std::uint64_t> tile_keys_d;
-  std::vector<DepthSortScratch<std::uint32_t>> sort_scratch_f;
-  std::vector<DepthSortScratch<std::uint64_t>> sort_scratch_d;
-  std::vector<std::int64_t> tile_cursor;      // [chunks * tiles]
+  BinScratch<std::uint32_t> bins_f;
+  BinScratch<std::uint64_t> bins_d;
 };
 
 // Sizes the per-Gaussian arrays for n Gaussians on grid (counts zero) before count_gaussian_tiles fills them.
@@ -409,14 +389,20 @@ inline void begin_intersections(index_t n, const TileGrid& grid, TileIntersectio
   out.gaussian_counts.assign(std::size_t(n), 0);
 }
 
-// From the per-Gaussian counts: every Gaussian's tiles written into per-tile lists in index order (one contiguous
-// index chunk per worker; chunk w's entries of a tile follow chunk w-1's), then each tile's list sorted by camera
-// depth with a stable sort, so ties keep index order and the lists do not depend on the number of threads.
+// From the per-Gaussian counts: every Gaussian's tiles appended to per-(index chunk, tile) buckets in one pass (so
+// a tile's buckets, taken in chunk order, hold its entries in index order), then each tile's entries sorted by
+// camera depth with a stable sort into the tile list: ties keep index order, and the lists do not depend on the
+// number of threads.
 template <class T>
 void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, TileIntersections& out,
                ThreadPool& pool = global_pool()) {
   const TileGrid& grid = out.grid;
   const index_t tiles = grid.count();
+  using U = depth_key_t<T>;
+  BinScratch<U>& bins = [&]() -> BinScratch<U>& {
+    if constexpr (sizeof(T) == 4) return out.bins_f;
+    else return out.bins_d;
+  }();
   out.gaussian_offsets.resize(std::size_t(n));
   std::int64_t total = 0;
   for (index_t g = 0; g < n; ++g) {
@@ -425,67 +411,52 @@ void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, T
   }
   require(total < (std::int64_t(1) << 31), "raster: ", total, " tile intersections exceed the 2^31 limit");
   const int chunks = int(std::clamp<std::int64_t>(n, 1, pool.size()));
-  auto chunk_range = [&](index_t w) { return std::pair{n * w / chunks, n * (w + 1) / chunks}; };
-  out.tile_cursor.assign(std::size_t(chunks) * std::size_t(tiles), 0);
+  bins.buckets.resize(std::size_t(chunks) * std::size_t(tiles));
   parallel_for(chunks, [&](index_t wb, index_t we, int) {
     for (index_t w = wb; w < we; ++w) {
-      std::int64_t* counts = &out.tile_cursor[std::size_t(w * tiles)];
-      const auto [g0, g1] = chunk_range(w);
-      for (index_t g = g0; g < g1; ++g)
-        if (out.gaussian_counts[g] > 0)
-          for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) { ++counts[tile]; });
+      std::vector<TileItem<U>>* buckets = &bins.buckets[std::size_t(w * tiles)];
+      for (index_t t = 0; t < tiles; ++t) buckets[t].clear();
+      for (index_t g = n * w / chunks; g < n * (w + 1) / chunks; ++g) {
+        if (out.gaussian_counts[g] == 0) continue;
+        TileItem<U> item{depth_key(proj[g].z), std::int32_t(g), std::int32_t(out.gaussian_offsets[g])};
+        for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) {
+          buckets[tile].push_back(item);
+          ++item.emission;
+        });
+      }
     }
   }, pool);
-  out.tile_offsets.assign(std::size_t(tiles) + 1, 0);
+  out.tile_offsets.resize(std::size_t(tiles) + 1);
   out.max_tile_entries = 0;
   std::int64_t running = 0;
   for (index_t t = 0; t < tiles; ++t) {
     out.tile_offsets[t] = running;
-    for (int w = 0; w < chunks; ++w) {  // counts become each chunk's first slot in the tile
-      std::int64_t& c = out.tile_cursor[std::size_t(w * tiles + t)];
-      const std::int64_t k = c;
-      c = running;
-      running += k;
-    }
+    for (int w = 0; w < chunks; ++w) running += std::int64_t(bins.buckets[std::size_t(w * tiles + t)].size());
     out.max_tile_entries = std::max(out.max_tile_entries, running - out.tile_offsets[t]);
   }
   out.tile_offsets[tiles] = running;
   out.tile_entries.resize(std::size_t(total));
   out.tile_gaussian.resize(std::size_t(total));
-  using U = depth_key_t<T>;
-  std::vector<U>& keys = [&]() -> std::vector<U>& {
-    if constexpr (sizeof(T) == 4) return out.tile_keys_f;
-    else return out.tile_keys_d;
-  }();
-  keys.resize(std::size_t(total));
-  parallel_for(chunks, [&](index_t wb, index_t we, int) {
-    for (index_t w = wb; w < we; ++w) {
-      std::int64_t* cursor = &out.tile_cursor[std::size_t(w * tiles)];
-      const auto [g0, g1] = chunk_range(w);
-      for (index_t g = g0; g < g1; ++g) {
-        if (out.gaussian_counts[g] == 0) continue;
-        std::int64_t e = out.gaussian_offsets[g];
-        const U key = depth_key(proj[g].z);
-        for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) {
-          const std::int64_t slot = cursor[tile]++;
-          out.tile_entries[slot] = std::int32_t(e++);
-          out.tile_gaussian[slot] = std::int32_t(g);
-          keys[slot] = key;
-        });
-      }
-    }
-  }, pool);
-  auto& scratch = [&]() -> auto& {
-    if constexpr (sizeof(T) == 4) return out.sort_scratch_f;
-    else return out.sort_scratch_d;
-  }();
-  scratch.resize(std::size_t(pool.size()));
+  bins.sort_a.resize(std::size_t(pool.size()));
+  bins.sort_b.resize(std::size_t(pool.size()));
   std::atomic<index_t> next{0};
   parallel_for(pool.size(), [&](index_t, index_t, int worker) {
+    std::vector<TileItem<U>>& a = bins.sort_a[std::size_t(worker)];
+    std::vector<TileItem<U>>& b = bins.sort_b[std::size_t(worker)];
     for (index_t t; (t = next.fetch_add(1, std::memory_order_relaxed)) < tiles;) {
       const std::int64_t begin = out.tile_offsets[t], count = out.tile_offsets[t + 1] - begin;
-      sort_by_depth_key(keys.data() + begin, out.tile_entries.data() + begin, out.tile_gaussian.data() + begin, count,
-                        scratch[std::size_t(worker)]);
+      if (count == 0) continue;
+      if (a.size() < std::size_t(count)) a.resize(std::size_t(count)), b.resize(std::size_t(count));
+      TileItem<U>* gathered = a.data();
+      for (int w = 0; w < chunks; ++w) {
+        const auto& bucket = bins.buckets[std::size_t(w * tiles + t)];
+        gathered = std::copy(bucket.begin(), bucket.end(), gathered);
+      }
+      const TileItem<U>* sorted = sort_items_by_depth(a.data(), b.data(), count);
+      for (std::int64_t i = 0; i < count; ++i) {
+        out.tile_gaussian[std::size_t(begin + i)] = sorted[i].gaussian;
+        out.tile_entries[std::size_t(begin + i)] = sorted[i].emission;
+      }
     }
   }, pool);
 }
