@@ -133,10 +133,10 @@ struct TileFrame {
 
 // Blends one tile front to back; V is T (scalar path) or simd::batch<T>. Entries visit the batches their extent
 // reaches; a pixel sees the tile's entries in list order, so its result does not depend on the visiting order.
-template <class V, class T>
+template <class V, class T, class RowSink>
 void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* records, int record_stride,
-                        TileState<T>& st, int C, const T* background, const RasterSkips& skips, T* out_channels,
-                        BlendState<T>& state) {
+                        TileState<T>& st, int C, const T* background, const RasterSkips& skips, BlendState<T>& state,
+                        RowSink& sink) {
   constexpr int L = int(simd::lane_count<V>::value), batches_per_row = tile_size / L;
   constexpr int P = TileState<T>::tile_pixels;
   static_assert(tile_size % L == 0, "tile rows must split into whole batches");
@@ -215,8 +215,8 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
     }
     if (skips.early_exit && active_batches == 0) break;
   }
-  // Out: whole batches as vectors (channel planes are contiguous along a row), the image's right edge lane by lane.
-  const std::int64_t plane = std::int64_t(grid.width) * grid.height;
+  // Out: background added in place (whole batches as vectors, the image's right edge lane by lane), the state
+  // backward needs, then each finished row to the sink.
   for (int row = 0; row < f.rows_here; ++row) {
     const std::int64_t pix0 = std::int64_t(f.y_base + row) * grid.width + f.x_base;
     for (int x = 0; x < f.width_here; x += L) {
@@ -224,15 +224,15 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
       if (x + L <= f.width_here) {
         const V trans = simd::lane_load<V>(&st.transmittance[i]);
         simd::lane_store(&state.final_transmittance[pix0 + x], trans);
-        for (int c = 0; c < C; ++c)
-          simd::lane_store(&out_channels[c * plane + pix0 + x],
-                           simd::lane_load<V>(&st.channels[c * P + i]) + trans * V(background[c]));
+        for (int c = 0; c < C; ++c) {
+          T* acc = &st.channels[c * P + i];
+          simd::lane_store(acc, simd::lane_load<V>(acc) + trans * V(background[c]));
+        }
       } else {
         for (int l = x; l < f.width_here; ++l) {
           const T trans = st.transmittance[row * tile_size + l];
           state.final_transmittance[pix0 + l] = trans;
-          for (int c = 0; c < C; ++c)
-            out_channels[c * plane + pix0 + l] = st.channels[c * P + row * tile_size + l] + trans * background[c];
+          for (int c = 0; c < C; ++c) st.channels[c * P + row * tile_size + l] += trans * background[c];
         }
       }
     }
@@ -240,6 +240,8 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
       state.n_contrib[pix0 + x] = std::int32_t(st.n_contrib[row * tile_size + x]);
       state.last_entry[pix0 + x] = std::int32_t(st.last[row * tile_size + x]);
     }
+    sink(pix0, f.width_here, &st.channels[row * tile_size], P, &st.transmittance[row * tile_size],
+         &st.n_contrib[row * tile_size]);
   }
 }
 
@@ -439,11 +441,14 @@ void prepare_splats(const TileIntersections& ti, const Projection<T>* proj, cons
 }
 
 // rasterize_forward for a workspace whose records (begin_splats, write_splat_record) already hold every Gaussian
-// that has tile entries.
-template <class T>
-void rasterize_forward_prepared(const TileIntersections& ti, int C, const T* background, const RasterSkips& skips,
-                                RasterWorkspace<T>& ws, T* out_channels, BlendState<T>& state,
-                                ThreadPool& pool = global_pool()) {
+// that has tile entries, handing every finished pixel row to sink(first pixel p0, count, channels, plane,
+// transmittance, contributors): channel c of pixel p0 + x at channels[c * plane + x] (background included), its
+// final transmittance at transmittance[x] and contributor count at contributors[x]. Rows of different tiles reach
+// the sink from different threads.
+template <class T, class RowSink>
+void rasterize_forward_rows(const TileIntersections& ti, int C, const T* background, const RasterSkips& skips,
+                            RasterWorkspace<T>& ws, BlendState<T>& state, RowSink&& sink,
+                            ThreadPool& pool = global_pool()) {
   require(C >= 1 && C <= 64, "raster: ", C, " channels; between 1 and 64 are supported");
   require(ti.max_tile_entries < (std::int64_t(1) << 24), "raster: a tile holds ", ti.max_tile_entries,
           " Gaussians, above the 2^24 limit");
@@ -461,9 +466,21 @@ void rasterize_forward_prepared(const TileIntersections& ti, int C, const T* bac
     const T* records = ws.splat_records();
     detail::with_blend_lanes<T>(kernel, [&](auto* lanes) {
       using V = std::remove_pointer_t<decltype(lanes)>;
-      detail::blend_tile_forward<V, T>(ti, tile, records, ws.splat_stride, st, C, background, skips, out_channels, state);
+      detail::blend_tile_forward<V, T>(ti, tile, records, ws.splat_stride, st, C, background, skips, state, sink);
     });
   });
+}
+
+// rasterize_forward_rows into out_channels (planar: channel c of pixel p at [c * H * W + p], background included).
+template <class T>
+void rasterize_forward_prepared(const TileIntersections& ti, int C, const T* background, const RasterSkips& skips,
+                                RasterWorkspace<T>& ws, T* out_channels, BlendState<T>& state,
+                                ThreadPool& pool = global_pool()) {
+  const std::int64_t plane = std::int64_t(ti.grid.width) * ti.grid.height;
+  rasterize_forward_rows(ti, C, background, skips, ws, state, [&](std::int64_t p0, int count, const T* channels,
+                                                                  int stride, const T*, const T*) {
+    for (int c = 0; c < C; ++c) std::copy_n(channels + c * stride, count, out_channels + c * plane + p0);
+  }, pool);
 }
 
 // Blends C channels of the visible Gaussians into out_channels (planar: channel c of pixel p at [c * H * W + p],

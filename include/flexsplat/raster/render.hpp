@@ -99,9 +99,10 @@ struct GaussianGrads {
   CameraGrad<T>* camera = nullptr;
 };
 
-// Wall time of each stage of the last render_forward (milliseconds), for benchmarks and profiling.
+// Wall time of each stage of the last render_forward (milliseconds), for benchmarks and profiling; rasterize
+// includes writing the outputs (the blend hands them each finished tile row).
 struct ForwardStageTimes {
-  double validate = 0, project = 0, intersect = 0, rasterize = 0, output = 0;
+  double validate = 0, project = 0, intersect = 0, rasterize = 0;
 };
 
 template <class T>
@@ -113,7 +114,7 @@ struct RenderWorkspace {
   TileIntersections tiles;
   BlendState<T> blend;
   RasterWorkspace<T> raster;
-  std::vector<T> out_channels, d_out_channels, d_alpha, gaussian_grads;
+  std::vector<T> blend_depth, d_out_channels, d_alpha, gaussian_grads;  // blend_depth: channel 3 per pixel
   std::vector<CameraGradParams<T>> camera_partials;
   std::vector<T> background;
   int sh_degree = 0, channel_count = 0;
@@ -560,29 +561,45 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
   bin_tiles(n, ws.projections.data(), opt.skips, ws.tiles, pool);
   stage_end(ws.forward_times.intersect);
   const index_t pixels = index_t(camera.width) * camera.height;
-  ws.out_channels.resize(std::size_t(pixels * C));
-  rasterize_forward_prepared(ws.tiles, C, ws.background.data(), opt.skips, ws.raster, ws.out_channels.data(), ws.blend,
-                             pool);
-  stage_end(ws.forward_times.rasterize);
   const index_t H = camera.height, W = camera.width;
   detail::ensure_shape<T>(out.image, Shape<3>{H, W, 3});
   detail::ensure_shape<T>(out.alpha, Shape<2>{H, W});
   detail::ensure_shape<T>(out.depth, Shape<2>{H, W});
   detail::ensure_shape<T>(out.n_contrib, Shape<2>{H, W});
   detail::ensure_shape<T>(out.features, Shape<3>{H, W, F});
-  parallel_for(pixels, [&](index_t begin, index_t end, int) {
-    const T* planes = ws.out_channels.data();  // channel c of pixel p at [c * pixels + p]
-    for (index_t p = begin; p < end; ++p) {
-      for (int c = 0; c < 3; ++c) out.image.data()[p * 3 + c] = planes[c * pixels + p];
-      const T a = T(1) - ws.blend.final_transmittance[p];
-      const T depth = planes[3 * pixels + p];
-      out.alpha.data()[p] = a;
-      out.depth.data()[p] = opt.expected_depth ? (a > T(0) ? depth / a : T(0)) : depth;
-      out.n_contrib.data()[p] = ws.blend.n_contrib[p];
-      for (int f = 0; f < F; ++f) out.features.data()[p * F + f] = planes[(4 + f) * pixels + p];
+  ws.blend_depth.resize(std::size_t(pixels));
+  // The outputs are written as each tile row finishes, while it is in cache.
+  T* const image = out.image.data();
+  T* const alpha = out.alpha.data();
+  T* const depth = out.depth.data();
+  std::int32_t* const n_contrib = out.n_contrib.data();
+  T* const features = out.features.data();
+  T* const blend_depth = ws.blend_depth.data();
+  const bool expected_depth = opt.expected_depth;
+  rasterize_forward_rows(ws.tiles, C, ws.background.data(), opt.skips, ws.raster, ws.blend,
+                         [&](std::int64_t p0, int count, const T* ch, int plane, const T* trans, const T* contributors) {
+    // One simple loop per output so that each vectorizes.
+    const T* red = ch;
+    const T* green = ch + plane;
+    const T* blue = ch + 2 * plane;
+    const T* sum_depth = ch + 3 * plane;
+    T* rgb = image + p0 * 3;
+    for (int x = 0; x < count; ++x) rgb[3 * x] = red[x], rgb[3 * x + 1] = green[x], rgb[3 * x + 2] = blue[x];
+    for (int x = 0; x < count; ++x) alpha[p0 + x] = T(1) - trans[x];
+    std::copy_n(sum_depth, count, blend_depth + p0);
+    if (expected_depth) {
+      for (int x = 0; x < count; ++x) {
+        const T a = T(1) - trans[x];
+        depth[p0 + x] = a > T(0) ? sum_depth[x] / a : T(0);
+      }
+    } else {
+      std::copy_n(sum_depth, count, depth + p0);
     }
+    for (int x = 0; x < count; ++x) n_contrib[p0 + x] = std::int32_t(contributors[x]);
+    for (int x = 0; x < count; ++x)
+      for (int f = 0; f < F; ++f) features[(p0 + x) * F + f] = ch[(4 + f) * plane + x];
   }, pool);
-  stage_end(ws.forward_times.output);
+  stage_end(ws.forward_times.rasterize);
 }
 
 template <class T>
@@ -624,7 +641,7 @@ void render_backward(const GaussianInputs<T>& in, const Camera<T>& camera, const
           const T a = T(1) - ws.blend.final_transmittance[p];
           if (a > T(0)) {
             planes[3 * pixels + p] = dd / a;
-            ws.d_alpha[p] -= dd * ws.out_channels[3 * pixels + p] / (a * a);
+            ws.d_alpha[p] -= dd * ws.blend_depth[p] / (a * a);
           }
         } else {
           planes[3 * pixels + p] = dd;
