@@ -139,8 +139,9 @@ inline bool lane_all(wide_mask<T, N> c) {
 }
 
 // exp at float precision for the blending kernels: Cody-Waite reduction by ln 2, degree-7 Taylor polynomial on
-// |r| <= ln(2)/2 (truncation 1e-8, below float rounding), scaled by 2^k through the exponent bits. Inputs below -87
-// give 0; +inf and NaN are not expected (the kernels pass -sigma <= 0).
+// |r| <= ln(2)/2 (truncation 1e-8, below float rounding; evaluated for latency, as the blend waits on it), scaled
+// by 2^k through the exponent bits. Inputs below -87 give 0; +inf and NaN are not expected (the kernels pass
+// -sigma <= 0).
 template <class T, int N>
 inline wide<T, N> lane_exp(wide<T, N> x) {
   static_assert(sizeof(T) == 4, "lane_exp of dispatch vectors is accurate to float precision only");
@@ -152,14 +153,12 @@ inline wide<T, N> lane_exp(wide<T, N> x) {
   const W clamped = x.v < lowest ? W{} + lowest : x.v;
   const W k = (clamped * log2e + round_magic) - round_magic;  // round to nearest
   const W r = (clamped - k * ln2_hi) - k * ln2_lo;
-  W p = W{} + T(1.0 / 5040.0);
-  p = p * r + T(1.0 / 720.0);
-  p = p * r + T(1.0 / 120.0);
-  p = p * r + T(1.0 / 24.0);
-  p = p * r + T(1.0 / 6.0);
-  p = p * r + T(0.5);
-  p = p * r + T(1.0);
-  p = p * r + T(1.0);
+  // exp(r) = 1 + (r + r^2 g(r)), g by Estrin's scheme (short dependency chains); adding the 1 last keeps the
+  // rounding of Horner's form.
+  const W r2 = r * r, r4 = r2 * r2;
+  const W g = ((r * T(1.0 / 5040.0) + T(1.0 / 720.0)) * r4 + (r * T(1.0 / 120.0) + T(1.0 / 24.0)) * r2) +
+              (r * T(1.0 / 6.0) + T(0.5));
+  const W p = (r2 * g + r) + T(1.0);
   const I scale = (__builtin_convertvector(k, I) + 127) << 23;
   W scale_value;
   std::memcpy(&scale_value, &scale, sizeof(scale_value));
@@ -235,7 +234,8 @@ FLEXSPLAT_AVX512_TARGET inline float lane_sum(wide<float, 16> x) {  // lanes in 
 }
 // exp of float lanes with AVX-512's own rounding and scaling: k = round(x log2 e), r = x - k ln 2 in two parts,
 // degree-7 Taylor polynomial on |r| <= ln(2)/2 (truncation 1e-8, below float rounding), times 2^k by scalef. Inputs
-// below -87 give 0, as lane_exp. The masked intrinsic forms keep GCC 12 from warning about its own headers.
+// below -87 give 0, as lane_exp. The blend's alpha test waits on this chain, so its latency matters more than its
+// instruction count. The masked intrinsic forms keep GCC 12 from warning about its own headers.
 FLEXSPLAT_AVX512_TARGET inline __m512 exp_avx512(__m512 x) {
   constexpr __mmask16 all = 0xffff;
   const __mmask16 in_range = _mm512_cmp_ps_mask(x, _mm512_set1_ps(-87.0f), _CMP_GE_OQ);
@@ -243,9 +243,14 @@ FLEXSPLAT_AVX512_TARGET inline __m512 exp_avx512(__m512 x) {
                                              _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
   __m512 r = _mm512_fnmadd_ps(k, _mm512_set1_ps(0.693145751953125f), x);
   r = _mm512_fnmadd_ps(k, _mm512_set1_ps(1.4286068203094172e-06f), r);
-  __m512 p = _mm512_set1_ps(1.0f / 5040.0f);
-  for (float c : {1.0f / 720.0f, 1.0f / 120.0f, 1.0f / 24.0f, 1.0f / 6.0f, 0.5f, 1.0f, 1.0f})
-    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(c));
+  // exp(r) = 1 + (r + r^2 g(r)), g by Estrin's scheme (short dependency chains); adding the 1 last keeps the
+  // rounding of Horner's form.
+  const __m512 r2 = _mm512_mul_ps(r, r), r4 = _mm512_mul_ps(r2, r2);
+  const __m512 g67 = _mm512_fmadd_ps(_mm512_set1_ps(1.0f / 5040.0f), r, _mm512_set1_ps(1.0f / 720.0f));
+  const __m512 g45 = _mm512_fmadd_ps(_mm512_set1_ps(1.0f / 120.0f), r, _mm512_set1_ps(1.0f / 24.0f));
+  const __m512 g23 = _mm512_fmadd_ps(_mm512_set1_ps(1.0f / 6.0f), r, _mm512_set1_ps(0.5f));
+  const __m512 g = _mm512_fmadd_ps(g67, r4, _mm512_fmadd_ps(g45, r2, g23));
+  const __m512 p = _mm512_add_ps(_mm512_fmadd_ps(r2, g, r), _mm512_set1_ps(1.0f));
   return _mm512_maskz_scalef_ps(in_range, p, k);
 }
 FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp(wide<float, 16> x) {
