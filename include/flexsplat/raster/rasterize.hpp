@@ -172,17 +172,18 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
     const T* r = records + std::int64_t(gaussians[k]) * record_stride;
     const EntryPixels px = entry_pixels(r, f.x_base, f.y_base, f.width_here, f.rows_here);
     if (px.empty()) continue;
-    const V u = V(r[0]), v = V(r[1]), ca = V(r[2]), cb = V(r[3]), cc = V(r[4]), opacity = V(r[5]), smax = V(r[6]);
+    const V u = V(r[0]), ca = V(r[2]), cb = V(r[3]), opacity = V(r[5]), smax = V(r[6]);
     const T* ch = r + splat_fields;
     const V entry_index = V(T(k + 1));
-    for (int row = px.y0; row <= px.y1; ++row) {
-      const V pyc = V(T(f.y_base + row) + T(pixel_centre_offset));
-      for (int column = px.x0 / L; column <= px.x1 / L; ++column) {
+    for (int column = px.x0 / L; column <= px.x1 / L; ++column) {
+      // The x terms of sigma are the same on every row of a column: only the y terms change per batch.
+      const V dx = u - (iota + V(T(f.x_base + column * L) + T(pixel_centre_offset)));
+      const V sigma_x = T(0.5) * ca * dx * dx, cross = cb * dx;
+      for (int row = px.y0; row <= px.y1; ++row) {
         const int j = row * batches_per_row + column;
         if (early_exit && batch_done_p[j]) continue;
-        const V pxc = iota + V(T(f.x_base + column * L) + T(pixel_centre_offset));
-        const V dx = u - pxc, dy = v - pyc;
-        const V sigma = T(0.5) * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+        const T dy = r[1] - (T(f.y_base + row) + T(pixel_centre_offset));
+        const V sigma = simd::lane_fma(cross, V(dy), sigma_x + V(T(0.5) * r[4] * dy * dy));
         const auto done = simd::lane_load<V>(&done_p[j * L]) != V(T(0));
         auto maybe = (sigma <= smax) & simd::lane_not(done);
         if (!simd::lane_any(maybe)) continue;
@@ -290,16 +291,18 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
       continue;
     }
     for (int j = 0; j < stride; ++j) grad[j] = V(T(0));
-    const V u = V(r[0]), v = V(r[1]), ca = V(r[2]), cb = V(r[3]), cc = V(r[4]), opacity = V(r[5]), smax = V(r[6]);
+    const V u = V(r[0]), ca = V(r[2]), cb = V(r[3]), cc = V(r[4]), opacity = V(r[5]), smax = V(r[6]);
     const T* ch = r + splat_fields;
     const V entry_position = V(T(k));
-    for (int row = px.y0; row <= px.y1; ++row) {
-      const V pyc = V(T(f.y_base + row) + T(pixel_centre_offset));
-      for (int column = px.x0 / L; column <= px.x1 / L; ++column) {
+    for (int column = px.x0 / L; column <= px.x1 / L; ++column) {
+      // sigma as in the forward kernel (same rounding, so both see the same contributions)
+      const V dx = u - (iota + V(T(f.x_base + column * L) + T(pixel_centre_offset)));
+      const V sigma_x = T(0.5) * ca * dx * dx, cross = cb * dx;
+      for (int row = px.y0; row <= px.y1; ++row) {
         const int j = row * batches_per_row + column;
-        const V pxc = iota + V(T(f.x_base + column * L) + T(pixel_centre_offset));
-        const V dx = u - pxc, dy = v - pyc;
-        const V sigma = T(0.5) * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+        const T dy_row = r[1] - (T(f.y_base + row) + T(pixel_centre_offset));
+        const V dy = V(dy_row);
+        const V sigma = simd::lane_fma(cross, dy, sigma_x + V(T(0.5) * r[4] * dy_row * dy_row));
         auto maybe = (sigma <= smax) & (entry_position < simd::lane_load<V>(&st.last[j * L]));
         if (!simd::lane_any(maybe)) continue;
         const V raw = opacity * simd::lane_exp_blend(-sigma);
