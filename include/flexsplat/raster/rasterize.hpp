@@ -200,10 +200,11 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
           simd::lane_store(acc, simd::lane_load<V>(acc) + w * V(ch[c]));
         }
         simd::lane_store(&trans_p[j * L], simd::lane_select(valid, next_T, trans));
-        const V n = simd::lane_load<V>(&n_p[j * L]);
-        simd::lane_store(&n_p[j * L], simd::lane_select(valid, n + V(T(1)), n));
-        const V last = simd::lane_load<V>(&last_p[j * L]);
-        simd::lane_store(&last_p[j * L], simd::lane_select(valid, entry_index, last));
+        // Written as full stores (an add, and a max: entry indices grow along the list), not select-into-memory,
+        // which compiles to masked stores that the next entry's loads cannot be forwarded from.
+        const V one_if_valid = simd::lane_select(valid, V(T(1)), V(T(0)));
+        simd::lane_store(&n_p[j * L], simd::lane_load<V>(&n_p[j * L]) + one_if_valid);
+        simd::lane_store(&last_p[j * L], simd::lane_max(simd::lane_load<V>(&last_p[j * L]), entry_index * one_if_valid));
         if (simd::lane_any(stop)) {
           const auto now_done = done | stop;
           simd::lane_store(&done_p[j * L], simd::lane_select(now_done, V(T(1)), V(T(0))));
