@@ -236,13 +236,21 @@ FLEXSPLAT_AVX512_TARGET inline float lane_sum(wide<float, 16> x) {  // lanes in 
 // degree-7 Taylor polynomial on |r| <= ln(2)/2 (truncation 1e-8, below float rounding), times 2^k by scalef. Inputs
 // below -87 give 0, as lane_exp. The blend's alpha test waits on this chain, so its latency matters more than its
 // instruction count. The masked intrinsic forms keep GCC 12 from warning about its own headers.
+// OneStepReduction: r = x - k ln 2 with one multiply-add and ln 2 rounded to float, whose error grows with |k|
+// (about 2e-9 |k| relative): for the blend, whose lanes that matter have x >= -sigma_max > -6 (|k| <= 9).
+template <bool OneStepReduction = false>
 FLEXSPLAT_AVX512_TARGET inline __m512 exp_avx512(__m512 x) {
   constexpr __mmask16 all = 0xffff;
   const __mmask16 in_range = _mm512_cmp_ps_mask(x, _mm512_set1_ps(-87.0f), _CMP_GE_OQ);
   const __m512 k = _mm512_mask_roundscale_ps(x, all, _mm512_mul_ps(x, _mm512_set1_ps(1.4426950408889634f)),
                                              _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-  __m512 r = _mm512_fnmadd_ps(k, _mm512_set1_ps(0.693145751953125f), x);
-  r = _mm512_fnmadd_ps(k, _mm512_set1_ps(1.4286068203094172e-06f), r);
+  __m512 r;
+  if constexpr (OneStepReduction) {
+    r = _mm512_fnmadd_ps(k, _mm512_set1_ps(0.6931471805599453f), x);
+  } else {
+    r = _mm512_fnmadd_ps(k, _mm512_set1_ps(0.693145751953125f), x);
+    r = _mm512_fnmadd_ps(k, _mm512_set1_ps(1.4286068203094172e-06f), r);
+  }
   // exp(r) = 1 + (r + r^2 g(r)), g by Estrin's scheme (short dependency chains); adding the 1 last keeps the
   // rounding of Horner's form.
   const __m512 r2 = _mm512_mul_ps(r, r), r4 = _mm512_mul_ps(r2, r2);
@@ -257,7 +265,9 @@ FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp(wide<float, 16> x) {
   return wide<float, 16>::make(exp_avx512(x.v));
 }
 // (An overload with the target: a 64-byte vector passed to a function without it draws a GCC ABI note.)
-FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp_blend(wide<float, 16> x) { return lane_exp(x); }
+FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp_blend(wide<float, 16> x) {
+  return wide<float, 16>::make(exp_avx512<true>(x.v));
+}
 #undef FLEXSPLAT_AVX512_TARGET
 
 #endif  // FLEXSPLAT_SIMD_DISPATCH
@@ -272,7 +282,7 @@ struct is_avx512_float_batch<xsimd::batch<float, A>> : std::bool_constant<std::i
 template <class V>
 FLEXSPLAT_ALWAYS_INLINE V lane_exp_blend(V x) {
 #if FLEXSPLAT_SIMD_DISPATCH && defined(__AVX512F__)
-  if constexpr (is_avx512_float_batch<V>::value) return V(exp_avx512(x));
+  if constexpr (is_avx512_float_batch<V>::value) return V(exp_avx512<true>(x));
   else
 #endif
     return lane_exp(x);
