@@ -179,6 +179,38 @@ TEST_CASE("render: results for 1 and 2 threads are bit-identical (forward and ba
   CHECK(contributions > 10000);
 }
 
+TEST_CASE("render: rasterize_forward's planar channels equal render_forward's outputs", "[raster][render]") {
+  SceneSpec spec;
+  spec.n = 2000;
+  spec.width = 70, spec.height = 50;  // edge tiles narrower and shorter than 16
+  spec.sh_degree = 1;
+  spec.features = 2;
+  spec.scale_min = 0.01, spec.scale_max = 0.1;
+  auto s = make_scene<float>(spec);
+  RenderWorkspace<float> ws;
+  RenderOutputs<float> out;
+  render_forward(s.inputs(), s.camera, s.options, ws, out);
+  const int C = ws.channel_count;
+  const index_t pixels = index_t(spec.width) * spec.height;
+  std::vector<float> planes(std::size_t(pixels * C), -1.0f);
+  RasterWorkspace<float> raster_ws;
+  BlendState<float> state;
+  rasterize_forward(ws.tiles, ws.projections.data(), ws.channels.data(), C, ws.background.data(), s.options.skips,
+                    raster_ws, planes.data(), state, global_pool());
+  long mismatches = 0, contributions = 0;
+  for (index_t p = 0; p < pixels; ++p) {
+    for (int c = 0; c < 3; ++c) mismatches += planes[std::size_t(c * pixels + p)] != out.image.data()[p * 3 + c];
+    mismatches += planes[std::size_t(3 * pixels + p)] != out.depth.data()[p];
+    for (int f = 0; f < C - 4; ++f)
+      mismatches += planes[std::size_t((4 + f) * pixels + p)] != out.features.data()[p * (C - 4) + f];
+    mismatches += 1.0f - state.final_transmittance[std::size_t(p)] != out.alpha.data()[p];
+    mismatches += state.n_contrib[std::size_t(p)] != out.n_contrib.data()[p];
+    contributions += state.n_contrib[std::size_t(p)];
+  }
+  CHECK(contributions > 1000);
+  CHECK(mismatches == 0);
+}
+
 TEST_CASE("render: every skip leaves forward and backward bit-identical", "[raster][render]") {
   SceneSpec spec;
   spec.n = 600;

@@ -131,6 +131,21 @@ struct TileFrame {
         width_here(std::min(tile_size, grid.width - x_base)), rows_here(std::min(tile_size, grid.height - y_base)) {}
 };
 
+// sigma of one entry over a column of batches (lanes = pixels of a row): the x terms once per column, then one
+// multiply-add per row. The forward and backward kernels both use it, so they see the same contributions.
+template <class V, class T>
+struct ColumnSigma {
+  V sigma_x, cross;
+  T v, half_cc;
+  FLEXSPLAT_ALWAYS_INLINE ColumnSigma(const T* record, const V& dx)
+      : sigma_x(T(0.5) * V(record[2]) * dx * dx), cross(V(record[3]) * dx), v(record[1]),
+        half_cc(T(0.5) * record[4]) {}
+  FLEXSPLAT_ALWAYS_INLINE T dy(int pixel_row) const { return v - (T(pixel_row) + T(pixel_centre_offset)); }
+  FLEXSPLAT_ALWAYS_INLINE V sigma(T dy) const {
+    return simd::lane_fma(cross, V(dy), sigma_x + V(half_cc * dy * dy));
+  }
+};
+
 // Blends one tile front to back; V is T (scalar path) or simd::batch<T>. Entries visit the batches their extent
 // reaches; a pixel sees the tile's entries in list order, so its result does not depend on the visiting order.
 template <class V, class T, class RowSink>
@@ -172,18 +187,15 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
     const T* r = records + std::int64_t(gaussians[k]) * record_stride;
     const EntryPixels px = entry_pixels(r, f.x_base, f.y_base, f.width_here, f.rows_here);
     if (px.empty()) continue;
-    const V u = V(r[0]), ca = V(r[2]), cb = V(r[3]), opacity = V(r[5]), smax = V(r[6]);
+    const V u = V(r[0]), opacity = V(r[5]), smax = V(r[6]);
     const T* ch = r + splat_fields;
     const V entry_index = V(T(k + 1));
     for (int column = px.x0 / L; column <= px.x1 / L; ++column) {
-      // The x terms of sigma are the same on every row of a column: only the y terms change per batch.
-      const V dx = u - (iota + V(T(f.x_base + column * L) + T(pixel_centre_offset)));
-      const V sigma_x = T(0.5) * ca * dx * dx, cross = cb * dx;
+      const ColumnSigma<V, T> column_sigma(r, u - (iota + V(T(f.x_base + column * L) + T(pixel_centre_offset))));
       for (int row = px.y0; row <= px.y1; ++row) {
         const int j = row * batches_per_row + column;
         if (early_exit && batch_done_p[j]) continue;
-        const T dy = r[1] - (T(f.y_base + row) + T(pixel_centre_offset));
-        const V sigma = simd::lane_fma(cross, V(dy), sigma_x + V(T(0.5) * r[4] * dy * dy));
+        const V sigma = column_sigma.sigma(column_sigma.dy(f.y_base + row));
         const auto done = simd::lane_load<V>(&done_p[j * L]) != V(T(0));
         auto maybe = (sigma <= smax) & simd::lane_not(done);
         if (!simd::lane_any(maybe)) continue;
@@ -296,14 +308,13 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
     const T* ch = r + splat_fields;
     const V entry_position = V(T(k));
     for (int column = px.x0 / L; column <= px.x1 / L; ++column) {
-      // sigma as in the forward kernel (same rounding, so both see the same contributions)
       const V dx = u - (iota + V(T(f.x_base + column * L) + T(pixel_centre_offset)));
-      const V sigma_x = T(0.5) * ca * dx * dx, cross = cb * dx;
+      const ColumnSigma<V, T> column_sigma(r, dx);
       for (int row = px.y0; row <= px.y1; ++row) {
         const int j = row * batches_per_row + column;
-        const T dy_row = r[1] - (T(f.y_base + row) + T(pixel_centre_offset));
+        const T dy_row = column_sigma.dy(f.y_base + row);
         const V dy = V(dy_row);
-        const V sigma = simd::lane_fma(cross, dy, sigma_x + V(T(0.5) * r[4] * dy_row * dy_row));
+        const V sigma = column_sigma.sigma(dy_row);
         auto maybe = (sigma <= smax) & (entry_position < simd::lane_load<V>(&st.last[j * L]));
         if (!simd::lane_any(maybe)) continue;
         const V raw = opacity * simd::lane_exp_blend(-sigma);
@@ -475,18 +486,6 @@ void rasterize_forward_rows(const TileIntersections& ti, int C, const T* backgro
   });
 }
 
-// rasterize_forward_rows into out_channels (planar: channel c of pixel p at [c * H * W + p], background included).
-template <class T>
-void rasterize_forward_prepared(const TileIntersections& ti, int C, const T* background, const RasterSkips& skips,
-                                RasterWorkspace<T>& ws, T* out_channels, BlendState<T>& state,
-                                ThreadPool& pool = global_pool()) {
-  const std::int64_t plane = std::int64_t(ti.grid.width) * ti.grid.height;
-  rasterize_forward_rows(ti, C, background, skips, ws, state, [&](std::int64_t p0, int count, const T* channels,
-                                                                  int stride, const T*, const T*) {
-    for (int c = 0; c < C; ++c) std::copy_n(channels + c * stride, count, out_channels + c * plane + p0);
-  }, pool);
-}
-
 // Blends C channels of the visible Gaussians into out_channels (planar: channel c of pixel p at [c * H * W + p],
 // background included) and fills state.
 template <class T>
@@ -495,7 +494,11 @@ void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, c
                        BlendState<T>& state, ThreadPool& pool = global_pool()) {
   require(C >= 1 && C <= 64, "raster: ", C, " channels; between 1 and 64 are supported");
   prepare_splats(ti, proj, channels, C, ws, pool);
-  rasterize_forward_prepared(ti, C, background, skips, ws, out_channels, state, pool);
+  const std::int64_t plane = std::int64_t(ti.grid.width) * ti.grid.height;
+  rasterize_forward_rows(ti, C, background, skips, ws, state, [&](std::int64_t p0, int count, const T* row_channels,
+                                                                  int stride, const T*, const T*) {
+    for (int c = 0; c < C; ++c) std::copy_n(row_channels + c * stride, count, out_channels + c * plane + p0);
+  }, pool);
 }
 
 // Adds into the per-Gaussian cotangents (grads [N, 6 + C], same record layout as an entry) from d_out_channels
