@@ -5,10 +5,12 @@
 // Every test is conservative: a (Gaussian, pixel) pair whose alpha can reach alpha_threshold is never dropped.
 #include <algorithm>
 #include <atomic>
+#include <bit>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <type_traits>
+#include <span>
 #include <utility>
 #include <vector>
 
@@ -259,36 +261,63 @@ depth_key_t<T> depth_key(T z) {
   return bits;
 }
 
-// One tile entry while binning: the Gaussian's depth key, the Gaussian and its emission index.
+// One tile entry while binning: the Gaussian's depth key, the Gaussian, its emission index and its tile column.
 template <class U>
 struct TileItem {
   U key;
-  std::int32_t gaussian, emission;
+  std::int32_t gaussian, emission, column;
 };
 
-// Stable LSD radix sort (8-bit digits; digits equal in every key are skipped) of count items by depth key, using
-// scratch (at least count items); returns the buffer that holds the result (items or scratch). Ties keep their
-// input order.
+// Stable LSD radix sort (8-bit digits; digits equal in every key are skipped) by depth key of the items of parts,
+// taken in order, into a or b (each at least as long as all parts; b may be the memory of the parts, which only the
+// first pass reads); returns the one that holds the result. Ties keep their input order.
 template <class U>
-TileItem<U>* sort_items_by_depth(TileItem<U>* items, TileItem<U>* scratch, std::int64_t count) {
-  if (count < 2) return items;
-  constexpr int digits = int(sizeof(U));
-  std::uint32_t counts[digits][256] = {};
-  for (std::int64_t i = 0; i < count; ++i)
-    for (int d = 0; d < digits; ++d) ++counts[d][(items[i].key >> (8 * d)) & 0xff];
-  TileItem<U>* from = items;
-  TileItem<U>* to = scratch;
+TileItem<U>* sort_items_by_depth(const std::span<const TileItem<U>>* parts, int part_count, TileItem<U>* a,
+                                 TileItem<U>* b) {
+  constexpr int max_digits = int(sizeof(U));
+  // Digits above the highest bit in which two keys differ are the same in every key: no histogram, no pass.
+  std::uint32_t count = 0;
+  U first_key = 0, differ = 0;
+  for (int p = 0; p < part_count; ++p)
+    if (!parts[p].empty()) {
+      first_key = parts[p][0].key;
+      break;
+    }
+  for (int p = 0; p < part_count; ++p) {
+    for (const TileItem<U>& item : parts[p]) differ |= item.key ^ first_key;
+    count += std::uint32_t(parts[p].size());
+  }
+  const int digits = (int(std::bit_width(differ)) + 7) / 8;
+  std::uint32_t counts[max_digits][256];
+  for (int d = 0; d < digits; ++d) std::fill_n(counts[d], 256, 0u);
+  for (int p = 0; p < part_count; ++p)
+    for (const TileItem<U>& item : parts[p])
+      for (int d = 0; d < digits; ++d) ++counts[d][(item.key >> (8 * d)) & 0xff];
+  TileItem<U>* to = a;
+  TileItem<U>* from = nullptr;  // null: still in parts
   for (int d = 0; d < digits; ++d) {
     std::uint32_t* c = counts[d];
-    if (*std::max_element(c, c + 256) == std::uint32_t(count)) continue;
+    if (*std::max_element(c, c + 256) == count) continue;
     std::uint32_t sum = 0;
     for (int v = 0; v < 256; ++v) {
       const std::uint32_t k = c[v];
       c[v] = sum;
       sum += k;
     }
-    for (std::int64_t i = 0; i < count; ++i) to[c[(from[i].key >> (8 * d)) & 0xff]++] = from[i];
-    std::swap(from, to);
+    const int shift = 8 * d;
+    if (from == nullptr) {
+      for (int p = 0; p < part_count; ++p)
+        for (const TileItem<U>& item : parts[p]) to[c[(item.key >> shift) & 0xff]++] = item;
+    } else {
+      for (std::uint32_t i = 0; i < count; ++i) to[c[(from[i].key >> shift) & 0xff]++] = from[i];
+    }
+    from = to;
+    to = to == a ? b : a;
+  }
+  if (from == nullptr) {  // every key equal
+    TileItem<U>* out = a;
+    for (int p = 0; p < part_count; ++p) out = std::copy(parts[p].begin(), parts[p].end(), out);
+    return a;
   }
   return from;
 }
@@ -330,10 +359,10 @@ std::int64_t count_gaussian_tiles(const Projection<T>& p, const TileGrid& grid, 
   return count;
 }
 
-// Calls f(tile index) for the tiles of the rows after the stored ones (recomputed from p; the batched pass counts
-// them through this function too, so counts and emitted tiles always agree).
+// Calls f(ty, first tx, last tx) for the rows after the stored ones that hold a tile (recomputed from p; the
+// batched pass counts them through this function too, so counts and emitted tiles always agree).
 template <class T, class F>
-void for_each_later_row_tile(const Projection<T>& p, const GaussianTiles& t, const TileGrid& grid,
+void for_each_later_tile_row(const Projection<T>& p, const GaussianTiles& t, const TileGrid& grid,
                              const RasterSkips& skips, F&& f) {
   const TileRect& rect = t.rect;
   if (rect.y1 - rect.y0 < GaussianTiles::stored_rows) return;
@@ -343,25 +372,47 @@ void for_each_later_row_tile(const Projection<T>& p, const GaussianTiles& t, con
   for (int ty = rect.y0 + GaussianTiles::stored_rows; ty <= rect.y1; ++ty) {
     int tx0 = rect.x0, tx1 = rect.x1;
     if (exact && !tile_row_span(rows, grid, rect, ty, tx0, tx1)) continue;
-    for (int tx = tx0; tx <= tx1; ++tx) f(ty * grid.tiles_x + tx);
+    f(ty, tx0, tx1);
   }
+}
+
+// Calls f(ty, first tx, last tx) for every row of the Gaussian's tiles, in the order count_gaussian_tiles counted
+// them (a stored row may be empty: first > last).
+template <class T, class F>
+void for_each_gaussian_tile_row(const Projection<T>& p, const GaussianTiles& t, const TileGrid& grid,
+                                const RasterSkips& skips, F&& f) {
+  const TileRect& rect = t.rect;
+  const int stored_last_row = std::min(rect.y1, rect.y0 + GaussianTiles::stored_rows - 1);
+  for (int ty = rect.y0; ty <= stored_last_row; ++ty) f(ty, int(t.first[ty - rect.y0]), int(t.last[ty - rect.y0]));
+  for_each_later_tile_row(p, t, grid, skips, f);
 }
 
 // Calls f(tile index) for every tile of the Gaussian, row by row, in the order count_gaussian_tiles counted them.
 template <class T, class F>
 void for_each_gaussian_tile(const Projection<T>& p, const GaussianTiles& t, const TileGrid& grid,
                             const RasterSkips& skips, F&& f) {
-  const TileRect& rect = t.rect;
-  const int stored_last_row = std::min(rect.y1, rect.y0 + GaussianTiles::stored_rows - 1);
-  for (int ty = rect.y0; ty <= stored_last_row; ++ty)
-    for (int tx = t.first[ty - rect.y0]; tx <= t.last[ty - rect.y0]; ++tx) f(ty * grid.tiles_x + tx);
-  for_each_later_row_tile(p, t, grid, skips, f);
+  for_each_gaussian_tile_row(p, t, grid, skips, [&](int ty, int tx0, int tx1) {
+    for (int tx = tx0; tx <= tx1; ++tx) f(std::int64_t(ty) * grid.tiles_x + tx);
+  });
 }
 
-// Per-key-type binning scratch: one item bucket per (index chunk, tile), and two sort buffers per worker.
+// Items of one (index chunk, tile row), in storage kept from earlier renders: std::vector::resize would
+// value-initialise every appended run first, and its copy loop stalls on store forwarding.
+template <class U>
+struct BandBucket {
+  std::vector<TileItem<U>> storage;
+  std::size_t size = 0;
+  // Room for n more items after size.
+  FLEXSPLAT_ALWAYS_INLINE TileItem<U>* room(std::size_t n) {
+    if (size + n > storage.size()) storage.resize(std::max(2 * storage.size(), size + n + 64));
+    return storage.data() + size;
+  }
+};
+
+// Per-key-type binning scratch: one bucket per (index chunk, tile row), then two sort buffers per worker.
 template <class U>
 struct BinScratch {
-  std::vector<std::vector<TileItem<U>>> buckets;  // [chunks * tiles]
+  std::vector<BandBucket<U>> bands;  // [chunks * tiles_y]
   std::vector<std::vector<TileItem<U>>> sort_a, sort_b;
 };
 
@@ -389,10 +440,20 @@ inline void begin_intersections(index_t n, const TileGrid& grid, TileIntersectio
   out.gaussian_counts.assign(std::size_t(n), 0);
 }
 
-// From the per-Gaussian counts: every Gaussian's tiles appended to per-(index chunk, tile) buckets in one pass (so
-// a tile's buckets, taken in chunk order, hold its entries in index order), then each tile's entries sorted by
-// camera depth with a stable sort into the tile list: ties keep index order, and the lists do not depend on the
-// number of threads.
+// Appends the tiles tx0..tx1 of row ty (items with emission indices from emission on) to the row's bucket.
+template <class U>
+FLEXSPLAT_ALWAYS_INLINE void append_tile_run(BandBucket<U>& band, U key, std::int32_t gaussian, std::int32_t emission,
+                                             int tx0, int tx1) {
+  const int run = tx1 - tx0 + 1;
+  TileItem<U>* slot = band.room(std::size_t(run));
+  for (int i = 0; i < run; ++i) slot[i] = {key, gaussian, emission + i, tx0 + i};
+  band.size += std::size_t(run);
+}
+
+// From the per-Gaussian counts: every Gaussian's tiles appended to per-(index chunk, tile row) buckets in one pass
+// (a few dozen append points, so the writes stay in cache); then per tile row, its buckets in chunk order (index
+// order) sorted by camera depth with a stable sort and distributed to the row's tiles in that order. Ties keep index
+// order, and the lists do not depend on the number of threads.
 template <class T>
 void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, TileIntersections& out,
                ThreadPool& pool = global_pool()) {
@@ -411,54 +472,98 @@ void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, T
   }
   require(total < (std::int64_t(1) << 31), "raster: ", total, " tile intersections exceed the 2^31 limit");
   const int chunks = int(std::clamp<std::int64_t>(n, 1, pool.size()));
-  bins.buckets.resize(std::size_t(chunks) * std::size_t(tiles));
+  const int band_stride = grid.tiles_y;
+  bins.bands.resize(std::size_t(chunks) * std::size_t(band_stride));
   parallel_for(chunks, [&](index_t wb, index_t we, int) {
     for (index_t w = wb; w < we; ++w) {
-      std::vector<TileItem<U>>* buckets = &bins.buckets[std::size_t(w * tiles)];
-      for (index_t t = 0; t < tiles; ++t) buckets[t].clear();
+      BandBucket<U>* bands = &bins.bands[std::size_t(w * band_stride)];
+      for (int ty = 0; ty < band_stride; ++ty) bands[ty].size = 0;
       for (index_t g = n * w / chunks; g < n * (w + 1) / chunks; ++g) {
         if (out.gaussian_counts[g] == 0) continue;
-        TileItem<U> item{depth_key(proj[g].z), std::int32_t(g), std::int32_t(out.gaussian_offsets[g])};
-        for_each_gaussian_tile(proj[g], out.gaussian_tiles[g], grid, skips, [&](std::int64_t tile) {
-          buckets[tile].push_back(item);
-          ++item.emission;
+        const U key = depth_key(proj[g].z);
+        std::int32_t emission = std::int32_t(out.gaussian_offsets[g]);
+        const GaussianTiles& t = out.gaussian_tiles[g];
+        const int stored_last_row = std::min(t.rect.y1, t.rect.y0 + GaussianTiles::stored_rows - 1);
+        for (int ty = t.rect.y0; ty <= stored_last_row; ++ty) {
+          const int tx0 = t.first[ty - t.rect.y0], tx1 = t.last[ty - t.rect.y0];
+          if (tx1 < tx0) continue;
+          append_tile_run(bands[ty], key, std::int32_t(g), emission, tx0, tx1);
+          emission += tx1 - tx0 + 1;
+        }
+        for_each_later_tile_row(proj[g], t, grid, skips, [&](int ty, int tx0, int tx1) {
+          append_tile_run(bands[ty], key, std::int32_t(g), emission, tx0, tx1);
+          emission += tx1 - tx0 + 1;
         });
       }
     }
   }, pool);
+  // Rows' first entries; each row's pass below fills in its tiles' offsets.
   out.tile_offsets.resize(std::size_t(tiles) + 1);
-  out.max_tile_entries = 0;
+  std::vector<std::int64_t> row_first(std::size_t(grid.tiles_y) + 1);
   std::int64_t running = 0;
-  for (index_t t = 0; t < tiles; ++t) {
-    out.tile_offsets[t] = running;
-    for (int w = 0; w < chunks; ++w) running += std::int64_t(bins.buckets[std::size_t(w * tiles + t)].size());
-    out.max_tile_entries = std::max(out.max_tile_entries, running - out.tile_offsets[t]);
+  for (int ty = 0; ty < grid.tiles_y; ++ty) {
+    row_first[std::size_t(ty)] = running;
+    for (int w = 0; w < chunks; ++w) running += std::int64_t(bins.bands[std::size_t(w * band_stride + ty)].size);
   }
-  out.tile_offsets[tiles] = running;
+  row_first[std::size_t(grid.tiles_y)] = running;
+  require(running == total, "raster: binning emitted ", running, " tile entries for ", total, " counted");
+  out.tile_offsets[std::size_t(tiles)] = total;
   out.tile_entries.resize(std::size_t(total));
   out.tile_gaussian.resize(std::size_t(total));
   bins.sort_a.resize(std::size_t(pool.size()));
   bins.sort_b.resize(std::size_t(pool.size()));
-  std::atomic<index_t> next{0};
+  std::vector<std::int64_t> worker_max(std::size_t(pool.size()), 0);
+  std::atomic<int> next{0};
   parallel_for(pool.size(), [&](index_t, index_t, int worker) {
-    std::vector<TileItem<U>>& a = bins.sort_a[std::size_t(worker)];
-    std::vector<TileItem<U>>& b = bins.sort_b[std::size_t(worker)];
-    for (index_t t; (t = next.fetch_add(1, std::memory_order_relaxed)) < tiles;) {
-      const std::int64_t begin = out.tile_offsets[t], count = out.tile_offsets[t + 1] - begin;
-      if (count == 0) continue;
-      if (a.size() < std::size_t(count)) a.resize(std::size_t(count)), b.resize(std::size_t(count));
-      TileItem<U>* gathered = a.data();
+    std::vector<TileItem<U>>& sort_a = bins.sort_a[std::size_t(worker)];
+    std::vector<TileItem<U>>& sort_b = bins.sort_b[std::size_t(worker)];
+    std::vector<std::int64_t> cursor(std::size_t(grid.tiles_x));
+    std::vector<std::span<const TileItem<U>>> parts(static_cast<std::size_t>(chunks));
+    std::int64_t longest = 0;
+    for (int ty; (ty = next.fetch_add(1, std::memory_order_relaxed)) < grid.tiles_y;) {
+      const index_t first_tile = index_t(ty) * grid.tiles_x;
+      const std::int64_t row_begin = row_first[std::size_t(ty)];
+      const std::int64_t row_count = row_first[std::size_t(ty) + 1] - row_begin;
+      std::fill(cursor.begin(), cursor.end(), 0);
       for (int w = 0; w < chunks; ++w) {
-        const auto& bucket = bins.buckets[std::size_t(w * tiles + t)];
-        gathered = std::copy(bucket.begin(), bucket.end(), gathered);
+        const BandBucket<U>& band = bins.bands[std::size_t(w * band_stride + ty)];
+        for (std::size_t i = 0; i < band.size; ++i) ++cursor[std::size_t(band.storage[i].column)];
       }
-      const TileItem<U>* sorted = sort_items_by_depth(a.data(), b.data(), count);
-      for (std::int64_t i = 0; i < count; ++i) {
-        out.tile_gaussian[std::size_t(begin + i)] = sorted[i].gaussian;
-        out.tile_entries[std::size_t(begin + i)] = sorted[i].emission;
+      std::int64_t offset = row_begin;
+      for (int tx = 0; tx < grid.tiles_x; ++tx) {
+        const std::int64_t count = cursor[std::size_t(tx)];
+        out.tile_offsets[std::size_t(first_tile + tx)] = offset;
+        cursor[std::size_t(tx)] = offset - row_begin;
+        offset += count;
+        longest = std::max(longest, count);
+      }
+      if (row_count == 0) continue;
+      if (sort_a.size() < std::size_t(row_count)) sort_a.resize(std::size_t(row_count)), sort_b.resize(std::size_t(row_count));
+      // Grouped by tile: buckets in chunk order keep index order within each tile.
+      TileItem<U>* grouped = sort_b.data();
+      for (int w = 0; w < chunks; ++w) {
+        const BandBucket<U>& band = bins.bands[std::size_t(w * band_stride + ty)];
+        for (std::size_t i = 0; i < band.size; ++i) grouped[cursor[std::size_t(band.storage[i].column)]++] = band.storage[i];
+      }
+      std::int32_t* tile_gaussian = out.tile_gaussian.data();
+      std::int32_t* tile_entries = out.tile_entries.data();
+      for (int tx = 0; tx < grid.tiles_x; ++tx) {
+        const std::int64_t begin = out.tile_offsets[std::size_t(first_tile + tx)];
+        const std::int64_t end = tx + 1 < grid.tiles_x ? out.tile_offsets[std::size_t(first_tile + tx + 1)] : row_begin + row_count;
+        if (end == begin) continue;
+        const std::span<const TileItem<U>> tile_part(grouped + (begin - row_begin), std::size_t(end - begin));
+        // The tile's grouped slice doubles as the sort's second buffer: the first pass reads it before any write.
+        TileItem<U>* slice = grouped + (begin - row_begin);
+        const TileItem<U>* sorted = sort_items_by_depth(&tile_part, 1, sort_a.data(), slice);
+        for (std::int64_t i = 0; i < end - begin; ++i) {
+          tile_gaussian[begin + i] = sorted[i].gaussian;
+          tile_entries[begin + i] = sorted[i].emission;
+        }
       }
     }
+    worker_max[std::size_t(worker)] = longest;
   }, pool);
+  out.max_tile_entries = *std::max_element(worker_max.begin(), worker_max.end());
 }
 
 // Builds the per-tile lists of the visible Gaussians (visible[g] != 0, proj[g] filled by project_forward_one).

@@ -426,7 +426,7 @@ bool gaussian_block(const GaussianPass<T>& pass, index_t g0) {
     const VD zero = VD(0.0), one = VD(1.0);
     const auto no_lane = zero != zero;
     const auto exact = row_test ? hit & (rect.x1 > rect.x0) & (rect.y1 > rect.y0) : no_lane;  // uses_row_test
-    // Tiles of the stored rows (later rows are counted per Gaussian below, as for_each_gaussian_tile emits them).
+    // Tiles of the stored rows (later rows are counted per Gaussian below, as for_each_gaussian_tile_row emits them).
     const VD stored_rows = simd::lane_min(rect.y1 - rect.y0 + one, VD(double(stored)));
     VD count = simd::lane_select(hit & simd::lane_not(exact), stored_rows * (rect.x1 - rect.x0 + one), zero);
     VD first[stored], last[stored];
@@ -478,7 +478,7 @@ bool gaussian_block(const GaussianPass<T>& pass, index_t g0) {
       t.rect = TileRect{int(a_rect[0][l]), int(a_rect[1][l]), int(a_rect[2][l]), int(a_rect[3][l])};
       for (int i = 0; i < stored; ++i) t.first[i] = std::int16_t(a_first[i][l]), t.last[i] = std::int16_t(a_last[i][l]);
       std::int64_t tiles = std::int64_t(a_count[l]);
-      for_each_later_row_tile(ws.projections[g], t, grid, pass.skips, [&](std::int64_t) { ++tiles; });
+      for_each_later_tile_row(ws.projections[g], t, grid, pass.skips, [&](int, int tx0, int tx1) { tiles += tx1 - tx0 + 1; });
       ws.tiles.gaussian_counts[g] = tiles;
       if (tiles == 0) continue;
       T* record = pass.records + g * pass.record_stride;
