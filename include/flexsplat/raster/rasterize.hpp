@@ -200,8 +200,8 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
         auto maybe = (sigma <= smax) & simd::lane_not(done);
         if (!simd::lane_any(maybe)) continue;
         const V alpha = simd::lane_min(V(T(max_alpha)), opacity * simd::lane_exp_blend(-sigma));
+        // No branch on "any lane valid": a lane that may reach the threshold almost always does.
         auto valid = maybe & (sigma >= V(T(0))) & (alpha >= V(T(alpha_threshold)));
-        if (!simd::lane_any(valid)) continue;
         const V trans = simd::lane_load<V>(&trans_p[j * L]);
         const V next_T = trans * (V(T(1)) - alpha);
         const auto stop = valid & (next_T <= V(T(transmittance_stop)));
@@ -217,13 +217,13 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
         const V one_if_valid = simd::lane_select(valid, V(T(1)), V(T(0)));
         simd::lane_store(&n_p[j * L], simd::lane_load<V>(&n_p[j * L]) + one_if_valid);
         simd::lane_store(&last_p[j * L], simd::lane_max(simd::lane_load<V>(&last_p[j * L]), entry_index * one_if_valid));
-        if (simd::lane_any(stop)) {
-          const auto now_done = done | stop;
-          simd::lane_store(&done_p[j * L], simd::lane_select(now_done, V(T(1)), V(T(0))));
-          if (simd::lane_all(now_done)) {
-            batch_done_p[j] = 1;
-            --active_batches;
-          }
+        // Stored every time: a branch on "any lane stopped" is taken at random and mispredicts (rasterize 9.2 ->
+        // 8.5 ms without it); "every lane done" happens once per batch, so its branch predicts well.
+        const auto now_done = done | stop;
+        simd::lane_store(&done_p[j * L], simd::lane_select(now_done, V(T(1)), V(T(0))));
+        if (simd::lane_all(now_done)) {
+          batch_done_p[j] = 1;
+          --active_batches;
         }
       }
     }
@@ -319,8 +319,8 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
         if (!simd::lane_any(maybe)) continue;
         const V raw = opacity * simd::lane_exp_blend(-sigma);
         const V alpha = simd::lane_min(V(T(max_alpha)), raw);
+        // No branch on "any lane valid", as in the forward kernel.
         const auto valid = maybe & (sigma >= V(T(0))) & (alpha >= V(T(alpha_threshold)));
-        if (!simd::lane_any(valid)) continue;
         const V ra = V(T(1)) / (V(T(1)) - alpha);
         const V trans = simd::lane_select(valid, simd::lane_load<V>(&st.transmittance[j * L]) * ra,
                                           simd::lane_load<V>(&st.transmittance[j * L]));
