@@ -1,6 +1,7 @@
 #include <catch2/catch.hpp>
 
 #include <cmath>
+#include <type_traits>
 #include <vector>
 
 #include "flexsplat/core/simd_dispatch.hpp"
@@ -47,6 +48,45 @@ __attribute__((target("avx512f,avx512dq,avx512bw,avx512vl,avx2,fma"), flatten)) 
 __attribute__((target("avx2,fma"), flatten)) void dispatch_mask8(const float* a, const float* b, float* s, float* m,
                                                                  bool& any, bool& all) {
   dispatch_mask_lanes<8>(a, b, s, m, any, all);
+}
+
+// Lane-by-lane results of the math the per-Gaussian pass uses, for doubles (x) and floats (xf, yf, zf), computed with
+// the dispatch vectors of one level inside simd::run_*_exact (the pass's own wrappers).
+struct LaneMath {
+  std::vector<double> sqrt, floor, ceil, log, finite, min, max, select;
+  std::vector<float> sqrt_f, mul_add_f, finite_f, columns;
+  bool any = false, all = false;
+};
+template <class V>
+void lane_math(const std::vector<double>& x, const std::vector<double>& y, const std::vector<float>& xf,
+               const std::vector<float>& yf, const std::vector<float>& zf, LaneMath& r) {
+  using VD = typename simd::double_lanes<V>::type;
+  constexpr int LD = int(simd::lane_count<VD>::value), L = int(simd::lane_count<V>::value);
+  for (std::size_t i = 0; i + LD <= x.size(); i += LD) {
+    const VD a = simd::lane_load<VD>(&x[i]), b = simd::lane_load<VD>(&y[i]);
+    simd::lane_store(&r.sqrt[i], simd::lane_sqrt(a));
+    simd::lane_store(&r.floor[i], simd::lane_floor(a));
+    simd::lane_store(&r.ceil[i], simd::lane_ceil(a));
+    simd::lane_store(&r.log[i], simd::lane_log(a));
+    simd::lane_store(&r.finite[i], simd::lane_select(simd::lane_isfinite(a), VD(1.0), VD(0.0)));
+    simd::lane_store(&r.min[i], simd::lane_min(a, b));
+    simd::lane_store(&r.max[i], simd::lane_max(a, b));
+    simd::lane_store(&r.select[i], simd::lane_select((a < b) | (a == b), a + b, a - b));
+  }
+  const VD first = simd::lane_load<VD>(&x[0]);
+  r.any = simd::lane_any(first > VD(0.0)), r.all = simd::lane_all(first > VD(0.0));
+  for (std::size_t i = 0; i + L <= xf.size(); i += L) {
+    const V a = simd::lane_load<V>(&xf[i]), b = simd::lane_load<V>(&yf[i]), c = simd::lane_load<V>(&zf[i]);
+    simd::lane_store(&r.sqrt_f[i], simd::lane_sqrt(a));
+    simd::lane_store(&r.mul_add_f[i], simd::lane_mul_add(a, b, c));
+    simd::lane_store(&r.finite_f[i], simd::lane_select(simd::lane_isfinite(a), V(1.0f), V(0.0f)));
+  }
+  // columns 0..12 of L rows of 13 values: column j of row l at [j * L + l]
+  const float* rows[L];
+  for (int l = 0; l < L; ++l) rows[l] = &xf[std::size_t(l) * 13];
+  V cols[13];
+  simd::load_columns<V, float>(rows, 13, cols);
+  for (int j = 0; j < 13; ++j) simd::lane_store(&r.columns[std::size_t(j) * L], cols[j]);
 }
 
 bool level_available(simd::DispatchLevel level) {
@@ -139,4 +179,62 @@ TEST_CASE("simd dispatch: masks, select, min, any and all of dispatch vectors", 
     }
   }
 }
+
+TEST_CASE("simd dispatch: double lanes and the per-Gaussian pass's math match the scalar functions", "[simd][dispatch]") {
+  std::vector<double> x, y;
+  // log-spaced positives over the normal range, the pass's log arguments [1, 255], halves, signs and non-finite values
+  for (int i = 0; i < 4096; ++i) x.push_back(std::pow(10.0, -300.0 + 600.0 * i / 4095.0));
+  for (int i = 0; i < 4096; ++i) x.push_back(1.0 + 254.0 * i / 4095.0);
+  for (double v : {0.5, 1.5, 2.5, -0.5, -1.5, -2.0, 0.0, -0.0, 4503599627370495.5, -1e300, double(INFINITY), -double(INFINITY), double(NAN)})
+    x.push_back(v);
+  while (x.size() % 16) x.push_back(3.0);
+  for (std::size_t i = 0; i < x.size(); ++i) y.push_back(i % 3 == 0 ? x[i] : i % 3 == 1 ? 2.0 : -2.0);
+  std::vector<float> xf, yf, zf;
+  for (int i = 0; i < 16 * 13; ++i) {
+    xf.push_back(float(std::sin(0.37 * i) * 1e3)), yf.push_back(float(std::cos(0.11 * i))), zf.push_back(0.1f * float(i));
+  }
+  xf[3] = INFINITY, xf[5] = NAN, xf[7] = 2.0f;
+  const auto same = [](double a, double b) { return a == b || (std::isnan(a) && std::isnan(b)); };
+  for (auto level : {simd::DispatchLevel::avx2, simd::DispatchLevel::avx512}) {
+    if (!level_available(level)) {
+      WARN("CPU lacks " << simd::dispatch_name(level) << ": its dispatch vectors are not exercised here");
+      continue;
+    }
+    INFO(simd::dispatch_name(level));
+    LaneMath r;
+    for (auto* v : {&r.sqrt, &r.floor, &r.ceil, &r.log, &r.finite, &r.min, &r.max, &r.select}) v->assign(x.size(), -7.0);
+    for (auto* v : {&r.sqrt_f, &r.mul_add_f, &r.finite_f, &r.columns}) v->assign(xf.size(), -7.0f);
+    auto body = [&](auto* lanes) { lane_math<std::remove_pointer_t<decltype(lanes)>>(x, y, xf, yf, zf, r); };
+    if (level == simd::DispatchLevel::avx512) simd::run_avx512_exact(body);
+    else simd::run_avx2_exact(body);
+    const int L = level == simd::DispatchLevel::avx512 ? 16 : 8;
+    double worst_log = 0;
+    for (std::size_t i = 0; i < x.size(); ++i) {
+      INFO("x = " << x[i]);
+      CHECK(same(r.sqrt[i], std::sqrt(x[i])));
+      CHECK(same(r.floor[i], std::floor(x[i])));
+      CHECK(same(r.ceil[i], std::ceil(x[i])));
+      CHECK(r.finite[i] == (std::isfinite(x[i]) ? 1.0 : 0.0));
+      CHECK(same(r.min[i], x[i] < y[i] ? x[i] : y[i]));
+      CHECK(same(r.max[i], x[i] < y[i] ? y[i] : x[i]));
+      CHECK(same(r.select[i], x[i] <= y[i] ? x[i] + y[i] : x[i] - y[i]));
+      if (std::isfinite(x[i]) && x[i] > 0) worst_log = std::max(worst_log, std::abs(r.log[i] - std::log(x[i])) /
+                                                                                std::max(1.0, std::abs(std::log(x[i]))));
+    }
+    INFO("log: worst error " << worst_log << " (relative, absolute below 1)");
+    CHECK(worst_log < 4e-16);
+    CHECK(r.any == (x[0] > 0));
+    CHECK(r.all == (x[0] > 0 && x[1] > 0));
+    for (std::size_t i = 0; i < xf.size(); ++i) {
+      INFO("xf = " << xf[i]);
+      CHECK(same(r.sqrt_f[i], std::sqrt(xf[i])));
+      // the scalar lane_mul_add of this build: fused with FMA, a product and a sum otherwise
+      CHECK(same(r.mul_add_f[i], simd::lane_mul_add(xf[i], yf[i], zf[i])));
+      CHECK(r.finite_f[i] == (std::isfinite(xf[i]) ? 1.0f : 0.0f));
+    }
+    for (int j = 0; j < 13; ++j)
+      for (int l = 0; l < L; ++l) CHECK(same(r.columns[std::size_t(j) * L + l], xf[std::size_t(l) * 13 + j]));
+  }
+}
+
 #endif

@@ -4,6 +4,7 @@
 // can compare both.
 #if defined(__x86_64__) || defined(__i386__)
 #include <cpuid.h>
+#include <immintrin.h>
 #endif
 #if defined(__linux__) && defined(__x86_64__)
 #include <sys/syscall.h>
@@ -190,6 +191,16 @@ template <class T, class A>
 struct lane_scalar<xsimd::batch<T, A>> {
   using type = T;
 };
+// Double lanes of a kernel whose float lanes are V: double for the scalar path, the batch of the same instruction set
+// for xsimd batches (the dispatch vectors add theirs).
+template <class V>
+struct double_lanes {
+  using type = double;
+};
+template <class T, class A>
+struct double_lanes<xsimd::batch<T, A>> {
+  using type = xsimd::batch<double, A>;
+};
 template <class T>
 FLEXSPLAT_ALWAYS_INLINE T lane_select(bool c, T a, T b) { return c ? a : b; }
 template <class T, class A>
@@ -309,6 +320,39 @@ inline void lane_store(T* p, T v) { *p = v; }
 template <class T, class A>
 inline void lane_store(T* p, const xsimd::batch<T, A>& v) { v.store_unaligned(p); }
 
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+// col[k] lane l = rows[l][j0 + k] for j0 + k < count (other columns unspecified): 16 (masked) row loads, which never
+// read past rows[l][count - 1], and a 16 x 16 in-register transpose. For the AVX-512 batches of a native build and
+// the dispatched 16-float lanes.
+__attribute__((target("avx512f,avx512dq,avx512bw,avx512vl,avx2,fma"))) inline void transpose_rows_avx512(
+    const float* const* rows, int j0, int count, __m512 col[16]) {
+  const __mmask16 live = count - j0 >= 16 ? __mmask16(0xffff) : __mmask16((1u << (count - j0)) - 1);
+  constexpr __mmask16 all = 0xffff;  // masked forms: the plain ones draw false GCC 12 warnings from its own headers
+  __m512 r[16], t[16];
+  for (int l = 0; l < 16; ++l) r[l] = _mm512_maskz_loadu_ps(live, rows[l] + j0);
+  for (int i = 0; i < 8; ++i) {  // pairs of rows interleaved
+    t[2 * i] = _mm512_mask_unpacklo_ps(r[2 * i], all, r[2 * i], r[2 * i + 1]);
+    t[2 * i + 1] = _mm512_mask_unpackhi_ps(r[2 * i], all, r[2 * i], r[2 * i + 1]);
+  }
+  for (int g = 0; g < 4; ++g) {  // r[4g + c]: rows 4g..4g+3 of column 4k + c in 128-bit lane k
+    r[4 * g] = _mm512_shuffle_ps(t[4 * g], t[4 * g + 2], 0x44);
+    r[4 * g + 1] = _mm512_shuffle_ps(t[4 * g], t[4 * g + 2], 0xee);
+    r[4 * g + 2] = _mm512_shuffle_ps(t[4 * g + 1], t[4 * g + 3], 0x44);
+    r[4 * g + 3] = _mm512_shuffle_ps(t[4 * g + 1], t[4 * g + 3], 0xee);
+  }
+  for (int c = 0; c < 4; ++c) {  // gather the four row groups of each 128-bit lane
+    const __m512 lo01 = _mm512_mask_shuffle_f32x4(r[c], all, r[c], r[4 + c], 0x88);
+    const __m512 hi01 = _mm512_mask_shuffle_f32x4(r[c], all, r[c], r[4 + c], 0xdd);
+    const __m512 lo23 = _mm512_mask_shuffle_f32x4(r[8 + c], all, r[8 + c], r[12 + c], 0x88);
+    const __m512 hi23 = _mm512_mask_shuffle_f32x4(r[8 + c], all, r[8 + c], r[12 + c], 0xdd);
+    col[c] = _mm512_mask_shuffle_f32x4(lo01, all, lo01, lo23, 0x88);
+    col[4 + c] = _mm512_mask_shuffle_f32x4(hi01, all, hi01, hi23, 0x88);
+    col[8 + c] = _mm512_mask_shuffle_f32x4(lo01, all, lo01, lo23, 0xdd);
+    col[12 + c] = _mm512_mask_shuffle_f32x4(hi01, all, hi01, hi23, 0xdd);
+  }
+}
+#endif
+
 // Column loads of a row-major block: out[j] lane l = rows[l][j] for j < count (rows[l] may repeat a row). AVX-512
 // float: 16 x 16 in-register transposes of (masked) row loads, which never read past rows[l][count - 1]; otherwise
 // a scalar transpose through the stack.
@@ -318,28 +362,9 @@ inline void load_columns(const T* const* rows, int count, V* out) {
 #if defined(__AVX512F__)
   if constexpr (std::is_same_v<T, float> && L == 16) {
     for (int j0 = 0; j0 < count; j0 += 16) {
-      const __mmask16 live = count - j0 >= 16 ? __mmask16(0xffff) : __mmask16((1u << (count - j0)) - 1);
-      __m512 r[16], t[16];
-      for (int l = 0; l < 16; ++l) r[l] = _mm512_maskz_loadu_ps(live, rows[l] + j0);
-      for (int i = 0; i < 8; ++i) {  // pairs of rows interleaved
-        t[2 * i] = _mm512_unpacklo_ps(r[2 * i], r[2 * i + 1]);
-        t[2 * i + 1] = _mm512_unpackhi_ps(r[2 * i], r[2 * i + 1]);
-      }
-      for (int g = 0; g < 4; ++g) {  // r[4g + c]: rows 4g..4g+3 of column 4k + c in 128-bit lane k
-        r[4 * g] = _mm512_shuffle_ps(t[4 * g], t[4 * g + 2], 0x44);
-        r[4 * g + 1] = _mm512_shuffle_ps(t[4 * g], t[4 * g + 2], 0xee);
-        r[4 * g + 2] = _mm512_shuffle_ps(t[4 * g + 1], t[4 * g + 3], 0x44);
-        r[4 * g + 3] = _mm512_shuffle_ps(t[4 * g + 1], t[4 * g + 3], 0xee);
-      }
-      for (int c = 0; c < 4; ++c) {  // gather the four row groups of each 128-bit lane
-        const __m512 lo01 = _mm512_shuffle_f32x4(r[c], r[4 + c], 0x88), hi01 = _mm512_shuffle_f32x4(r[c], r[4 + c], 0xdd);
-        const __m512 lo23 = _mm512_shuffle_f32x4(r[8 + c], r[12 + c], 0x88);
-        const __m512 hi23 = _mm512_shuffle_f32x4(r[8 + c], r[12 + c], 0xdd);
-        const __m512 col[4] = {_mm512_shuffle_f32x4(lo01, lo23, 0x88), _mm512_shuffle_f32x4(hi01, hi23, 0x88),
-                               _mm512_shuffle_f32x4(lo01, lo23, 0xdd), _mm512_shuffle_f32x4(hi01, hi23, 0xdd)};
-        for (int k = 0; k < 4; ++k)
-          if (j0 + 4 * k + c < count) out[j0 + 4 * k + c] = col[k];
-      }
+      __m512 col[16];
+      transpose_rows_avx512(rows, j0, count, col);
+      for (int k = 0; k < 16 && j0 + k < count; ++k) out[j0 + k] = col[k];
     }
     return;
   }

@@ -93,11 +93,21 @@ struct wide {
   friend wide_mask<T, N> operator>(wide a, wide b) { return wide_mask<T, N>::make(a.v > b.v); }
   friend wide_mask<T, N> operator>=(wide a, wide b) { return wide_mask<T, N>::make(a.v >= b.v); }
   friend wide_mask<T, N> operator!=(wide a, wide b) { return wide_mask<T, N>::make(a.v != b.v); }
+  friend wide_mask<T, N> operator==(wide a, wide b) { return wide_mask<T, N>::make(a.v == b.v); }
+  wide& operator+=(wide b) {
+    v += b.v;
+    return *this;
+  }
 };
 
 template <class T, int N>
 struct lane_count<wide<T, N>> {
   static constexpr std::size_t value = std::size_t(N);
+};
+
+template <int N>
+struct double_lanes<wide<float, N>> {
+  using type = wide<double, N / 2>;
 };
 
 template <class T, int N>
@@ -133,10 +143,78 @@ __attribute__((target("avx2"))) inline bool lane_any(wide_mask<float, 8> c) {
   std::memcpy(&x, &c.m, sizeof(x));
   return _mm256_movemask_ps(x) != 0;
 }
+__attribute__((target("avx2"))) inline bool lane_any(wide_mask<double, 4> c) {
+  return _mm256_movemask_pd(reinterpret_cast<__m256d>(c.m)) != 0;
+}
 template <class T, int N>
 inline bool lane_all(wide_mask<T, N> c) {
   return !lane_any(!c);
 }
+// x - x is 0 for a finite x and NaN otherwise.
+template <class T, int N>
+inline wide_mask<T, N> lane_isfinite(wide<T, N> x) {
+  return wide_mask<T, N>::make((x.v - x.v) == 0);
+}
+
+// The 256-bit widths' square root (IEEE, as std::sqrt), floor and ceil, through the AVX intrinsics.
+#define FLEXSPLAT_AVX2_TARGET __attribute__((target("avx2,fma")))
+FLEXSPLAT_AVX2_TARGET inline wide<float, 8> lane_sqrt(wide<float, 8> x) {
+  return wide<float, 8>::make(reinterpret_cast<wide<float, 8>::native>(_mm256_sqrt_ps(reinterpret_cast<__m256>(x.v))));
+}
+FLEXSPLAT_AVX2_TARGET inline wide<double, 4> lane_sqrt(wide<double, 4> x) {
+  return wide<double, 4>::make(reinterpret_cast<wide<double, 4>::native>(_mm256_sqrt_pd(reinterpret_cast<__m256d>(x.v))));
+}
+FLEXSPLAT_AVX2_TARGET inline wide<double, 4> lane_floor(wide<double, 4> x) {
+  return wide<double, 4>::make(reinterpret_cast<wide<double, 4>::native>(_mm256_floor_pd(reinterpret_cast<__m256d>(x.v))));
+}
+FLEXSPLAT_AVX2_TARGET inline wide<double, 4> lane_ceil(wide<double, 4> x) {
+  return wide<double, 4>::make(reinterpret_cast<wide<double, 4>::native>(_mm256_ceil_pd(reinterpret_cast<__m256d>(x.v))));
+}
+// a * b + c rounded as the scalar lane_mul_add of this build: fused only where the build itself has FMA (the
+// dispatching functions turn off contraction otherwise, so the lanes match the scalar path bit for bit).
+template <class T, int N>
+inline wide<T, N> lane_mul_add(wide<T, N> a, wide<T, N> b, wide<T, N> c) {
+#if defined(__FMA__)
+  if constexpr (sizeof(T) * N == 32 && sizeof(T) == 4)
+    return wide<T, N>::make(reinterpret_cast<typename wide<T, N>::native>(_mm256_fmadd_ps(
+        reinterpret_cast<__m256>(a.v), reinterpret_cast<__m256>(b.v), reinterpret_cast<__m256>(c.v))));
+  else if constexpr (sizeof(T) * N == 32)
+    return wide<T, N>::make(reinterpret_cast<typename wide<T, N>::native>(_mm256_fmadd_pd(
+        reinterpret_cast<__m256d>(a.v), reinterpret_cast<__m256d>(b.v), reinterpret_cast<__m256d>(c.v))));
+  else
+#endif
+    return a * b + c;
+}
+
+// log of double lanes from x = 2^e m, m in [0.75, 1.5): log m = 2 atanh(s), s = (m - 1) / (m + 1) in [-1/7, 1/5),
+// by its series to s^23 (truncation below 1e-18 relative), plus e ln 2 in two parts. Within a few ulp of std::log
+// (tested); for margins, like lane_log of the batches.
+template <class VD>
+FLEXSPLAT_ALWAYS_INLINE VD log_from_parts(VD m, VD e) {
+  constexpr double ln2_hi = 0.693147180369123816490, ln2_lo = 1.90821492927058770002e-10;  // ln2_hi: 32 bits
+  const VD s = (m - VD(1.0)) / (m + VD(1.0)), z = s * s;
+  VD series = VD(1.0 / 23.0);
+  for (int k = 21; k >= 1; k -= 2) series = series * z + VD(1.0 / double(k));
+  return e * VD(ln2_hi) + (e * VD(ln2_lo) + VD(2.0) * s * series);
+}
+// AVX2: exponent and mantissa through the bits (positive normal x; other inputs give unspecified values).
+FLEXSPLAT_AVX2_TARGET inline wide<double, 4> lane_log(wide<double, 4> x) {
+  using W = wide<double, 4>;
+  const __m256i bits = reinterpret_cast<__m256i>(x.v);
+  const __m256i exponent_bits = _mm256_srli_epi64(bits, 52);
+  // mantissa scaled to [1, 2), exponent as a double through the 2^52 bias trick
+  const __m256i one_bits = _mm256_set1_epi64x(0x3ff0000000000000LL);
+  const __m256d m1 = reinterpret_cast<__m256d>(
+      _mm256_or_si256(_mm256_and_si256(bits, _mm256_set1_epi64x(0x000fffffffffffffLL)), one_bits));
+  const __m256d e_biased = _mm256_sub_pd(
+      reinterpret_cast<__m256d>(_mm256_or_si256(exponent_bits, _mm256_set1_epi64x(0x4330000000000000LL))),
+      _mm256_set1_pd(0x1p52 + 1023.0));
+  const __m256d high = _mm256_cmp_pd(m1, _mm256_set1_pd(1.5), _CMP_GE_OQ);
+  const __m256d m = _mm256_blendv_pd(m1, _mm256_mul_pd(m1, _mm256_set1_pd(0.5)), high);
+  const __m256d e = _mm256_add_pd(e_biased, _mm256_and_pd(high, _mm256_set1_pd(1.0)));
+  return log_from_parts(W::make(reinterpret_cast<W::native>(m)), W::make(reinterpret_cast<W::native>(e)));
+}
+#undef FLEXSPLAT_AVX2_TARGET
 
 // exp at float precision for the blending kernels: Cody-Waite reduction by ln 2, degree-7 Taylor polynomial on
 // |r| <= ln(2)/2 (truncation 1e-8, below float rounding; evaluated for latency, as the blend waits on it), scaled
@@ -207,6 +285,11 @@ struct wide<float, 16> {
   friend FLEXSPLAT_AVX512_TARGET inline mask operator>(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_GT_OQ)); }
   friend FLEXSPLAT_AVX512_TARGET inline mask operator>=(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_GE_OQ)); }
   friend FLEXSPLAT_AVX512_TARGET inline mask operator!=(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_NEQ_UQ)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator==(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_EQ_OQ)); }
+  FLEXSPLAT_AVX512_TARGET wide& operator+=(wide b) {
+    v = _mm512_add_ps(v, b.v);
+    return *this;
+  }
 };
 
 FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_select(wide_mask<float, 16> c, wide<float, 16> a, wide<float, 16> b) {
@@ -268,7 +351,144 @@ FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp(wide<float, 16> x) {
 FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp_blend(wide<float, 16> x) {
   return wide<float, 16>::make(exp_avx512<true>(x.v));
 }
+FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_sqrt(wide<float, 16> x) {
+  return wide<float, 16>::make(_mm512_mask_sqrt_ps(x.v, __mmask16(0xffff), x.v));
+}
+FLEXSPLAT_AVX512_TARGET inline wide_mask<float, 16> lane_isfinite(wide<float, 16> x) {
+  const __m512 zero = _mm512_sub_ps(x.v, x.v);
+  return wide_mask<float, 16>::make(_mm512_cmp_ps_mask(zero, _mm512_setzero_ps(), _CMP_EQ_OQ));
+}
+FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_mul_add(wide<float, 16> a, wide<float, 16> b, wide<float, 16> c) {
+#if defined(__FMA__)
+  return wide<float, 16>::make(_mm512_fmadd_ps(a.v, b.v, c.v));
+#else
+  return a * b + c;
+#endif
+}
+// Columns of 16 rows through 16 x 16 in-register transposes (simd::load_columns).
+template <>
+FLEXSPLAT_AVX512_TARGET inline void load_columns<wide<float, 16>, float>(const float* const* rows, int count,
+                                                                        wide<float, 16>* out) {
+  for (int j0 = 0; j0 < count; j0 += 16) {
+    __m512 col[16];
+    transpose_rows_avx512(rows, j0, count, col);
+    for (int k = 0; k < 16 && j0 + k < count; ++k) out[j0 + k] = wide<float, 16>::make(col[k]);
+  }
+}
+
+// 8 doubles with AVX-512 mask registers (the double lanes of the 16-float kernels).
+template <>
+struct wide_mask<double, 8> {
+  __mmask8 m;
+  static FLEXSPLAT_AVX512_TARGET inline wide_mask make(__mmask8 x) {
+    wide_mask w;
+    w.m = x;
+    return w;
+  }
+  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator&(wide_mask a, wide_mask b) { return make(__mmask8(a.m & b.m)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator|(wide_mask a, wide_mask b) { return make(__mmask8(a.m | b.m)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator!(wide_mask a) { return make(__mmask8(~a.m)); }
+};
+
+template <>
+struct wide<double, 8> {
+  using mask = wide_mask<double, 8>;
+  __m512d v;
+  FLEXSPLAT_AVX512_TARGET wide() = default;
+  FLEXSPLAT_AVX512_TARGET wide(double x) : v(_mm512_set1_pd(x)) {}
+  static FLEXSPLAT_AVX512_TARGET inline wide make(__m512d x) {
+    wide w;
+    w.v = x;
+    return w;
+  }
+  static FLEXSPLAT_AVX512_TARGET inline wide load_unaligned(const double* p) { return make(_mm512_loadu_pd(p)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator+(wide a, wide b) { return make(_mm512_add_pd(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator-(wide a, wide b) { return make(_mm512_sub_pd(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(wide a, wide b) { return make(_mm512_mul_pd(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator/(wide a, wide b) { return make(_mm512_div_pd(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator-(wide a) { return make(_mm512_sub_pd(_mm512_setzero_pd(), a.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(double a, wide b) { return make(_mm512_mul_pd(_mm512_set1_pd(a), b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(wide a, double b) { return make(_mm512_mul_pd(a.v, _mm512_set1_pd(b))); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator<(wide a, wide b) { return mask::make(_mm512_cmp_pd_mask(a.v, b.v, _CMP_LT_OQ)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator<=(wide a, wide b) { return mask::make(_mm512_cmp_pd_mask(a.v, b.v, _CMP_LE_OQ)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator>(wide a, wide b) { return mask::make(_mm512_cmp_pd_mask(a.v, b.v, _CMP_GT_OQ)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator>=(wide a, wide b) { return mask::make(_mm512_cmp_pd_mask(a.v, b.v, _CMP_GE_OQ)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator!=(wide a, wide b) { return mask::make(_mm512_cmp_pd_mask(a.v, b.v, _CMP_NEQ_UQ)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator==(wide a, wide b) { return mask::make(_mm512_cmp_pd_mask(a.v, b.v, _CMP_EQ_OQ)); }
+  FLEXSPLAT_AVX512_TARGET wide& operator+=(wide b) {
+    v = _mm512_add_pd(v, b.v);
+    return *this;
+  }
+};
+
+FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_select(wide_mask<double, 8> c, wide<double, 8> a, wide<double, 8> b) {
+  return wide<double, 8>::make(_mm512_mask_blend_pd(c.m, b.v, a.v));
+}
+FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_min(wide<double, 8> a, wide<double, 8> b) {
+  return lane_select(a < b, a, b);
+}
+FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_max(wide<double, 8> a, wide<double, 8> b) {
+  return lane_select(a < b, b, a);
+}
+FLEXSPLAT_AVX512_TARGET inline void lane_store(double* p, wide<double, 8> x) { _mm512_storeu_pd(p, x.v); }
+template <>
+FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_load<wide<double, 8>, double>(const double* p) {
+  return wide<double, 8>::make(_mm512_loadu_pd(p));
+}
+FLEXSPLAT_AVX512_TARGET inline bool lane_any(wide_mask<double, 8> c) { return c.m != 0; }
+FLEXSPLAT_AVX512_TARGET inline bool lane_all(wide_mask<double, 8> c) { return c.m == 0xff; }
+FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_sqrt(wide<double, 8> x) {
+  return wide<double, 8>::make(_mm512_mask_sqrt_pd(x.v, __mmask8(0xff), x.v));
+}
+FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_floor(wide<double, 8> x) {
+  return wide<double, 8>::make(_mm512_mask_roundscale_pd(x.v, __mmask8(0xff), x.v, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC));
+}
+FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_ceil(wide<double, 8> x) {
+  return wide<double, 8>::make(_mm512_mask_roundscale_pd(x.v, __mmask8(0xff), x.v, _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC));
+}
+FLEXSPLAT_AVX512_TARGET inline wide_mask<double, 8> lane_isfinite(wide<double, 8> x) {
+  const __m512d zero = _mm512_sub_pd(x.v, x.v);
+  return wide_mask<double, 8>::make(_mm512_cmp_pd_mask(zero, _mm512_setzero_pd(), _CMP_EQ_OQ));
+}
+FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_mul_add(wide<double, 8> a, wide<double, 8> b, wide<double, 8> c) {
+#if defined(__FMA__)
+  return wide<double, 8>::make(_mm512_fmadd_pd(a.v, b.v, c.v));
+#else
+  return a * b + c;
+#endif
+}
+// AVX-512: exponent and mantissa in [1, 2) by getexp / getmant (positive normal x; other inputs give unspecified
+// values).
+FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_log(wide<double, 8> x) {
+  using W = wide<double, 8>;
+  constexpr __mmask8 all = 0xff;
+  const __m512d m1 = _mm512_mask_getmant_pd(x.v, all, x.v, _MM_MANT_NORM_1_2, _MM_MANT_SIGN_zero);
+  const __m512d e1 = _mm512_mask_getexp_pd(x.v, all, x.v);
+  const __mmask8 high = _mm512_cmp_pd_mask(m1, _mm512_set1_pd(1.5), _CMP_GE_OQ);
+  const __m512d m = _mm512_mask_mul_pd(m1, high, m1, _mm512_set1_pd(0.5));
+  const __m512d e = _mm512_mask_add_pd(e1, high, e1, _mm512_set1_pd(1.0));
+  return log_from_parts(W::make(m), W::make(e));
+}
 #undef FLEXSPLAT_AVX512_TARGET
+
+// Calls body(V*) (the pointer only carries the type) with V = wide<float, 16> / wide<float, 8>, inlined (flatten) into
+// a function compiled for AVX-512 / AVX2, for kernels whose lanes must round as the scalar path of this build: a build
+// without FMA has no fused multiply-adds for the compiler to form, so the wider target must not form them either.
+#if defined(__FMA__)
+#define FLEXSPLAT_SCALAR_ROUNDING
+#else
+#define FLEXSPLAT_SCALAR_ROUNDING __attribute__((optimize("fp-contract=off")))
+#endif
+template <class Body>
+__attribute__((target("avx512f,avx512bw,avx512dq,avx512vl,avx2,fma"), flatten)) FLEXSPLAT_SCALAR_ROUNDING void
+run_avx512_exact(Body& body) {
+  body(static_cast<wide<float, 16>*>(nullptr));
+}
+template <class Body>
+__attribute__((target("avx2,fma"), flatten)) FLEXSPLAT_SCALAR_ROUNDING void run_avx2_exact(Body& body) {
+  body(static_cast<wide<float, 8>*>(nullptr));
+}
+#undef FLEXSPLAT_SCALAR_ROUNDING
 
 #endif  // FLEXSPLAT_SIMD_DISPATCH
 

@@ -380,6 +380,26 @@ __attribute__((target("avx2,fma"), flatten)) void run_avx2(Body& body) {
 }
 #endif
 
+// Lanes per vector of a (non-scalar) kernel's float lanes.
+template <class T>
+index_t blend_lane_count(BlendKernel kernel) {
+  if (kernel == BlendKernel::avx512) return 16;
+  if (kernel == BlendKernel::avx2) return 8;
+  return index_t(simd::width<T>);
+}
+
+// with_blend_lanes for kernels that must match the scalar path bit for bit (simd::run_avx512_exact / run_avx2_exact).
+template <class T, class Body>
+void with_exact_lanes(BlendKernel kernel, Body&& body) {
+#if FLEXSPLAT_SIMD_DISPATCH
+  if constexpr (sizeof(T) == 4) {
+    if (kernel == BlendKernel::avx512) return simd::run_avx512_exact(body);
+    if (kernel == BlendKernel::avx2) return simd::run_avx2_exact(body);
+  }
+#endif
+  body(static_cast<simd::batch<T>*>(nullptr));
+}
+
 // Calls body(V*) with the lane type V of the chosen kernel (the pointer only carries the type).
 template <class T, class Body>
 void with_blend_lanes(BlendKernel kernel, Body&& body) {

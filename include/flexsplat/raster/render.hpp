@@ -29,6 +29,7 @@
 #include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/simd.hpp"
+#include "flexsplat/core/simd_dispatch.hpp"  // its lane overloads must be visible where the lane templates are defined
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/raster/constants.hpp"
 #include "flexsplat/raster/intersect.hpp"
@@ -304,7 +305,7 @@ FLEXSPLAT_ALWAYS_INLINE bool all_finite_lanes(const T* data, index_t count) {
   index_t i = 0;
   for (; i + L <= count; i += L) {
     const V x = simd::lane_load<V>(data + i);
-    acc += x - x;
+    acc = acc + (x - x);
   }
   T tail = T(0);
   for (; i < count; ++i) tail += data[i] - data[i];
@@ -317,7 +318,7 @@ FLEXSPLAT_ALWAYS_INLINE bool all_finite_lanes(const T* data, index_t count) {
 // gaussian_one per Gaussian, so errors are found exactly as on the scalar path.
 template <class V, class T>
 bool gaussian_block(const GaussianPass<T>& pass, index_t g0) {
-  using VD = simd::batch<double>;
+  using VD = typename simd::double_lanes<V>::type;
   constexpr int L = int(simd::lane_count<V>::value), LD = int(simd::lane_count<VD>::value);
   static_assert(L % LD == 0, "a block splits into whole double batches");
   const GaussianInputs<T>& in = *pass.in;
@@ -540,12 +541,16 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
   pass.degree = degree, pass.F = F, pass.C = C, pass.n = n, pass.K = K;
   pass.campos = campos;
   pass.records = records, pass.record_stride = ws.raster.splat_stride;
-  if (simd::enabled() && !opt.skips.force_scalar) {
+  const detail::BlendKernel kernel = detail::choose_blend_kernel<T>(opt.skips);
+  if (kernel != detail::BlendKernel::scalar) {
     // Blocks of L Gaussians at fixed positions: the same lanes for any number of threads.
-    constexpr index_t L = index_t(simd::lane_count<simd::batch<T>>::value);
+    const index_t L = detail::blend_lane_count<T>(kernel);
     parallel_for((n + L - 1) / L, [&](index_t begin, index_t end, int) {
-      for (index_t b = begin; b < end; ++b)
-        if (!detail::gaussian_block<simd::batch<T>, T>(pass, b * L)) value_failed.store(true, std::memory_order_relaxed);
+      detail::with_exact_lanes<T>(kernel, [&](auto* lanes) {
+        using V = std::remove_pointer_t<decltype(lanes)>;
+        for (index_t b = begin; b < end; ++b)
+          if (!detail::gaussian_block<V, T>(pass, b * L)) value_failed.store(true, std::memory_order_relaxed);
+      });
     }, pool);
   } else {
     parallel_for(n, [&](index_t begin, index_t end, int) {

@@ -5,6 +5,7 @@
 
 #include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/simd.hpp"
+#include "flexsplat/core/simd_dispatch.hpp"  // its lane overloads must be visible where the lane templates are defined
 #include "flexsplat/raster/constants.hpp"
 
 namespace flexsplat {
