@@ -70,13 +70,11 @@ TEST_CASE("intersect: per-row tile spans agree with the exact ellipse-tile test"
 // sorted order, with every item's fields checked to travel together.
 template <class U>
 std::vector<std::int32_t> sorted_positions(const std::vector<U>& keys) {
-  std::vector<TileItem<U>> items(keys.size()), a(keys.size()), b(keys.size());
+  std::vector<TileItem<U>> items(keys.size()), a(keys.size());
   for (std::size_t i = 0; i < keys.size(); ++i)
     items[i] = {keys[i], std::int32_t(i), std::int32_t(100 + i), std::int32_t(7 * i)};
-  // in two parts, taken in order, as a tile row's buckets of two index chunks
-  const std::size_t half = keys.size() / 2;
-  const std::span<const TileItem<U>> parts[2] = {{items.data(), half}, {items.data() + half, keys.size() - half}};
-  const TileItem<U>* sorted = sort_items_by_depth(parts, 2, a.data(), b.data());
+  // the items' own memory as the second buffer, as bin_tiles passes it
+  const TileItem<U>* sorted = sort_items_by_depth(items.data(), std::int64_t(keys.size()), a.data(), items.data());
   std::vector<std::int32_t> order;
   for (std::size_t i = 0; i < keys.size(); ++i) {
     CHECK(sorted[i].emission == 100 + sorted[i].gaussian);

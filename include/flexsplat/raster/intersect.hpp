@@ -10,7 +10,6 @@
 #include <cstdint>
 #include <cstring>
 #include <type_traits>
-#include <span>
 #include <utility>
 #include <vector>
 
@@ -268,36 +267,26 @@ struct TileItem {
   std::int32_t gaussian, emission, column;
 };
 
-// Stable LSD radix sort (8-bit digits; digits equal in every key are skipped) by depth key of the items of parts,
-// taken in order, into a or b (each at least as long as all parts; b may be the memory of the parts, which only the
-// first pass reads); returns the one that holds the result. Ties keep their input order.
+// Stable LSD radix sort (8-bit digits) by depth key of count items through a and b (each count long; b may be the
+// items' own memory, which only the first pass reads); returns the buffer that holds the result (items if no pass
+// was needed). Ties keep their input order.
 template <class U>
-TileItem<U>* sort_items_by_depth(const std::span<const TileItem<U>>* parts, int part_count, TileItem<U>* a,
-                                 TileItem<U>* b) {
+TileItem<U>* sort_items_by_depth(TileItem<U>* items, std::int64_t count, TileItem<U>* a, TileItem<U>* b) {
   constexpr int max_digits = int(sizeof(U));
-  // Digits above the highest bit in which two keys differ are the same in every key: no histogram, no pass.
-  std::uint32_t count = 0;
-  U first_key = 0, differ = 0;
-  for (int p = 0; p < part_count; ++p)
-    if (!parts[p].empty()) {
-      first_key = parts[p][0].key;
-      break;
-    }
-  for (int p = 0; p < part_count; ++p) {
-    for (const TileItem<U>& item : parts[p]) differ |= item.key ^ first_key;
-    count += std::uint32_t(parts[p].size());
-  }
+  // Digits above the highest bit in which two keys differ are the same in every key: no histogram, no pass (the
+  // depths of one tile share their top byte, and counting it would be one long chain of increments).
+  U differ = 0;
+  for (std::int64_t i = 0; i < count; ++i) differ |= items[i].key ^ items[0].key;
   const int digits = (int(std::bit_width(differ)) + 7) / 8;
   std::uint32_t counts[max_digits][256];
   for (int d = 0; d < digits; ++d) std::fill_n(counts[d], 256, 0u);
-  for (int p = 0; p < part_count; ++p)
-    for (const TileItem<U>& item : parts[p])
-      for (int d = 0; d < digits; ++d) ++counts[d][(item.key >> (8 * d)) & 0xff];
+  for (std::int64_t i = 0; i < count; ++i)
+    for (int d = 0; d < digits; ++d) ++counts[d][(items[i].key >> (8 * d)) & 0xff];
+  TileItem<U>* from = items;
   TileItem<U>* to = a;
-  TileItem<U>* from = nullptr;  // null: still in parts
   for (int d = 0; d < digits; ++d) {
     std::uint32_t* c = counts[d];
-    if (*std::max_element(c, c + 256) == count) continue;
+    if (*std::max_element(c, c + 256) == std::uint32_t(count)) continue;  // a digit shared by every key
     std::uint32_t sum = 0;
     for (int v = 0; v < 256; ++v) {
       const std::uint32_t k = c[v];
@@ -305,19 +294,9 @@ TileItem<U>* sort_items_by_depth(const std::span<const TileItem<U>>* parts, int 
       sum += k;
     }
     const int shift = 8 * d;
-    if (from == nullptr) {
-      for (int p = 0; p < part_count; ++p)
-        for (const TileItem<U>& item : parts[p]) to[c[(item.key >> shift) & 0xff]++] = item;
-    } else {
-      for (std::uint32_t i = 0; i < count; ++i) to[c[(from[i].key >> shift) & 0xff]++] = from[i];
-    }
+    for (std::int64_t i = 0; i < count; ++i) to[c[(from[i].key >> shift) & 0xff]++] = from[i];
     from = to;
     to = to == a ? b : a;
-  }
-  if (from == nullptr) {  // every key equal
-    TileItem<U>* out = a;
-    for (int p = 0; p < part_count; ++p) out = std::copy(parts[p].begin(), parts[p].end(), out);
-    return a;
   }
   return from;
 }
@@ -451,9 +430,9 @@ FLEXSPLAT_ALWAYS_INLINE void append_tile_run(BandBucket<U>& band, U key, std::in
 }
 
 // From the per-Gaussian counts: every Gaussian's tiles appended to per-(index chunk, tile row) buckets in one pass
-// (a few dozen append points, so the writes stay in cache); then per tile row, its buckets in chunk order (index
-// order) sorted by camera depth with a stable sort and distributed to the row's tiles in that order. Ties keep index
-// order, and the lists do not depend on the number of threads.
+// (a few dozen append points, so the writes stay in cache); then per tile row, in parallel, its items grouped by tile
+// (buckets in chunk order, so index order) and each tile's items sorted by camera depth with a stable sort into the
+// tile list. Ties keep index order, and the lists do not depend on the number of threads.
 template <class T>
 void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, TileIntersections& out,
                ThreadPool& pool = global_pool()) {
@@ -483,6 +462,7 @@ void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, T
         const U key = depth_key(proj[g].z);
         std::int32_t emission = std::int32_t(out.gaussian_offsets[g]);
         const GaussianTiles& t = out.gaussian_tiles[g];
+        // The stored rows read here directly (as for_each_gaussian_tile_row): this loop is the pass's hot path.
         const int stored_last_row = std::min(t.rect.y1, t.rect.y0 + GaussianTiles::stored_rows - 1);
         for (int ty = t.rect.y0; ty <= stored_last_row; ++ty) {
           const int tx0 = t.first[ty - t.rect.y0], tx1 = t.last[ty - t.rect.y0];
@@ -518,7 +498,6 @@ void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, T
     std::vector<TileItem<U>>& sort_a = bins.sort_a[std::size_t(worker)];
     std::vector<TileItem<U>>& sort_b = bins.sort_b[std::size_t(worker)];
     std::vector<std::int64_t> cursor(std::size_t(grid.tiles_x));
-    std::vector<std::span<const TileItem<U>>> parts(static_cast<std::size_t>(chunks));
     std::int64_t longest = 0;
     for (int ty; (ty = next.fetch_add(1, std::memory_order_relaxed)) < grid.tiles_y;) {
       const index_t first_tile = index_t(ty) * grid.tiles_x;
@@ -538,23 +517,25 @@ void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, T
         longest = std::max(longest, count);
       }
       if (row_count == 0) continue;
-      if (sort_a.size() < std::size_t(row_count)) sort_a.resize(std::size_t(row_count)), sort_b.resize(std::size_t(row_count));
+      if (sort_a.size() < std::size_t(row_count))
+        sort_a.resize(std::size_t(row_count)), sort_b.resize(std::size_t(row_count));
       // Grouped by tile: buckets in chunk order keep index order within each tile.
       TileItem<U>* grouped = sort_b.data();
       for (int w = 0; w < chunks; ++w) {
         const BandBucket<U>& band = bins.bands[std::size_t(w * band_stride + ty)];
-        for (std::size_t i = 0; i < band.size; ++i) grouped[cursor[std::size_t(band.storage[i].column)]++] = band.storage[i];
+        for (std::size_t i = 0; i < band.size; ++i)
+          grouped[cursor[std::size_t(band.storage[i].column)]++] = band.storage[i];
       }
       std::int32_t* tile_gaussian = out.tile_gaussian.data();
       std::int32_t* tile_entries = out.tile_entries.data();
       for (int tx = 0; tx < grid.tiles_x; ++tx) {
         const std::int64_t begin = out.tile_offsets[std::size_t(first_tile + tx)];
-        const std::int64_t end = tx + 1 < grid.tiles_x ? out.tile_offsets[std::size_t(first_tile + tx + 1)] : row_begin + row_count;
+        const std::int64_t end =
+            tx + 1 < grid.tiles_x ? out.tile_offsets[std::size_t(first_tile + tx + 1)] : row_begin + row_count;
         if (end == begin) continue;
-        const std::span<const TileItem<U>> tile_part(grouped + (begin - row_begin), std::size_t(end - begin));
         // The tile's grouped slice doubles as the sort's second buffer: the first pass reads it before any write.
         TileItem<U>* slice = grouped + (begin - row_begin);
-        const TileItem<U>* sorted = sort_items_by_depth(&tile_part, 1, sort_a.data(), slice);
+        const TileItem<U>* sorted = sort_items_by_depth(slice, end - begin, sort_a.data(), slice);
         for (std::int64_t i = 0; i < end - begin; ++i) {
           tile_gaussian[begin + i] = sorted[i].gaussian;
           tile_entries[begin + i] = sorted[i].emission;

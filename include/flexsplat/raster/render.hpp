@@ -479,7 +479,8 @@ bool gaussian_block(const GaussianPass<T>& pass, index_t g0) {
       t.rect = TileRect{int(a_rect[0][l]), int(a_rect[1][l]), int(a_rect[2][l]), int(a_rect[3][l])};
       for (int i = 0; i < stored; ++i) t.first[i] = std::int16_t(a_first[i][l]), t.last[i] = std::int16_t(a_last[i][l]);
       std::int64_t tiles = std::int64_t(a_count[l]);
-      for_each_later_tile_row(ws.projections[g], t, grid, pass.skips, [&](int, int tx0, int tx1) { tiles += tx1 - tx0 + 1; });
+      for_each_later_tile_row(ws.projections[g], t, grid, pass.skips,
+                              [&](int, int tx0, int tx1) { tiles += tx1 - tx0 + 1; });
       ws.tiles.gaussian_counts[g] = tiles;
       if (tiles == 0) continue;
       T* record = pass.records + g * pass.record_stride;
