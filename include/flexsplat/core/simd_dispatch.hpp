@@ -156,20 +156,31 @@ inline wide_mask<T, N> lane_isfinite(wide<T, N> x) {
   return wide_mask<T, N>::make((x.v - x.v) == 0);
 }
 
-// The 256-bit widths' square root (IEEE, as std::sqrt), floor and ceil, through the AVX intrinsics.
+// The 256-bit widths' square root (IEEE, as std::sqrt), floor and ceil, through the AVX intrinsics. Functions
+// compiled for AVX2 call nothing compiled without it with a vector argument (Clang rejects that ABI change), so the
+// results are assembled in place.
 #define FLEXSPLAT_AVX2_TARGET __attribute__((target("avx2,fma")))
 FLEXSPLAT_AVX2_TARGET inline wide<float, 8> lane_sqrt(wide<float, 8> x) {
-  return wide<float, 8>::make(reinterpret_cast<wide<float, 8>::native>(_mm256_sqrt_ps(reinterpret_cast<__m256>(x.v))));
+  wide<float, 8> r;
+  r.v = reinterpret_cast<wide<float, 8>::native>(_mm256_sqrt_ps(reinterpret_cast<__m256>(x.v)));
+  return r;
 }
 FLEXSPLAT_AVX2_TARGET inline wide<double, 4> lane_sqrt(wide<double, 4> x) {
-  return wide<double, 4>::make(reinterpret_cast<wide<double, 4>::native>(_mm256_sqrt_pd(reinterpret_cast<__m256d>(x.v))));
+  wide<double, 4> r;
+  r.v = reinterpret_cast<wide<double, 4>::native>(_mm256_sqrt_pd(reinterpret_cast<__m256d>(x.v)));
+  return r;
 }
 FLEXSPLAT_AVX2_TARGET inline wide<double, 4> lane_floor(wide<double, 4> x) {
-  return wide<double, 4>::make(reinterpret_cast<wide<double, 4>::native>(_mm256_floor_pd(reinterpret_cast<__m256d>(x.v))));
+  wide<double, 4> r;
+  r.v = reinterpret_cast<wide<double, 4>::native>(_mm256_floor_pd(reinterpret_cast<__m256d>(x.v)));
+  return r;
 }
 FLEXSPLAT_AVX2_TARGET inline wide<double, 4> lane_ceil(wide<double, 4> x) {
-  return wide<double, 4>::make(reinterpret_cast<wide<double, 4>::native>(_mm256_ceil_pd(reinterpret_cast<__m256d>(x.v))));
+  wide<double, 4> r;
+  r.v = reinterpret_cast<wide<double, 4>::native>(_mm256_ceil_pd(reinterpret_cast<__m256d>(x.v)));
+  return r;
 }
+#undef FLEXSPLAT_AVX2_TARGET
 // a * b + c rounded as the scalar lane_mul_add of this build: fused only where the build itself has FMA (the
 // dispatching functions turn off contraction otherwise, so the lanes match the scalar path bit for bit).
 template <class T, int N>
@@ -186,35 +197,34 @@ inline wide<T, N> lane_mul_add(wide<T, N> a, wide<T, N> b, wide<T, N> c) {
     return a * b + c;
 }
 
-// log of double lanes from x = 2^e m, m in [0.75, 1.5): log m = 2 atanh(s), s = (m - 1) / (m + 1) in [-1/7, 1/5),
-// by its series to s^23 (truncation below 1e-18 relative), plus e ln 2 in two parts. Within a few ulp of std::log
-// (tested); for margins, like lane_log of the batches.
-template <class VD>
-FLEXSPLAT_ALWAYS_INLINE VD log_from_parts(VD m, VD e) {
-  constexpr double ln2_hi = 0.693147180369123816490, ln2_lo = 1.90821492927058770002e-10;  // ln2_hi: 32 bits
-  const VD s = (m - VD(1.0)) / (m + VD(1.0)), z = s * s;
-  VD series = VD(1.0 / 23.0);
-  for (int k = 21; k >= 1; k -= 2) series = series * z + VD(1.0 / double(k));
-  return e * VD(ln2_hi) + (e * VD(ln2_lo) + VD(2.0) * s * series);
+// log of double lanes: x = 2^e m with m in [0.75, 1.5), log m = 2 atanh(s), s = (m - 1) / (m + 1) in [-1/7, 1/5),
+// by its series to s^23 (truncation below 1e-18 relative), plus e ln 2 in two parts (ln2_hi has 32 significant
+// bits, so e ln2_hi is exact). Within a few ulp of std::log (tested); for margins, like lane_log of the batches.
+inline constexpr double log_ln2_hi = 0.693147180369123816490, log_ln2_lo = 1.90821492927058770002e-10;
+inline constexpr double log_series[12] = {1.0,        1.0 / 3.0,  1.0 / 5.0,  1.0 / 7.0,  1.0 / 9.0,  1.0 / 11.0,
+                                          1.0 / 13.0, 1.0 / 15.0, 1.0 / 17.0, 1.0 / 19.0, 1.0 / 21.0, 1.0 / 23.0};
+// Vector-extension form (positive normal x; other inputs give unspecified values): exponent and mantissa through the
+// bits, the exponent as a double by the 2^52 bias trick.
+template <int N>
+inline wide<double, N> lane_log(wide<double, N> x) {
+  using W = typename wide<double, N>::native;
+  using I = typename wide_mask<double, N>::native;
+  I bits;
+  std::memcpy(&bits, &x.v, sizeof(bits));
+  const I mantissa_bits = (bits & 0x000fffffffffffffLL) | 0x3ff0000000000000LL;
+  const I exponent_bits = ((bits >> 52) & 0x7ff) | 0x4330000000000000LL;
+  W m, e;
+  std::memcpy(&m, &mantissa_bits, sizeof(m));
+  std::memcpy(&e, &exponent_bits, sizeof(e));
+  e = e - (0x1p52 + 1023.0);
+  const I high = m >= 1.5;
+  m = high ? m * 0.5 : m;
+  e = high ? e + 1.0 : e;
+  const W s = (m - 1.0) / (m + 1.0), z = s * s;
+  W series = W{} + log_series[11];
+  for (int k = 10; k >= 0; --k) series = series * z + log_series[k];
+  return wide<double, N>::make(e * log_ln2_hi + (e * log_ln2_lo + 2.0 * s * series));
 }
-// AVX2: exponent and mantissa through the bits (positive normal x; other inputs give unspecified values).
-FLEXSPLAT_AVX2_TARGET inline wide<double, 4> lane_log(wide<double, 4> x) {
-  using W = wide<double, 4>;
-  const __m256i bits = reinterpret_cast<__m256i>(x.v);
-  const __m256i exponent_bits = _mm256_srli_epi64(bits, 52);
-  // mantissa scaled to [1, 2), exponent as a double through the 2^52 bias trick
-  const __m256i one_bits = _mm256_set1_epi64x(0x3ff0000000000000LL);
-  const __m256d m1 = reinterpret_cast<__m256d>(
-      _mm256_or_si256(_mm256_and_si256(bits, _mm256_set1_epi64x(0x000fffffffffffffLL)), one_bits));
-  const __m256d e_biased = _mm256_sub_pd(
-      reinterpret_cast<__m256d>(_mm256_or_si256(exponent_bits, _mm256_set1_epi64x(0x4330000000000000LL))),
-      _mm256_set1_pd(0x1p52 + 1023.0));
-  const __m256d high = _mm256_cmp_pd(m1, _mm256_set1_pd(1.5), _CMP_GE_OQ);
-  const __m256d m = _mm256_blendv_pd(m1, _mm256_mul_pd(m1, _mm256_set1_pd(0.5)), high);
-  const __m256d e = _mm256_add_pd(e_biased, _mm256_and_pd(high, _mm256_set1_pd(1.0)));
-  return log_from_parts(W::make(reinterpret_cast<W::native>(m)), W::make(reinterpret_cast<W::native>(e)));
-}
-#undef FLEXSPLAT_AVX2_TARGET
 
 // exp at float precision for the blending kernels: Cody-Waite reduction by ln 2, degree-7 Taylor polynomial on
 // |r| <= ln(2)/2 (truncation 1e-8, below float rounding; evaluated for latency, as the blend waits on it), scaled
@@ -458,24 +468,29 @@ FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_mul_add(wide<double, 8> a, w
 #endif
 }
 // AVX-512: exponent and mantissa in [1, 2) by getexp / getmant (positive normal x; other inputs give unspecified
-// values).
+// values), then the series of the vector-extension form.
 FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_log(wide<double, 8> x) {
-  using W = wide<double, 8>;
   constexpr __mmask8 all = 0xff;
   const __m512d m1 = _mm512_mask_getmant_pd(x.v, all, x.v, _MM_MANT_NORM_1_2, _MM_MANT_SIGN_zero);
   const __m512d e1 = _mm512_mask_getexp_pd(x.v, all, x.v);
   const __mmask8 high = _mm512_cmp_pd_mask(m1, _mm512_set1_pd(1.5), _CMP_GE_OQ);
   const __m512d m = _mm512_mask_mul_pd(m1, high, m1, _mm512_set1_pd(0.5));
   const __m512d e = _mm512_mask_add_pd(e1, high, e1, _mm512_set1_pd(1.0));
-  return log_from_parts(W::make(m), W::make(e));
+  const __m512d one = _mm512_set1_pd(1.0);
+  const __m512d s = _mm512_div_pd(_mm512_sub_pd(m, one), _mm512_add_pd(m, one)), z = _mm512_mul_pd(s, s);
+  __m512d series = _mm512_set1_pd(log_series[11]);
+  for (int k = 10; k >= 0; --k) series = _mm512_add_pd(_mm512_mul_pd(series, z), _mm512_set1_pd(log_series[k]));
+  const __m512d tail = _mm512_add_pd(_mm512_mul_pd(e, _mm512_set1_pd(log_ln2_lo)),
+                                     _mm512_mul_pd(_mm512_mul_pd(_mm512_set1_pd(2.0), s), series));
+  return wide<double, 8>::make(_mm512_add_pd(_mm512_mul_pd(e, _mm512_set1_pd(log_ln2_hi)), tail));
 }
 #undef FLEXSPLAT_AVX512_TARGET
 
 // Calls body(V*) (the pointer only carries the type) with V = wide<float, 16> / wide<float, 8>, inlined (flatten) into
 // a function compiled for AVX-512 / AVX2, for kernels whose lanes must round as the scalar path of this build: a build
 // without FMA has no fused multiply-adds for the compiler to form, so the wider target must not form them either.
-#if defined(__FMA__)
-#define FLEXSPLAT_SCALAR_ROUNDING
+#if defined(__FMA__) || defined(__clang__)
+#define FLEXSPLAT_SCALAR_ROUNDING  // (Clang contracts only within one source expression, and has no such attribute)
 #else
 #define FLEXSPLAT_SCALAR_ROUNDING __attribute__((optimize("fp-contract=off")))
 #endif
