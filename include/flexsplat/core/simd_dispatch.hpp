@@ -255,76 +255,167 @@ inline wide<T, N> lane_exp(wide<T, N> x) {
   return wide<T, N>::make(result);
 }
 
-// 16 floats with AVX-512 mask registers: GCC lowers vector-extension comparisons of 512-bit vectors lane by lane, so
-// this width is written with intrinsics (every function carries the AVX-512 target of the kernels that use it).
+// 16 floats and 8 doubles with AVX-512 mask registers: GCC lowers vector-extension comparisons of 512-bit vectors
+// lane by lane, so this width is written with intrinsics (every function carries the AVX-512 target of the kernels
+// that use it). avx512_ops<T> names the intrinsics of one lane type, and one template serves both types.
 #define FLEXSPLAT_AVX512_TARGET __attribute__((target("avx512f,avx512dq,avx512bw,avx512vl,avx2,fma")))
+template <class T>
+struct avx512_ops;
 template <>
-struct wide_mask<float, 16> {
-  __mmask16 m;
-  static FLEXSPLAT_AVX512_TARGET inline wide_mask make(__mmask16 x) {
+struct avx512_ops<float> {
+  using vec = __m512;
+  using mask = __mmask16;
+  static constexpr mask all = 0xffff;
+  static FLEXSPLAT_AVX512_TARGET inline vec set1(float x) { return _mm512_set1_ps(x); }
+  static FLEXSPLAT_AVX512_TARGET inline vec loadu(const float* p) { return _mm512_loadu_ps(p); }
+  static FLEXSPLAT_AVX512_TARGET inline void storeu(float* p, vec x) { _mm512_storeu_ps(p, x); }
+  static FLEXSPLAT_AVX512_TARGET inline vec add(vec a, vec b) { return _mm512_add_ps(a, b); }
+  static FLEXSPLAT_AVX512_TARGET inline vec sub(vec a, vec b) { return _mm512_sub_ps(a, b); }
+  static FLEXSPLAT_AVX512_TARGET inline vec mul(vec a, vec b) { return _mm512_mul_ps(a, b); }
+  static FLEXSPLAT_AVX512_TARGET inline vec div(vec a, vec b) { return _mm512_div_ps(a, b); }
+  static FLEXSPLAT_AVX512_TARGET inline vec fmadd(vec a, vec b, vec c) { return _mm512_fmadd_ps(a, b, c); }
+  static FLEXSPLAT_AVX512_TARGET inline vec sqrt(vec x) { return _mm512_mask_sqrt_ps(x, all, x); }
+  static FLEXSPLAT_AVX512_TARGET inline vec blend(mask m, vec a, vec b) { return _mm512_mask_blend_ps(m, a, b); }
+  template <int Predicate>
+  static FLEXSPLAT_AVX512_TARGET inline mask cmp(vec a, vec b) { return _mm512_cmp_ps_mask(a, b, Predicate); }
+};
+template <>
+struct avx512_ops<double> {
+  using vec = __m512d;
+  using mask = __mmask8;
+  static constexpr mask all = 0xff;
+  static FLEXSPLAT_AVX512_TARGET inline vec set1(double x) { return _mm512_set1_pd(x); }
+  static FLEXSPLAT_AVX512_TARGET inline vec loadu(const double* p) { return _mm512_loadu_pd(p); }
+  static FLEXSPLAT_AVX512_TARGET inline void storeu(double* p, vec x) { _mm512_storeu_pd(p, x); }
+  static FLEXSPLAT_AVX512_TARGET inline vec add(vec a, vec b) { return _mm512_add_pd(a, b); }
+  static FLEXSPLAT_AVX512_TARGET inline vec sub(vec a, vec b) { return _mm512_sub_pd(a, b); }
+  static FLEXSPLAT_AVX512_TARGET inline vec mul(vec a, vec b) { return _mm512_mul_pd(a, b); }
+  static FLEXSPLAT_AVX512_TARGET inline vec div(vec a, vec b) { return _mm512_div_pd(a, b); }
+  static FLEXSPLAT_AVX512_TARGET inline vec fmadd(vec a, vec b, vec c) { return _mm512_fmadd_pd(a, b, c); }
+  static FLEXSPLAT_AVX512_TARGET inline vec sqrt(vec x) { return _mm512_mask_sqrt_pd(x, all, x); }
+  static FLEXSPLAT_AVX512_TARGET inline vec blend(mask m, vec a, vec b) { return _mm512_mask_blend_pd(m, a, b); }
+  template <int Predicate>
+  static FLEXSPLAT_AVX512_TARGET inline mask cmp(vec a, vec b) { return _mm512_cmp_pd_mask(a, b, Predicate); }
+};
+
+template <class T, int N>
+concept avx512_lanes = sizeof(T) * N == 64;
+
+template <class T, int N>
+  requires avx512_lanes<T, N>
+struct wide_mask<T, N> {
+  using bits = typename avx512_ops<T>::mask;
+  bits m;
+  static FLEXSPLAT_AVX512_TARGET inline wide_mask make(bits x) {
     wide_mask w;
     w.m = x;
     return w;
   }
-  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator&(wide_mask a, wide_mask b) { return make(a.m & b.m); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator|(wide_mask a, wide_mask b) { return make(a.m | b.m); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator!(wide_mask a) { return make(__mmask16(~a.m)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator&(wide_mask a, wide_mask b) { return make(bits(a.m & b.m)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator|(wide_mask a, wide_mask b) { return make(bits(a.m | b.m)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator!(wide_mask a) { return make(bits(~a.m)); }
 };
 
-template <>
-struct wide<float, 16> {
-  using mask = wide_mask<float, 16>;
-  __m512 v;
+template <class T, int N>
+  requires avx512_lanes<T, N>
+struct wide<T, N> {
+  using ops = avx512_ops<T>;
+  using mask = wide_mask<T, N>;
+  typename ops::vec v;
   FLEXSPLAT_AVX512_TARGET wide() = default;
-  FLEXSPLAT_AVX512_TARGET wide(float x) : v(_mm512_set1_ps(x)) {}
-  static FLEXSPLAT_AVX512_TARGET inline wide make(__m512 x) {
+  FLEXSPLAT_AVX512_TARGET wide(T x) : v(ops::set1(x)) {}
+  static FLEXSPLAT_AVX512_TARGET inline wide make(typename ops::vec x) {
     wide w;
     w.v = x;
     return w;
   }
-  static FLEXSPLAT_AVX512_TARGET inline wide load_unaligned(const float* p) { return make(_mm512_loadu_ps(p)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator+(wide a, wide b) { return make(_mm512_add_ps(a.v, b.v)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator-(wide a, wide b) { return make(_mm512_sub_ps(a.v, b.v)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(wide a, wide b) { return make(_mm512_mul_ps(a.v, b.v)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator/(wide a, wide b) { return make(_mm512_div_ps(a.v, b.v)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator-(wide a) { return make(_mm512_sub_ps(_mm512_setzero_ps(), a.v)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(float a, wide b) { return make(_mm512_mul_ps(_mm512_set1_ps(a), b.v)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(wide a, float b) { return make(_mm512_mul_ps(a.v, _mm512_set1_ps(b))); }
-  friend FLEXSPLAT_AVX512_TARGET inline mask operator<(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_LT_OQ)); }
-  friend FLEXSPLAT_AVX512_TARGET inline mask operator<=(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_LE_OQ)); }
-  friend FLEXSPLAT_AVX512_TARGET inline mask operator>(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_GT_OQ)); }
-  friend FLEXSPLAT_AVX512_TARGET inline mask operator>=(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_GE_OQ)); }
-  friend FLEXSPLAT_AVX512_TARGET inline mask operator!=(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_NEQ_UQ)); }
-  friend FLEXSPLAT_AVX512_TARGET inline mask operator==(wide a, wide b) { return mask::make(_mm512_cmp_ps_mask(a.v, b.v, _CMP_EQ_OQ)); }
+  static FLEXSPLAT_AVX512_TARGET inline wide load_unaligned(const T* p) { return make(ops::loadu(p)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator+(wide a, wide b) { return make(ops::add(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator-(wide a, wide b) { return make(ops::sub(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(wide a, wide b) { return make(ops::mul(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator/(wide a, wide b) { return make(ops::div(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator-(wide a) { return make(ops::sub(ops::set1(T(0)), a.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(T a, wide b) { return make(ops::mul(ops::set1(a), b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(wide a, T b) { return make(ops::mul(a.v, ops::set1(b))); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator<(wide a, wide b) { return mask::make(ops::template cmp<_CMP_LT_OQ>(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator<=(wide a, wide b) { return mask::make(ops::template cmp<_CMP_LE_OQ>(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator>(wide a, wide b) { return mask::make(ops::template cmp<_CMP_GT_OQ>(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator>=(wide a, wide b) { return mask::make(ops::template cmp<_CMP_GE_OQ>(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator!=(wide a, wide b) { return mask::make(ops::template cmp<_CMP_NEQ_UQ>(a.v, b.v)); }
+  friend FLEXSPLAT_AVX512_TARGET inline mask operator==(wide a, wide b) { return mask::make(ops::template cmp<_CMP_EQ_OQ>(a.v, b.v)); }
   FLEXSPLAT_AVX512_TARGET wide& operator+=(wide b) {
-    v = _mm512_add_ps(v, b.v);
+    v = ops::add(v, b.v);
     return *this;
   }
 };
 
-FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_select(wide_mask<float, 16> c, wide<float, 16> a, wide<float, 16> b) {
-  return wide<float, 16>::make(_mm512_mask_blend_ps(c.m, b.v, a.v));
+template <class T, int N>
+  requires avx512_lanes<T, N>
+FLEXSPLAT_AVX512_TARGET inline wide<T, N> lane_select(wide_mask<T, N> c, wide<T, N> a, wide<T, N> b) {
+  return wide<T, N>::make(avx512_ops<T>::blend(c.m, b.v, a.v));
 }
-FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_min(wide<float, 16> a, wide<float, 16> b) {
+template <class T, int N>
+  requires avx512_lanes<T, N>
+FLEXSPLAT_AVX512_TARGET inline wide<T, N> lane_min(wide<T, N> a, wide<T, N> b) {
   return lane_select(a < b, a, b);  // same lane choice as the generic a < b ? a : b
 }
-FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_max(wide<float, 16> a, wide<float, 16> b) {
+template <class T, int N>
+  requires avx512_lanes<T, N>
+FLEXSPLAT_AVX512_TARGET inline wide<T, N> lane_max(wide<T, N> a, wide<T, N> b) {
   return lane_select(a < b, b, a);
 }
-FLEXSPLAT_AVX512_TARGET inline void lane_store(float* p, wide<float, 16> x) { _mm512_storeu_ps(p, x.v); }
+template <class T, int N>
+  requires avx512_lanes<T, N>
+FLEXSPLAT_AVX512_TARGET inline void lane_store(T* p, wide<T, N> x) {
+  avx512_ops<T>::storeu(p, x.v);
+}
 template <>
 FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_load<wide<float, 16>, float>(const float* p) {
-  return wide<float, 16>::make(_mm512_loadu_ps(p));
+  return wide<float, 16>::load_unaligned(p);
 }
-FLEXSPLAT_AVX512_TARGET inline bool lane_any(wide_mask<float, 16> c) { return c.m != 0; }
-FLEXSPLAT_AVX512_TARGET inline bool lane_all(wide_mask<float, 16> c) { return c.m == 0xffff; }
-FLEXSPLAT_AVX512_TARGET inline float lane_sum(wide<float, 16> x) {  // lanes in order, like reduce_add
-  alignas(64) float lanes[16];
-  _mm512_store_ps(lanes, x.v);
-  float s = lanes[0];
-  for (int i = 1; i < 16; ++i) s += lanes[i];
+template <>
+FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_load<wide<double, 8>, double>(const double* p) {
+  return wide<double, 8>::load_unaligned(p);
+}
+template <class T, int N>
+  requires avx512_lanes<T, N>
+FLEXSPLAT_AVX512_TARGET inline bool lane_any(wide_mask<T, N> c) {
+  return c.m != 0;
+}
+template <class T, int N>
+  requires avx512_lanes<T, N>
+FLEXSPLAT_AVX512_TARGET inline bool lane_all(wide_mask<T, N> c) {
+  return c.m == avx512_ops<T>::all;
+}
+template <class T, int N>
+  requires avx512_lanes<T, N>
+FLEXSPLAT_AVX512_TARGET inline T lane_sum(wide<T, N> x) {  // lanes in order, like reduce_add
+  alignas(64) T lanes[N];
+  avx512_ops<T>::storeu(lanes, x.v);
+  T s = lanes[0];
+  for (int i = 1; i < N; ++i) s += lanes[i];
   return s;
 }
+template <class T, int N>
+  requires avx512_lanes<T, N>
+FLEXSPLAT_AVX512_TARGET inline wide<T, N> lane_sqrt(wide<T, N> x) {
+  return wide<T, N>::make(avx512_ops<T>::sqrt(x.v));
+}
+template <class T, int N>
+  requires avx512_lanes<T, N>
+FLEXSPLAT_AVX512_TARGET inline wide_mask<T, N> lane_isfinite(wide<T, N> x) {
+  return x - x == wide<T, N>(T(0));  // x - x is 0 for a finite x and NaN otherwise
+}
+template <class T, int N>
+  requires avx512_lanes<T, N>
+FLEXSPLAT_AVX512_TARGET inline wide<T, N> lane_mul_add(wide<T, N> a, wide<T, N> b, wide<T, N> c) {
+#if defined(__FMA__)
+  return wide<T, N>::make(avx512_ops<T>::fmadd(a.v, b.v, c.v));
+#else
+  return a * b + c;
+#endif
+}
+
 // exp of float lanes with AVX-512's own rounding and scaling: k = round(x log2 e), r = x - k ln 2 in two parts,
 // degree-7 Taylor polynomial on |r| <= ln(2)/2 (truncation 1e-8, below float rounding), times 2^k by scalef. Inputs
 // below -87 give 0, as lane_exp. The blend's alpha test waits on this chain, so its latency matters more than its
@@ -361,20 +452,6 @@ FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp(wide<float, 16> x) {
 FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp_blend(wide<float, 16> x) {
   return wide<float, 16>::make(exp_avx512<true>(x.v));
 }
-FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_sqrt(wide<float, 16> x) {
-  return wide<float, 16>::make(_mm512_mask_sqrt_ps(x.v, __mmask16(0xffff), x.v));
-}
-FLEXSPLAT_AVX512_TARGET inline wide_mask<float, 16> lane_isfinite(wide<float, 16> x) {
-  const __m512 zero = _mm512_sub_ps(x.v, x.v);
-  return wide_mask<float, 16>::make(_mm512_cmp_ps_mask(zero, _mm512_setzero_ps(), _CMP_EQ_OQ));
-}
-FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_mul_add(wide<float, 16> a, wide<float, 16> b, wide<float, 16> c) {
-#if defined(__FMA__)
-  return wide<float, 16>::make(_mm512_fmadd_ps(a.v, b.v, c.v));
-#else
-  return a * b + c;
-#endif
-}
 // Columns of 16 rows through 16 x 16 in-register transposes (simd::load_columns).
 template <>
 FLEXSPLAT_AVX512_TARGET inline void load_columns<wide<float, 16>, float>(const float* const* rows, int count,
@@ -386,86 +463,12 @@ FLEXSPLAT_AVX512_TARGET inline void load_columns<wide<float, 16>, float>(const f
   }
 }
 
-// 8 doubles with AVX-512 mask registers (the double lanes of the 16-float kernels).
-template <>
-struct wide_mask<double, 8> {
-  __mmask8 m;
-  static FLEXSPLAT_AVX512_TARGET inline wide_mask make(__mmask8 x) {
-    wide_mask w;
-    w.m = x;
-    return w;
-  }
-  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator&(wide_mask a, wide_mask b) { return make(__mmask8(a.m & b.m)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator|(wide_mask a, wide_mask b) { return make(__mmask8(a.m | b.m)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide_mask operator!(wide_mask a) { return make(__mmask8(~a.m)); }
-};
-
-template <>
-struct wide<double, 8> {
-  using mask = wide_mask<double, 8>;
-  __m512d v;
-  FLEXSPLAT_AVX512_TARGET wide() = default;
-  FLEXSPLAT_AVX512_TARGET wide(double x) : v(_mm512_set1_pd(x)) {}
-  static FLEXSPLAT_AVX512_TARGET inline wide make(__m512d x) {
-    wide w;
-    w.v = x;
-    return w;
-  }
-  static FLEXSPLAT_AVX512_TARGET inline wide load_unaligned(const double* p) { return make(_mm512_loadu_pd(p)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator+(wide a, wide b) { return make(_mm512_add_pd(a.v, b.v)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator-(wide a, wide b) { return make(_mm512_sub_pd(a.v, b.v)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(wide a, wide b) { return make(_mm512_mul_pd(a.v, b.v)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator/(wide a, wide b) { return make(_mm512_div_pd(a.v, b.v)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator-(wide a) { return make(_mm512_sub_pd(_mm512_setzero_pd(), a.v)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(double a, wide b) { return make(_mm512_mul_pd(_mm512_set1_pd(a), b.v)); }
-  friend FLEXSPLAT_AVX512_TARGET inline wide operator*(wide a, double b) { return make(_mm512_mul_pd(a.v, _mm512_set1_pd(b))); }
-  friend FLEXSPLAT_AVX512_TARGET inline mask operator<(wide a, wide b) { return mask::make(_mm512_cmp_pd_mask(a.v, b.v, _CMP_LT_OQ)); }
-  friend FLEXSPLAT_AVX512_TARGET inline mask operator<=(wide a, wide b) { return mask::make(_mm512_cmp_pd_mask(a.v, b.v, _CMP_LE_OQ)); }
-  friend FLEXSPLAT_AVX512_TARGET inline mask operator>(wide a, wide b) { return mask::make(_mm512_cmp_pd_mask(a.v, b.v, _CMP_GT_OQ)); }
-  friend FLEXSPLAT_AVX512_TARGET inline mask operator>=(wide a, wide b) { return mask::make(_mm512_cmp_pd_mask(a.v, b.v, _CMP_GE_OQ)); }
-  friend FLEXSPLAT_AVX512_TARGET inline mask operator!=(wide a, wide b) { return mask::make(_mm512_cmp_pd_mask(a.v, b.v, _CMP_NEQ_UQ)); }
-  friend FLEXSPLAT_AVX512_TARGET inline mask operator==(wide a, wide b) { return mask::make(_mm512_cmp_pd_mask(a.v, b.v, _CMP_EQ_OQ)); }
-  FLEXSPLAT_AVX512_TARGET wide& operator+=(wide b) {
-    v = _mm512_add_pd(v, b.v);
-    return *this;
-  }
-};
-
-FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_select(wide_mask<double, 8> c, wide<double, 8> a, wide<double, 8> b) {
-  return wide<double, 8>::make(_mm512_mask_blend_pd(c.m, b.v, a.v));
-}
-FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_min(wide<double, 8> a, wide<double, 8> b) {
-  return lane_select(a < b, a, b);
-}
-FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_max(wide<double, 8> a, wide<double, 8> b) {
-  return lane_select(a < b, b, a);
-}
-FLEXSPLAT_AVX512_TARGET inline void lane_store(double* p, wide<double, 8> x) { _mm512_storeu_pd(p, x.v); }
-template <>
-FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_load<wide<double, 8>, double>(const double* p) {
-  return wide<double, 8>::make(_mm512_loadu_pd(p));
-}
-FLEXSPLAT_AVX512_TARGET inline bool lane_any(wide_mask<double, 8> c) { return c.m != 0; }
-FLEXSPLAT_AVX512_TARGET inline bool lane_all(wide_mask<double, 8> c) { return c.m == 0xff; }
-FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_sqrt(wide<double, 8> x) {
-  return wide<double, 8>::make(_mm512_mask_sqrt_pd(x.v, __mmask8(0xff), x.v));
-}
+// The double lanes of the 16-float kernels: floor, ceil and log.
 FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_floor(wide<double, 8> x) {
   return wide<double, 8>::make(_mm512_mask_roundscale_pd(x.v, __mmask8(0xff), x.v, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC));
 }
 FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_ceil(wide<double, 8> x) {
   return wide<double, 8>::make(_mm512_mask_roundscale_pd(x.v, __mmask8(0xff), x.v, _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC));
-}
-FLEXSPLAT_AVX512_TARGET inline wide_mask<double, 8> lane_isfinite(wide<double, 8> x) {
-  const __m512d zero = _mm512_sub_pd(x.v, x.v);
-  return wide_mask<double, 8>::make(_mm512_cmp_pd_mask(zero, _mm512_setzero_pd(), _CMP_EQ_OQ));
-}
-FLEXSPLAT_AVX512_TARGET inline wide<double, 8> lane_mul_add(wide<double, 8> a, wide<double, 8> b, wide<double, 8> c) {
-#if defined(__FMA__)
-  return wide<double, 8>::make(_mm512_fmadd_pd(a.v, b.v, c.v));
-#else
-  return a * b + c;
-#endif
 }
 // AVX-512: exponent and mantissa in [1, 2) by getexp / getmant (positive normal x; other inputs give unspecified
 // values), then the series of the vector-extension form.
