@@ -462,7 +462,8 @@ void bin_tiles(index_t n, const Projection<T>* proj, const RasterSkips& skips, T
         const U key = depth_key(proj[g].z);
         std::int32_t emission = std::int32_t(out.gaussian_offsets[g]);
         const GaussianTiles& t = out.gaussian_tiles[g];
-        // The stored rows read here directly (as for_each_gaussian_tile_row): this loop is the pass's hot path.
+        // The stored rows read here directly, not through for_each_gaussian_tile_row: with its callback the binning
+        // measured 2.65 against 2.52 ms (native, target scene; the captured emission counter stays in memory).
         const int stored_last_row = std::min(t.rect.y1, t.rect.y0 + GaussianTiles::stored_rows - 1);
         for (int ty = t.rect.y0; ty <= stored_last_row; ++ty) {
           const int tx0 = t.first[ty - t.rect.y0], tx1 = t.last[ty - t.rect.y0];
