@@ -1,0 +1,66 @@
+#include <catch2/catch.hpp>
+
+#include "flexsplat/model/cameras.hpp"
+#include "flexsplat/geometry/weights.hpp"
+#include "flexsplat/model/config.hpp"
+
+using namespace flexsplat;
+
+TEST_CASE("FlexSplat configs survive a JSON round trip", "[model][config]") {
+  for (const auto& c : {model::flexsplat_tiny_config(), model::flexsplat_paper_config()}) {
+    const auto text = model::to_json(c).dump();
+    const auto back = model::flexsplat_config_from_json(text);
+    CHECK(model::to_json(back).dump() == text);
+    CHECK(geometry::vggt_parameter_specs(back.geometry).size() == geometry::vggt_parameter_specs(c.geometry).size());
+    CHECK(decoder::ModelParamLayout(back.appearance).size == decoder::ModelParamLayout(c.appearance).size);
+  }
+}
+
+TEST_CASE("FlexSplat config errors name the offending setting", "[model][config]") {
+  auto c = model::flexsplat_tiny_config();
+  c.image_h = 30;
+  CHECK_THROWS_WITH(c.validate(), Catch::Contains("multiple of the patch size 7"));
+  c = model::flexsplat_tiny_config();
+  c.appearance.fusion.depth_channels = 5;
+  CHECK_THROWS_WITH(c.validate(), Catch::Contains("depth-feature channels"));
+  c = model::flexsplat_tiny_config();
+  c.gaussians = 1000;
+  CHECK_THROWS_WITH(c.validate(), Catch::Contains("max_queries"));
+  CHECK_THROWS_WITH(model::flexsplat_config_from_json("[1, 2]"), Catch::Contains("not a JSON object"));
+  CHECK_THROWS_WITH(model::flexsplat_config_from_json("{\"image_h\": \"big\"}"), Catch::Contains("FlexSplat config JSON"));
+}
+
+TEST_CASE("VGGT intrinsics move by half a pixel and the camera adjoints add", "[model][cameras]") {
+  const double Kv[9] = {100, 0, 64, 0, 90, 48, 0, 0, 1};
+  double K[9];
+  model::intrinsics_from_vggt(K, Kv, 1);
+  CHECK(K[2] == 64.5);
+  CHECK(K[5] == 48.5);
+  CHECK(K[0] == 100);
+  const double E[12] = {1, 0, 0, 0.5, 0, 1, 0, -1, 0, 0, 1, 3};
+  const auto cam = model::render_camera(K, E, 128, 96);
+  CHECK(cam.fx == 100);
+  CHECK(cam.cy == 48.5);
+  CHECK(cam.world_to_camera[11] == 3);
+  CHECK(cam.world_to_camera[15] == 1);
+  raster::CameraGrad<double> g;
+  for (int i = 0; i < 12; ++i) g.world_to_camera[static_cast<std::size_t>(i)] = i + 1;
+  g.fx = 0.5, g.fy = 0.25, g.cx = 2, g.cy = 3;
+  double dK[9], dE[12];
+  for (double& v : dK) v = 7;
+  for (double& v : dE) v = -1;
+  model::render_camera_backward(dK, dE, g);
+  CHECK(dK[0] == 7.5);
+  CHECK(dK[2] == 9);
+  CHECK(dK[1] == 7);
+  CHECK(dE[11] == 11);
+  double dKv[9];
+  for (double& v : dKv) v = 1;
+  model::intrinsics_from_vggt_backward(dKv, dK, 1);
+  CHECK(dKv[5] == 11);
+}
+
+TEST_CASE("render_camera rejects an empty image", "[model][cameras]") {
+  const double K[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1}, E[12] = {};
+  CHECK_THROWS_WITH(model::render_camera(K, E, 0, 4), Catch::Contains("empty"));
+}

@@ -1,0 +1,103 @@
+#include <catch2/catch.hpp>
+
+#include <cmath>
+#include <random>
+#include <vector>
+
+#include "flexsplat/model/frames.hpp"
+
+using namespace flexsplat;
+
+namespace {
+// A world-to-camera [3, 4] looking from `eye` at `target` (OpenCV axes, world y up).
+std::vector<double> look_at(Eigen::Vector3d eye, Eigen::Vector3d target) {
+  const Eigen::Vector3d z = (target - eye).normalized();
+  const Eigen::Vector3d x = z.cross(Eigen::Vector3d(0, 1, 0)).normalized();
+  const Eigen::Vector3d y = z.cross(x);
+  Eigen::Matrix3d R;
+  R.row(0) = x, R.row(1) = y, R.row(2) = z;
+  const Eigen::Vector3d t = -R * eye;
+  std::vector<double> m(12);
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) m[4 * r + c] = R(r, c);
+    m[4 * r + 3] = t(r);
+  }
+  return m;
+}
+
+std::vector<double> ring(int views, double radius, double phase) {
+  std::vector<double> all;
+  for (int v = 0; v < views; ++v) {
+    const double a = phase + 2.0 * 3.14159265358979 * v / views;
+    auto m = look_at({radius * std::cos(a), 0.4 * radius, radius * std::sin(a)}, {0.1, 0, -0.2});
+    all.insert(all.end(), m.begin(), m.end());
+  }
+  return all;
+}
+}  // namespace
+
+TEST_CASE("align_cameras recovers a similarity between two camera sets exactly", "[model][frames]") {
+  for (int views : {1, 2, 4, 7}) {
+    const auto gt = ring(views, 2.5, 0.3);
+    model::Similarity s;
+    s.R = Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+    s.t = {0.3, -1.0, 2.0};
+    s.scale = 0.37;
+    auto pred = gt;
+    for (int v = 0; v < views; ++v) model::transform_camera(pred.data() + 12 * v, s);  // pred = S(gt)
+    const auto fit = model::align_cameras(pred.data(), gt.data(), views);               // fit ~ S^-1
+    for (int v = 0; v < views; ++v) {
+      std::vector<double> back(pred.begin() + 12 * v, pred.begin() + 12 * v + 12);
+      model::transform_camera(back.data(), fit);
+      CHECK(model::rotation_error_deg(back.data(), gt.data() + 12 * v) < 1e-5);
+      CHECK((model::camera_centre(back.data()) - model::camera_centre(gt.data() + 12 * v)).norm() < 1e-9);
+    }
+  }
+}
+
+TEST_CASE("first_camera_frame maps the first camera to the identity and points to unit mean distance",
+          "[model][frames]") {
+  const int views = 3, h = 6, w = 5;
+  auto cams = ring(views, 3.0, 0.0);
+  std::vector<double> K;
+  for (int v = 0; v < views; ++v) K.insert(K.end(), {6.0, 0, 2.5, 0, 6.0, 3.0, 0, 0, 1});
+  std::vector<double> depth(views * h * w, 0.0);
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> u(2.0, 4.0);
+  for (auto& d : depth) d = u(rng);
+  depth[4] = 0.0;  // background samples are ignored
+  depth[7] = std::nan("");
+  const auto f = model::first_camera_frame(cams.data(), K.data(), depth.data(), views, h, w);
+  auto first = std::vector<double>(cams.begin(), cams.begin() + 12);
+  f.camera(first.data());
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 4; ++c) CHECK(first[4 * r + c] == Approx(r == c ? 1.0 : 0.0).margin(1e-12));
+  // The scale is the mean distance of the points to the first camera's centre.
+  double sum = 0;
+  int count = 0;
+  const Eigen::Vector3d c0 = model::camera_centre(cams.data());
+  for (int v = 0; v < views; ++v) {
+    const Eigen::Matrix4d c2w = model::to_matrix4(cams.data() + 12 * v).inverse();
+    for (int y = 0; y < h; ++y)
+      for (int x = 0; x < w; ++x) {
+        const double z = depth[(v * h + y) * w + x];
+        if (!(z > 0) || !std::isfinite(z)) continue;
+        const Eigen::Vector4d p((x + 0.5 - 2.5) / 6.0 * z, (y + 0.5 - 3.0) / 6.0 * z, z, 1);
+        sum += ((c2w * p).head<3>() - c0).norm();
+        ++count;
+      }
+  }
+  CHECK(f.scale == Approx(sum / count).epsilon(1e-12));
+  // Relative poses survive up to the scale: the distance between camera centres shrinks by it.
+  auto second = std::vector<double>(cams.begin() + 12, cams.begin() + 24);
+  f.camera(second.data());
+  const double before = (model::camera_centre(cams.data() + 12) - c0).norm();
+  CHECK(model::camera_centre(second.data()).norm() == Approx(before / f.scale).epsilon(1e-12));
+}
+
+TEST_CASE("first_camera_frame names the problem when no depth is valid", "[model][frames]") {
+  auto cams = ring(1, 3.0, 0.0);
+  const std::vector<double> K{6.0, 0, 2.5, 0, 6.0, 3.0, 0, 0, 1}, depth(4, 0.0);
+  CHECK_THROWS_WITH(model::first_camera_frame(cams.data(), K.data(), depth.data(), 1, 2, 2),
+                    Catch::Contains("no valid depth"));
+}
