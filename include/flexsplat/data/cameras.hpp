@@ -1,0 +1,147 @@
+#pragma once
+// Pinhole cameras of the data module (OpenCV axes: x right, y down, z forward; pixel centres at +0.5) and the
+// orbit samplers: random views covering the shared Blender renders, and the structured 4-view evaluation set.
+#include <array>
+#include <cmath>
+#include <numbers>
+#include <string>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/data/random.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace data {
+
+// World-to-camera x_cam = R * x_world + t; a camera-space point (x, y, z) lands at continuous pixel coordinates
+// (u + 0.5, v + 0.5) = (K * (x, y, z)) / z. GLM matrices are column-major: K[col][row].
+struct Camera {
+  int width = 0, height = 0;
+  glm::dmat3 K{1.0};
+  glm::dmat3 R{1.0};
+  glm::dvec3 t{0.0};
+  double elevation_deg = 0, azimuth_deg = 0;  // orbit parameters when known (written to cameras.json)
+
+  glm::dvec3 centre() const { return -glm::transpose(R) * t; }
+  glm::dvec3 to_camera(glm::dvec3 world) const { return R * world + t; }
+  glm::dvec3 to_world(glm::dvec3 cam) const { return glm::transpose(R) * (cam - t); }
+  // Continuous pixel coordinates (pixel (i, j) covers [i, i + 1) x [j, j + 1)) of a camera-space point.
+  glm::dvec2 project(glm::dvec3 cam) const {
+    const glm::dvec3 h = K * cam;
+    return {h.x / h.z, h.y / h.z};
+  }
+  // Camera-space point at continuous pixel coordinates (u, v) and camera z.
+  glm::dvec3 unproject(glm::dvec2 uv, double z) const {
+    return glm::inverse(K) * glm::dvec3(uv.x * z, uv.y * z, z);
+  }
+};
+
+// fx = fy from a horizontal field of view, principal point at the image centre.
+inline glm::dmat3 intrinsics_from_fov(int width, int height, double hfov_deg) {
+  const double f = 0.5 * width / std::tan(0.5 * hfov_deg * std::numbers::pi / 180.0);
+  glm::dmat3 K(1.0);
+  K[0][0] = f;
+  K[1][1] = f;
+  K[2][0] = 0.5 * width;
+  K[2][1] = 0.5 * height;
+  return K;
+}
+
+// Camera at `eye` looking at `target`, world z up (Blender's frame): x right, y down, z forward.
+inline Camera look_at(glm::dvec3 eye, glm::dvec3 target, int width, int height, const glm::dmat3& K) {
+  const glm::dvec3 forward = glm::normalize(target - eye);
+  glm::dvec3 right = glm::cross(forward, glm::dvec3(0, 0, 1));
+  require(glm::length(right) > 1e-9, "look_at: viewing direction is parallel to the world up axis");
+  right = glm::normalize(right);
+  const glm::dvec3 down = glm::cross(forward, right);
+  Camera cam;
+  cam.width = width;
+  cam.height = height;
+  cam.K = K;
+  cam.R = glm::transpose(glm::dmat3(right, down, forward));  // rows are the camera axes in world coordinates
+  cam.t = -(cam.R * eye);
+  return cam;
+}
+
+// Orbit camera: eye = target + radius * (cos el cos az, cos el sin az, sin el), as in the shared renders.
+inline Camera orbit_camera(double elevation_deg, double azimuth_deg, double radius, double hfov_deg, int width,
+                           int height, glm::dvec3 target = glm::dvec3(0.0)) {
+  const double el = elevation_deg * std::numbers::pi / 180, az = azimuth_deg * std::numbers::pi / 180;
+  const glm::dvec3 eye(radius * std::cos(el) * std::cos(az), radius * std::cos(el) * std::sin(az),
+                       radius * std::sin(el));
+  Camera cam = look_at(eye, target, width, height, intrinsics_from_fov(width, height, hfov_deg));
+  cam.elevation_deg = elevation_deg;
+  cam.azimuth_deg = azimuth_deg;
+  return cam;
+}
+
+// Ranges of the random orbit views. The shared renders (measured from their cameras.json, see docs/data.md) use
+// elevation 0..60 deg, azimuth 0..315 deg, radius 3.0 and horizontal FOV 45 deg; the defaults contain them with
+// margin, and radius / FOV are paired so that the unit bounding sphere always fits in the image.
+struct OrbitRanges {
+  double elevation_min = -10, elevation_max = 70;  // degrees
+  double azimuth_min = 0, azimuth_max = 360;       // degrees
+  double radius_min = 2.8, radius_max = 3.4;
+  double hfov_min = 42, hfov_max = 50;             // degrees
+  double target_jitter = 0.05;                     // look-at point uniform in a ball of this radius
+};
+
+inline void check_ranges(const OrbitRanges& r) {
+  require(r.elevation_min <= r.elevation_max && r.elevation_min > -89 && r.elevation_max < 89,
+          "OrbitRanges: elevation [", r.elevation_min, ", ", r.elevation_max, "] must be ordered inside (-89, 89)");
+  require(r.azimuth_min <= r.azimuth_max, "OrbitRanges: azimuth range is reversed");
+  require(r.radius_min > 0 && r.radius_min <= r.radius_max, "OrbitRanges: radius [", r.radius_min, ", ",
+          r.radius_max, "] must be positive and ordered");
+  require(r.hfov_min > 1 && r.hfov_max < 170 && r.hfov_min <= r.hfov_max, "OrbitRanges: fov [", r.hfov_min, ", ",
+          r.hfov_max, "] must be ordered inside (1, 170)");
+  require(r.target_jitter >= 0 && r.target_jitter < r.radius_min, "OrbitRanges: target jitter ", r.target_jitter,
+          " must be in [0, radius_min)");
+}
+
+// One random orbit view.
+inline Camera sample_orbit_camera(Rng& rng, const OrbitRanges& ranges, int width, int height) {
+  check_ranges(ranges);
+  const double el = rng.uniform(ranges.elevation_min, ranges.elevation_max);
+  const double az = rng.uniform(ranges.azimuth_min, ranges.azimuth_max);
+  const double radius = rng.uniform(ranges.radius_min, ranges.radius_max);
+  const double fov = rng.uniform(ranges.hfov_min, ranges.hfov_max);
+  glm::dvec3 target(0.0);
+  if (ranges.target_jitter > 0)
+    for (;;) {
+      const glm::dvec3 p(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1));
+      if (glm::dot(p, p) <= 1) {
+        target = ranges.target_jitter * p;
+        break;
+      }
+    }
+  return orbit_camera(el, az, radius, fov, width, height, target);
+}
+
+// The evaluation's structured input views: elevation 20 deg, azimuths 0/90/180/270, radius 3, FOV 45.
+inline std::vector<Camera> structured_cameras(int width, int height) {
+  std::vector<Camera> cams;
+  for (double az : {0.0, 90.0, 180.0, 270.0}) cams.push_back(orbit_camera(20, az, 3.0, 45.0, width, height));
+  return cams;
+}
+
+// Orbit parameters recovered from a camera looking at (about) the origin: elevation, azimuth (in [0, 360)), radius
+// and horizontal FOV, all in degrees except the radius.
+struct OrbitParameters {
+  double elevation_deg, azimuth_deg, radius, hfov_deg;
+};
+
+inline OrbitParameters orbit_parameters(const Camera& cam) {
+  const glm::dvec3 c = cam.centre();
+  const double radius = glm::length(c);
+  double az = std::atan2(c.y, c.x) * 180 / std::numbers::pi;
+  if (az < 0) az += 360;
+  return {std::asin(c.z / radius) * 180 / std::numbers::pi, az, radius,
+          2 * std::atan(0.5 * cam.width / cam.K[0][0]) * 180 / std::numbers::pi};
+}
+
+}  // namespace data
+}  // namespace v0
+}  // namespace flexsplat
