@@ -24,6 +24,26 @@ struct TensorSpec {
   std::vector<index_t> shape;
 };
 
+inline index_t spec_numel(const TensorSpec& s) {
+  index_t n = 1;
+  for (index_t e : s.shape) n *= e;
+  return n;
+}
+
+// Elements of one flat block holding every spec in order.
+inline index_t flat_size(const std::vector<TensorSpec>& specs) {
+  index_t n = 0;
+  for (const auto& s : specs) n += spec_numel(s);
+  return n;
+}
+
+// The gradient slot of parameter p when parameters live in one flat block and gradients in another at the same
+// offsets; null stays null.
+template <class T>
+T* rebase_pointer(const T* p, const T* params_base, T* grads_base) {
+  return p ? grads_base + (p - params_base) : nullptr;
+}
+
 template <class T>
 class ParamSource {
 public:
@@ -41,6 +61,13 @@ public:
     auto buffer = std::make_unique<Buffer>(values.begin(), values.end());
     memory_[name] = MemoryTensor{std::move(shape), buffer->data()};
     owned_.push_back(std::move(buffer));
+  }
+
+  // External tensor, not copied (a training store's params block): `data` must outlive this source and every
+  // weight struct bound from it. Takes precedence over the file, like add().
+  void add_view(const std::string& name, std::vector<index_t> shape, const T* data) {
+    require(data != nullptr, "parameter '", name, "': null view");
+    memory_[name] = MemoryTensor{std::move(shape), data};
   }
 
   bool has_file() const noexcept { return file_.has_value(); }
@@ -109,6 +136,16 @@ private:
   std::vector<std::unique_ptr<Buffer>> owned_;
   std::size_t converted_bytes_ = 0;
 };
+
+// Binds every spec as a view into `base` (a flat block of flat_size(specs) elements), in order.
+template <class T>
+void add_flat_views(ParamSource<T>& src, const std::vector<TensorSpec>& specs, const T* base) {
+  index_t at = 0;
+  for (const auto& s : specs) {
+    src.add_view(s.name, s.shape, base + at);
+    at += spec_numel(s);
+  }
+}
 
 }  // namespace geometry
 }  // namespace v0
