@@ -7,6 +7,7 @@
 #include <cerrno>
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -19,6 +20,9 @@
 
 #include <stb/stb_image.h>
 #include <stb/stb_image_write.h>
+
+// Exported by Debian's libstb.so; stb_image_write.h declares it only in its implementation section.
+extern "C" unsigned char* stbi_zlib_compress(unsigned char* data, int data_len, int* out_len, int quality);
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
@@ -89,6 +93,46 @@ Tensor<S, 3> decode(const std::filesystem::path& path, const std::vector<unsigne
 inline std::filesystem::path temp_sibling(const std::filesystem::path& path) {
   static std::atomic<unsigned> counter{0};
   return path.string() + ".tmp" + std::to_string(::getpid()) + "_" + std::to_string(counter.fetch_add(1));
+}
+
+// Writes bytes to a temporary sibling, then renames it over `path`: readers never see a partial file.
+inline void write_atomic(const std::filesystem::path& path, const std::vector<unsigned char>& bytes) {
+  const auto tmp = temp_sibling(path);
+  {
+    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
+    require(static_cast<bool>(out), "write_png '", path.string(), "': cannot create '", tmp.string(), "'");
+    out.write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
+    out.flush();
+    if (!out) {
+      out.close();
+      std::error_code ignored;
+      std::filesystem::remove(tmp, ignored);
+      fail("write_png '", path.string(), "': writing '", tmp.string(), "' failed");
+    }
+  }
+  std::error_code ec;
+  std::filesystem::rename(tmp, path, ec);
+  if (ec) {
+    std::error_code ignored;
+    std::filesystem::remove(tmp, ignored);
+    fail("write_png '", path.string(), "': cannot rename '", tmp.string(), "': ", ec.message());
+  }
+}
+
+// CRC-32 (ISO-HDLC, as PNG chunks use).
+inline std::uint32_t crc32(const unsigned char* data, std::size_t n, std::uint32_t crc = 0) {
+  static const auto table = [] {
+    std::array<std::uint32_t, 256> t{};
+    for (std::uint32_t i = 0; i < 256; ++i) {
+      std::uint32_t c = i;
+      for (int k = 0; k < 8; ++k) c = (c & 1) ? 0xedb88320u ^ (c >> 1) : c >> 1;
+      t[i] = c;
+    }
+    return t;
+  }();
+  crc = ~crc;
+  for (std::size_t i = 0; i < n; ++i) crc = table[(crc ^ data[i]) & 0xff] ^ (crc >> 8);
+  return ~crc;
 }
 
 }  // namespace detail
@@ -178,26 +222,7 @@ inline void write_png(const std::filesystem::path& path, TensorView<const std::u
   if (!stbi_write_png_to_func(sink, &encoded, static_cast<int>(w), static_cast<int>(h), static_cast<int>(c),
                               contiguous.data(), static_cast<int>(w * c)))
     fail("write_png '", path.string(), "': encoding failed");
-  const auto tmp = detail::temp_sibling(path);
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    require(static_cast<bool>(out), "write_png '", path.string(), "': cannot create '", tmp.string(), "'");
-    out.write(reinterpret_cast<const char*>(encoded.data()), static_cast<std::streamsize>(encoded.size()));
-    out.flush();
-    if (!out) {
-      out.close();
-      std::error_code ignored;
-      std::filesystem::remove(tmp, ignored);
-      fail("write_png '", path.string(), "': writing '", tmp.string(), "' failed");
-    }
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::error_code ignored;
-    std::filesystem::remove(tmp, ignored);
-    fail("write_png '", path.string(), "': cannot rename '", tmp.string(), "': ", ec.message());
-  }
+  detail::write_atomic(path, encoded);
 }
 
 // Float HWC in [0, 1]: clamped and rounded to the nearest 8-bit value; NaN is an error.
@@ -219,6 +244,50 @@ void write_png(const std::filesystem::path& path, TensorView<const T, 3> image) 
 template <class T>
 void write_png(const std::filesystem::path& path, const Tensor<T, 3>& image) {
   write_png(path, TensorView<const T, 3>(image.view()));
+}
+
+// 16-bit PNG (e.g. depth maps) from an HWC view with 1 to 4 channels, written atomically. stb writes only 8-bit
+// PNGs, so the chunks are assembled here around stb's zlib compressor (rows unfiltered).
+inline void write_png_u16(const std::filesystem::path& path, TensorView<const std::uint16_t, 3> image) {
+  const index_t h = image.shape(0), w = image.shape(1), c = image.shape(2);
+  require(c >= 1 && c <= 4, "write_png_u16 '", path.string(), "': ", c, " channels, expected 1 to 4");
+  require(h >= 1 && w >= 1 && h * w * c * 2 + h < std::numeric_limits<int>::max(), "write_png_u16 '", path.string(),
+          "': bad size ", shape_string(image.shape()));
+  std::vector<unsigned char> raw;
+  raw.reserve(static_cast<std::size_t>(h * (w * c * 2 + 1)));
+  for (index_t y = 0; y < h; ++y) {
+    raw.push_back(0);  // filter type None
+    for (index_t x = 0; x < w; ++x)
+      for (index_t k = 0; k < c; ++k) {
+        const std::uint16_t v = image(y, x, k);
+        raw.push_back(static_cast<unsigned char>(v >> 8));  // PNG samples are big-endian
+        raw.push_back(static_cast<unsigned char>(v & 0xff));
+      }
+  }
+  int zlen = 0;
+  unsigned char* z = stbi_zlib_compress(raw.data(), static_cast<int>(raw.size()), &zlen, 8);
+  if (!z) fail("write_png_u16 '", path.string(), "': compression failed");
+  std::vector<unsigned char> png = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
+  auto put32 = [](std::vector<unsigned char>& out, std::uint32_t v) {
+    for (int shift = 24; shift >= 0; shift -= 8) out.push_back(static_cast<unsigned char>(v >> shift));
+  };
+  auto chunk = [&](const char* type, const unsigned char* data, std::size_t n) {
+    put32(png, static_cast<std::uint32_t>(n));
+    const std::size_t start = png.size();
+    png.insert(png.end(), type, type + 4);
+    png.insert(png.end(), data, data + n);
+    put32(png, detail::crc32(png.data() + start, n + 4));
+  };
+  constexpr unsigned char color_type[] = {0, 0, 4, 2, 6};  // grey, grey+alpha, RGB, RGBA
+  std::vector<unsigned char> ihdr;
+  put32(ihdr, static_cast<std::uint32_t>(w));
+  put32(ihdr, static_cast<std::uint32_t>(h));
+  ihdr.insert(ihdr.end(), {16, color_type[c], 0, 0, 0});
+  chunk("IHDR", ihdr.data(), ihdr.size());
+  chunk("IDAT", z, static_cast<std::size_t>(zlen));
+  std::free(z);
+  chunk("IEND", nullptr, 0);
+  detail::write_atomic(path, png);
 }
 
 }  // namespace image
