@@ -1,0 +1,233 @@
+#pragma once
+// Supervised geometry losses for pre-training on data with ground truth, with the semantics of VGGT's
+// training/loss.py (compute_camera_loss, compute_depth_loss with gradient_loss_fn "grad"):
+//   camera: per refinement stage, mean |pred - gt| (or Huber, as the VGGT paper) over the translation (3, each term
+//           clamped at 100), quaternion (4) and FoV (2) parts of the absT_quaR_FoV encoding of the valid frames;
+//           stage i of n weighted gamma^(n-1-i); averaged over stages; total = w_T L_T + w_R L_R + w_FL L_FL.
+//   depth:  conf = mean(gamma |d - d_gt| c - alpha log c), reg = mean |d - d_gt| over valid pixels, grad = the
+//           multi-scale finite-difference term (4 scales, subsampling by 2^s): per scale the sum over horizontal and
+//           vertical neighbour pairs, both valid, of |Δ(d - d_gt)| (each clamped at 100) divided by the number of valid
+//           pixels; averaged over scales. total = conf + reg + grad (VGGT adds all three).
+// Not reproduced: VGGT's quantile outlier filter (valid_range 0.98) and its NaN-to-zero repair; non-finite inputs are an
+// error here. Backward adds d_loss * dL/dx (+=); |x| has derivative sign(x) with sign(0) = 0, a clamped term none.
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/core/tensor.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace loss {
+
+enum class CameraLossType { l1, huber };
+
+struct CameraLossConfig {
+  CameraLossType type = CameraLossType::l1;  // VGGT's training code; the paper states Huber
+  double huber_delta = 1.0;                  // PyTorch smooth_l1 beta: 0.5 x^2 / delta below delta, |x| - delta/2 above
+  double gamma = 0.6;                        // stage weight gamma^(n-1-i)
+  double weight_translation = 1.0, weight_rotation = 1.0, weight_fov = 0.5;
+  double translation_clamp = 100.0;
+};
+
+struct CameraLossParts {
+  double total = 0, translation = 0, rotation = 0, fov = 0;
+};
+
+namespace camera_detail {
+inline double penalty(double x, const CameraLossConfig& c) {
+  const double a = std::abs(x);
+  if (c.type == CameraLossType::l1) return a;
+  return a < c.huber_delta ? 0.5 * x * x / c.huber_delta : a - 0.5 * c.huber_delta;
+}
+inline double penalty_grad(double x, const CameraLossConfig& c) {
+  if (c.type == CameraLossType::huber && std::abs(x) < c.huber_delta) return x / c.huber_delta;
+  return (x > 0) - (x < 0);
+}
+inline index_t valid_count(const std::uint8_t* valid, index_t frames) {
+  if (!valid) return frames;
+  index_t n = 0;
+  for (index_t f = 0; f < frames; ++f) n += valid[f] != 0;
+  return n;
+}
+}  // namespace camera_detail
+
+// stages: n pointers to [frames, 9] pose encodings (the camera head's iterations, last = final); gt [frames, 9];
+// valid (may be null): per-frame flag (VGGT: frames with more than 100 valid depth pixels). No valid frame: 0.
+template <class T>
+CameraLossParts camera_loss_forward(const std::vector<const T*>& stages, const T* gt, const std::uint8_t* valid,
+                                    index_t frames, const CameraLossConfig& c) {
+  require(!stages.empty() && gt && frames >= 1, "camera loss: no stages, no ground truth or no frames");
+  require(c.huber_delta > 0 && c.gamma > 0, "camera loss: huber_delta ", c.huber_delta, " and gamma ", c.gamma,
+          " must be positive");
+  CameraLossParts out;
+  const index_t nv = camera_detail::valid_count(valid, frames);
+  if (nv == 0) return out;
+  const index_t n = static_cast<index_t>(stages.size());
+  for (index_t s = 0; s < n; ++s) {
+    const double ws = std::pow(c.gamma, static_cast<double>(n - 1 - s)) / static_cast<double>(n);
+    double lt = 0, lr = 0, lf = 0;
+    for (index_t f = 0; f < frames; ++f) {
+      if (valid && !valid[f]) continue;
+      for (index_t k = 0; k < 9; ++k) {
+        const double p = static_cast<double>(stages[static_cast<std::size_t>(s)][f * 9 + k]);
+        const double g = static_cast<double>(gt[f * 9 + k]);
+        if (!(std::isfinite(p) && std::isfinite(g)))
+          fail("camera loss: stage ", s, " frame ", f, " entry ", k, ": prediction ", p, ", ground truth ", g);
+        const double e = camera_detail::penalty(p - g, c);
+        if (k < 3) lt += std::min(e, c.translation_clamp);
+        else if (k < 7) lr += e;
+        else lf += e;
+      }
+    }
+    out.translation += ws * lt / static_cast<double>(3 * nv);
+    out.rotation += ws * lr / static_cast<double>(4 * nv);
+    out.fov += ws * lf / static_cast<double>(2 * nv);
+  }
+  out.total = c.weight_translation * out.translation + c.weight_rotation * out.rotation + c.weight_fov * out.fov;
+  return out;
+}
+
+// Adds d_total * d(total)/d(stage) into d_stages (entries may be null).
+template <class T>
+void camera_loss_backward(const std::vector<T*>& d_stages, double d_total, const std::vector<const T*>& stages,
+                          const T* gt, const std::uint8_t* valid, index_t frames, const CameraLossConfig& c) {
+  require(d_stages.size() == stages.size(), "camera loss: ", d_stages.size(), " gradient buffers for ",
+          stages.size(), " stages");
+  const index_t nv = camera_detail::valid_count(valid, frames);
+  if (nv == 0) return;
+  const index_t n = static_cast<index_t>(stages.size());
+  for (index_t s = 0; s < n; ++s) {
+    T* d = d_stages[static_cast<std::size_t>(s)];
+    if (!d) continue;
+    const double ws = d_total * std::pow(c.gamma, static_cast<double>(n - 1 - s)) / static_cast<double>(n);
+    for (index_t f = 0; f < frames; ++f) {
+      if (valid && !valid[f]) continue;
+      for (index_t k = 0; k < 9; ++k) {
+        const double x = static_cast<double>(stages[static_cast<std::size_t>(s)][f * 9 + k]) -
+                         static_cast<double>(gt[f * 9 + k]);
+        double w;
+        if (k < 3) {
+          if (camera_detail::penalty(x, c) >= c.translation_clamp) continue;  // clamped: no gradient
+          w = c.weight_translation / static_cast<double>(3 * nv);
+        } else if (k < 7) {
+          w = c.weight_rotation / static_cast<double>(4 * nv);
+        } else {
+          w = c.weight_fov / static_cast<double>(2 * nv);
+        }
+        d[f * 9 + k] += static_cast<T>(ws * w * camera_detail::penalty_grad(x, c));
+      }
+    }
+  }
+}
+
+struct DepthLossConfig {
+  double gamma = 1.0, alpha = 0.2;  // VGGT's regression_loss defaults
+  bool gradient_term = true;        // gradient_loss_fn "grad"
+  index_t gradient_scales = 4;      // gradient_loss_multi_scale_wrapper's default
+  double gradient_clamp = 100.0;
+  index_t min_valid_pixels = 100;   // fewer valid pixels: the loss is 0 (VGGT skips the batch)
+};
+
+struct DepthLossParts {
+  double total = 0, conf = 0, reg = 0, grad = 0;
+};
+
+namespace depth_detail {
+// Calls f(i, j) for every horizontal and vertical neighbour pair (flat indices) of the grid subsampled by `step`
+// whose both ends are valid, and returns the number of valid pixels of that grid.
+template <class F>
+index_t for_each_pair(const std::uint8_t* mask, index_t images, index_t h, index_t w, index_t step, F&& f) {
+  index_t valid = 0;
+  auto ok = [&](index_t i) { return !mask || mask[i] != 0; };
+  for (index_t n = 0; n < images; ++n)
+    for (index_t y = 0; y < h; y += step)
+      for (index_t x = 0; x < w; x += step) {
+        const index_t i = (n * h + y) * w + x;
+        if (!ok(i)) continue;
+        ++valid;
+        if (x + step < w && ok(i + step)) f(i, i + step);
+        if (y + step < h && ok(i + step * w)) f(i, i + step * w);
+      }
+  return valid;
+}
+}  // namespace depth_detail
+
+// pred, conf, gt: [images, h, w]; mask (may be null: all valid) [images, h, w]. conf must be > 0 at valid pixels
+// (VGGT's depth confidence is 1 + exp(x) >= 1).
+template <class T>
+DepthLossParts depth_loss_forward(const T* pred, const T* conf, const T* gt, const std::uint8_t* mask, index_t images,
+                                  index_t h, index_t w, const DepthLossConfig& c) {
+  require(pred && conf && gt && images >= 1 && h >= 1 && w >= 1, "depth loss: null or empty maps");
+  require(c.gradient_scales >= 1, "depth loss: gradient_scales ", c.gradient_scales, " must be >= 1");
+  const index_t total = images * h * w;
+  DepthLossParts out;
+  index_t valid = 0;
+  for (index_t i = 0; i < total; ++i) {
+    if (mask && !mask[i]) continue;
+    const double p = static_cast<double>(pred[i]), g = static_cast<double>(gt[i]), u = static_cast<double>(conf[i]);
+    if (!(std::isfinite(p) && std::isfinite(g) && std::isfinite(u) && u > 0))
+      fail("depth loss: pixel ", i, ": depth ", p, ", ground truth ", g, ", confidence ", u,
+           " (finite values and a positive confidence needed)");
+    const double e = std::abs(p - g);
+    out.reg += e;
+    out.conf += c.gamma * e * u - c.alpha * std::log(u);
+    ++valid;
+  }
+  if (valid < std::max<index_t>(c.min_valid_pixels, 1)) return {};
+  out.reg /= static_cast<double>(valid);
+  out.conf /= static_cast<double>(valid);
+  if (c.gradient_term) {
+    for (index_t s = 0; s < c.gradient_scales; ++s) {
+      double sum = 0;
+      const index_t m = depth_detail::for_each_pair(mask, images, h, w, index_t{1} << s, [&](index_t i, index_t j) {
+        const double d = (static_cast<double>(pred[j]) - static_cast<double>(gt[j])) -
+                         (static_cast<double>(pred[i]) - static_cast<double>(gt[i]));
+        sum += std::min(std::abs(d), c.gradient_clamp);
+      });
+      if (m > 0) out.grad += sum / static_cast<double>(m);
+    }
+    out.grad /= static_cast<double>(c.gradient_scales);
+  }
+  out.total = out.conf + out.reg + out.grad;
+  return out;
+}
+
+// Adds d_total * d(total)/d(pred) into d_pred and d_total * d(total)/d(conf) into d_conf (either may be null).
+template <class T>
+void depth_loss_backward(T* d_pred, T* d_conf, double d_total, const T* pred, const T* conf, const T* gt,
+                         const std::uint8_t* mask, index_t images, index_t h, index_t w, const DepthLossConfig& c) {
+  const index_t total = images * h * w;
+  index_t valid = 0;
+  for (index_t i = 0; i < total; ++i) valid += !mask || mask[i];
+  if (valid < std::max<index_t>(c.min_valid_pixels, 1)) return;
+  const double inv = d_total / static_cast<double>(valid);
+  for (index_t i = 0; i < total; ++i) {
+    if (mask && !mask[i]) continue;
+    const double e = static_cast<double>(pred[i]) - static_cast<double>(gt[i]), u = static_cast<double>(conf[i]);
+    const double sg = (e > 0) - (e < 0);
+    if (d_pred) d_pred[i] += static_cast<T>(inv * sg * (c.gamma * u + 1.0));
+    if (d_conf) d_conf[i] += static_cast<T>(inv * (c.gamma * std::abs(e) - c.alpha / u));
+  }
+  if (!c.gradient_term || !d_pred) return;
+  for (index_t s = 0; s < c.gradient_scales; ++s) {
+    const index_t step = index_t{1} << s;
+    const index_t m = depth_detail::for_each_pair(mask, images, h, w, step, [](index_t, index_t) {});
+    if (m == 0) continue;
+    const double scale = d_total / (static_cast<double>(m) * static_cast<double>(c.gradient_scales));
+    depth_detail::for_each_pair(mask, images, h, w, step, [&](index_t i, index_t j) {
+      const double d = (static_cast<double>(pred[j]) - static_cast<double>(gt[j])) -
+                       (static_cast<double>(pred[i]) - static_cast<double>(gt[i]));
+      if (std::abs(d) >= c.gradient_clamp) return;
+      const double g = scale * ((d > 0) - (d < 0));
+      d_pred[j] += static_cast<T>(g);
+      d_pred[i] -= static_cast<T>(g);
+    });
+  }
+}
+
+}  // namespace loss
+}  // namespace v0
+}  // namespace flexsplat

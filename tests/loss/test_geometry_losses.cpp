@@ -1,0 +1,101 @@
+#include <catch2/catch.hpp>
+
+#include <cmath>
+#include <random>
+#include <vector>
+
+#include "flexsplat/loss/geometry.hpp"
+#include "flexsplat/testing/gradcheck.hpp"
+#include "loss_test_util.hpp"
+
+using namespace flexsplat;
+using loss_test::uniform;
+
+
+TEST_CASE("camera loss: VGGT's stage weighting and part weights by hand", "[loss][camera]") {
+  // Two stages, one valid frame of two: every error 0.1 in stage 0 and 0.2 in stage 1.
+  std::vector<double> gt(18, 0.0), s0(18, 0.1), s1(18, 0.2);
+  s1[9] = 500;  // the invalid frame's values do not count
+  const std::uint8_t valid[2] = {1, 0};
+  loss::CameraLossConfig c;
+  const auto parts = loss::camera_loss_forward<double>({s0.data(), s1.data()}, gt.data(), valid, 2, c);
+  const double part = (0.6 * 0.1 + 1.0 * 0.2) / 2;
+  CHECK(parts.translation == Approx(part).epsilon(1e-14));
+  CHECK(parts.rotation == Approx(part).epsilon(1e-14));
+  CHECK(parts.fov == Approx(part).epsilon(1e-14));
+  CHECK(parts.total == Approx(2.5 * part).epsilon(1e-14));
+  // Translation terms clamp at 100; Huber below delta is 0.5 x^2 / delta.
+  s1[0] = 400;
+  const auto clamped = loss::camera_loss_forward<double>({s1.data()}, gt.data(), valid, 2, c);
+  CHECK(clamped.translation == Approx((100 + 0.2 + 0.2) / 3).epsilon(1e-14));
+  c.type = loss::CameraLossType::huber;
+  const auto huber = loss::camera_loss_forward<double>({s0.data()}, gt.data(), valid, 2, c);
+  CHECK(huber.rotation == Approx(0.5 * 0.01).epsilon(1e-14));
+  const std::uint8_t none[2] = {0, 0};
+  CHECK(loss::camera_loss_forward<double>({s0.data()}, gt.data(), none, 2, c).total == 0.0);
+}
+
+TEST_CASE("camera loss: gradient check (L1 with a clamped term, Huber)", "[loss][camera][gradcheck]") {
+  for (auto type : {loss::CameraLossType::l1, loss::CameraLossType::huber}) {
+    const index_t frames = 3;
+    auto gt = uniform(27, 1, -1, 1), a = uniform(27, 2, -2, 2), b = uniform(27, 3, -2, 2), c3 = uniform(27, 4, -2, 2);
+    a[1] = 150;  // a clamped translation term
+    const std::uint8_t valid[3] = {1, 0, 1};
+    loss::CameraLossConfig c;
+    c.type = type;
+    c.huber_delta = 0.7;
+    std::vector<double> da(27), db(27), dc(27);
+    const auto r = testing::check_gradients(
+        {{"stage0", a, da}, {"stage1", b, db}, {"stage2", c3, dc}}, 1,
+        [&](std::span<double> out) {
+          out[0] = loss::camera_loss_forward<double>({a.data(), b.data(), c3.data()}, gt.data(), valid, frames, c).total;
+        },
+        [&](std::span<const double> d) {
+          loss::camera_loss_backward<double>({da.data(), db.data(), dc.data()}, d[0], {a.data(), b.data(), c3.data()},
+                                             gt.data(), valid, frames, c);
+        });
+    INFO(r.summary());
+    CHECK(r.ok());
+  }
+}
+
+TEST_CASE("depth loss: conf, reg and gradient terms by hand", "[loss][depth]") {
+  // One 1x3 image: errors (pred - gt) = 1, -1, 2, confidence 2 everywhere.
+  const std::vector<double> pred{2, 1, 5}, gt{1, 2, 3}, conf{2, 2, 2};
+  loss::DepthLossConfig c;
+  c.min_valid_pixels = 1;
+  c.gradient_scales = 2;
+  const auto p = loss::depth_loss_forward(pred.data(), conf.data(), gt.data(), nullptr, 1, 1, 3, c);
+  CHECK(p.reg == Approx(4.0 / 3).epsilon(1e-14));
+  CHECK(p.conf == Approx((1.0 * 4 * 2 - 3 * 0.2 * std::log(2.0)) / 3).epsilon(1e-14));
+  // Scale 1: |(-1) - 1| + |2 - (-1)| = 5 over 3 valid pixels; scale 2 (x = 0, 2): |2 - 1| = 1 over 2 pixels.
+  CHECK(p.grad == Approx((5.0 / 3 + 1.0 / 2) / 2).epsilon(1e-14));
+  CHECK(p.total == Approx(p.conf + p.reg + p.grad).epsilon(1e-15));
+  // Too few valid pixels: zero (VGGT skips the batch); a non-positive confidence is an error.
+  c.min_valid_pixels = 100;
+  CHECK(loss::depth_loss_forward(pred.data(), conf.data(), gt.data(), nullptr, 1, 1, 3, c).total == 0.0);
+  const std::vector<double> bad{2, 0, 2};
+  CHECK_THROWS_WITH(loss::depth_loss_forward(pred.data(), bad.data(), gt.data(), nullptr, 1, 1, 3, c),
+                    Catch::Contains("pixel 1"));
+}
+
+TEST_CASE("depth loss: gradient check for depth and confidence with a mask", "[loss][depth][gradcheck]") {
+  const index_t n = 2, h = 7, w = 9, total = n * h * w;
+  auto pred = uniform(total, 5, 1, 3), gt = uniform(total, 6, 1, 3), conf = uniform(total, 7, 1, 3);
+  pred[10] = gt[10] + 150;  // gradient terms next to this pixel are clamped
+  std::vector<std::uint8_t> mask(total, 1);
+  for (index_t i = 0; i < total; i += 5) mask[i] = 0;
+  loss::DepthLossConfig c;
+  c.min_valid_pixels = 10;
+  std::vector<double> dp(total), dc(total);
+  const auto r = testing::check_gradients(
+      {{"depth", pred, dp}, {"conf", conf, dc}}, 1,
+      [&](std::span<double> out) {
+        out[0] = loss::depth_loss_forward(pred.data(), conf.data(), gt.data(), mask.data(), n, h, w, c).total;
+      },
+      [&](std::span<const double> d) {
+        loss::depth_loss_backward(dp.data(), dc.data(), d[0], pred.data(), conf.data(), gt.data(), mask.data(), n, h, w, c);
+      });
+  INFO(r.summary());
+  CHECK(r.ok());
+}
