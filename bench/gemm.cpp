@@ -1,5 +1,8 @@
-// GEMM throughput: flexsplat::gemm (Eigen kernels split over the pool) against a naive triple loop, float.
-// Usage: build/bench/gemm [max_size]   (sizes 256, 512, ... up to max_size, default 2048)
+// GEMM throughput of flexsplat::gemm on its two backends (the BLAS when the build has one, Eigen's kernels) against a
+// naive triple loop, float; then the reference SGEMM 2048x2048x1024 (C = A B^T) the other benchmarks divide by, and
+// the per-call time of small products on one thread (where gemm_blas_min_madds comes from).
+// Usage: build/bench/gemm [max_size] [rounds]   (sizes 256, 512, ... up to max_size, default 2048; rounds default 3)
+// Backends and thread counts run interleaved, `rounds` times each, and the best time is kept: the machine is shared.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -10,6 +13,7 @@
 
 #include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/simd.hpp"
+#include "sgemm_rate.hpp"
 
 using namespace flexsplat;
 
@@ -28,7 +32,6 @@ void naive_gemm(index_t n, const float* A, const float* B, float* C) {
 template <class F>
 double seconds_per_call(F&& f, double min_seconds) {
   using clock = std::chrono::steady_clock;
-  f();  // warm-up
   int reps = 0;
   const auto start = clock::now();
   double elapsed = 0;
@@ -40,43 +43,100 @@ double seconds_per_call(F&& f, double min_seconds) {
   return elapsed / reps;
 }
 
+std::vector<float> random_floats(index_t n, unsigned seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
+  std::vector<float> v(static_cast<std::size_t>(n));
+  for (auto& x : v) x = u(rng);
+  return v;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   const index_t max_size = argc > 1 ? std::atoll(argv[1]) : 2048;
-  std::printf("gemm bench: float, row-major C = A B, compiled for %s, CPU: %s\n", simd::compiled_arch_name(),
+  const int rounds = argc > 2 ? std::atoi(argv[2]) : 3;
+  std::printf("gemm bench: float, row-major; build: %s; CPU: %s\n", bench::build_label().c_str(),
               simd::describe(simd::cpu_features()).c_str());
-  std::printf("%6s  %14s  %14s  %14s  %12s  %12s\n", "n", "naive GFLOP/s", "gemm 1T GFLOP/s", "gemm 2T GFLOP/s",
-              "speedup 2T", "max rel diff");
+  std::vector<GemmBackend> backends{GemmBackend::eigen};
+  if (have_blas) backends.push_back(GemmBackend::blas);
+  for (GemmBackend b : backends) std::printf("backend %s: %s\n", b == GemmBackend::blas ? "blas " : "eigen",
+                                             gemm_backend_name(b).c_str());
   ThreadPool one(1), two(2);
+  ThreadPool* pools[] = {&one, &two};
+
+  std::printf("\nC = A B, n x n x n, GFLOP/s (best of %d interleaved rounds); max rel diff = max |gemm - naive| / "
+              "max |naive| over all runs\n", rounds);
+  std::printf("%6s  %8s  %9s  %9s  %9s  %9s  %12s\n", "n", "naive", "eigen 1T", "eigen 2T", "blas 1T", "blas 2T",
+              "max rel diff");
   bool all_agree = true;
   for (index_t n = 256; n <= max_size; n *= 2) {
-    std::mt19937 rng(7);
-    std::uniform_real_distribution<float> u(-1.0f, 1.0f);
-    std::vector<float> A(n * n), B(n * n), C1(n * n), C2(n * n), Cn(n * n);
-    for (auto& x : A) x = u(rng);
-    for (auto& x : B) x = u(rng);
+    const auto A = random_floats(n * n, 7), B = random_floats(n * n, 8);
+    std::vector<float> C(n * n), Cn(n * n);
     const double flops = 2.0 * double(n) * double(n) * double(n);
-    const double min_seconds = 0.5;
-    const double t_naive = seconds_per_call([&] { naive_gemm(n, A.data(), B.data(), Cn.data()); }, min_seconds);
-    const double t1 = seconds_per_call([&] {
-      gemm(Trans::no, Trans::no, n, n, n, 1.0f, A.data(), n, B.data(), n, 0.0f, C1.data(), n, one);
-    }, min_seconds);
-    const double t2 = seconds_per_call([&] {
-      gemm(Trans::no, Trans::no, n, n, n, 1.0f, A.data(), n, B.data(), n, 0.0f, C2.data(), n, two);
-    }, min_seconds);
-    // Difference relative to the largest magnitude of the naive result.
-    double max_diff = 0, max_ref = 0;
-    for (index_t i = 0; i < n * n; ++i) {
-      max_ref = std::max(max_ref, double(std::abs(Cn[i])));
-      max_diff = std::max({max_diff, double(std::abs(C1[i] - Cn[i])), double(std::abs(C2[i] - Cn[i]))});
-    }
+    const auto t0 = std::chrono::steady_clock::now();
+    naive_gemm(n, A.data(), B.data(), Cn.data());
+    const double t_naive = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    double max_ref = 0;
+    for (float v : Cn) max_ref = std::max(max_ref, double(std::abs(v)));
+    double best[2][2] = {{1e300, 1e300}, {1e300, 1e300}}, max_diff = 0;
+    for (int r = 0; r < rounds; ++r)
+      for (std::size_t b = 0; b < backends.size(); ++b)
+        for (int p = 0; p < 2; ++p) {
+          auto call = [&] {
+            gemm(backends[b], Trans::no, Trans::no, n, n, n, 1.0f, A.data(), n, B.data(), n, 0.0f, C.data(), n,
+                 *pools[p]);
+          };
+          if (r == 0) call();  // warm-up
+          best[b][p] = std::min(best[b][p], seconds_per_call(call, 0.2));
+          for (index_t i = 0; i < n * n; ++i) max_diff = std::max(max_diff, double(std::abs(C[i] - Cn[i])));
+        }
     const double rel = max_diff / max_ref;
     all_agree = all_agree && rel <= 1e-5;
-    std::printf("%6lld  %14.2f  %14.2f  %14.2f  %12.2f  %12.2e\n", static_cast<long long>(n), flops / t_naive * 1e-9,
-                flops / t1 * 1e-9, flops / t2 * 1e-9, t1 / t2, rel);
+    auto rate = [&](std::size_t b, int p) { return b < backends.size() ? flops / best[b][p] * 1e-9 : 0.0; };
+    std::printf("%6lld  %8.2f  %9.2f  %9.2f  %9.2f  %9.2f  %12.2e\n", static_cast<long long>(n), flops / t_naive * 1e-9,
+                rate(0, 0), rate(0, 1), rate(1, 0), rate(1, 1), rel);
     std::fflush(stdout);
   }
-  std::printf("agreement within 1e-5 relative: %s\n", all_agree ? "yes" : "NO");
+
+  // The reference the "of SGEMM" columns use, with 2 threads, backends interleaved.
+  double ref[2] = {0, 0};
+  for (int r = 0; r < std::max(rounds, 3); ++r)
+    for (std::size_t b = 0; b < backends.size(); ++b)
+      ref[b] = std::max(ref[b], bench::sgemm_gflops(backends[b], 2, two));
+  std::printf("\nSGEMM 2048x2048x1024 (C = A B^T), 2 threads, best of %d rounds: eigen %.1f GFLOP/s", 2 * std::max(rounds, 3),
+              ref[0]);
+  if (have_blas) std::printf(", blas %.1f GFLOP/s (%.2fx)", ref[1], ref[1] / ref[0]);
+  std::printf("\n");
+
+#if defined(FLEXSPLAT_HAVE_CBLAS)
+  // Small products on one thread: microseconds per call, the BLAS called directly (bypassing gemm_blas_min_madds).
+  std::printf("\nsmall C = A B^T on one thread, microseconds per call (best of %d rounds); gemm uses the BLAS from "
+              "M N K >= %lld\n", rounds, static_cast<long long>(gemm_blas_min_madds));
+  std::printf("%16s  %10s  %9s  %9s  %8s\n", "M x N x K", "M N K", "eigen us", "blas us", "eigen/blas");
+  const index_t shapes[][3] = {{4, 4, 4}, {8, 8, 8},    {12, 12, 12}, {16, 16, 16},  {24, 24, 24},  {32, 32, 32},  {48, 48, 48},
+                               {64, 64, 64}, {96, 96, 96},  {128, 128, 128}, {4, 256, 256}, {64, 256, 64},
+                               {256, 64, 64}, {1024, 64, 16}};
+  for (const auto& s : shapes) {
+    const index_t M = s[0], N = s[1], K = s[2];
+    const auto A = random_floats(M * K, 1), B = random_floats(N * K, 2);
+    std::vector<float> C(M * N);
+    double t_eigen = 1e300, t_blas = 1e300;
+    for (int r = 0; r < rounds; ++r) {
+      t_eigen = std::min(t_eigen, seconds_per_call([&] {
+        detail::gemm_block(GemmBackend::eigen, Trans::no, Trans::yes, M, N, K, 1.0f, A.data(), K, B.data(), K, 0.0f,
+                           C.data(), N);
+      }, 0.05));
+      t_blas = std::min(t_blas, seconds_per_call([&] {
+        detail::blas_gemm(Trans::no, Trans::yes, M, N, K, 1.0f, A.data(), K, B.data(), K, 0.0f, C.data(), N);
+      }, 0.05));
+    }
+    char label[32];
+    std::snprintf(label, sizeof label, "%lldx%lldx%lld", (long long)M, (long long)N, (long long)K);
+    std::printf("%16s  %10lld  %9.2f  %9.2f  %8.2f\n", label, static_cast<long long>(M * N * K), t_eigen * 1e6,
+                t_blas * 1e6, t_eigen / t_blas);
+  }
+#endif
+  std::printf("\nagreement within 1e-5 relative: %s\n", all_agree ? "yes" : "NO");
   return all_agree ? 0 : 1;
 }

@@ -1,6 +1,7 @@
 #include <catch2/catch.hpp>
 
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <random>
 #include <vector>
@@ -46,50 +47,100 @@ double max_abs_diff(const std::vector<T>& a, const std::vector<T>& b) {
 struct Case {
   index_t M, N, K, pad;
 };
+
+std::vector<GemmBackend> available_backends() {
+  if (have_blas) return {GemmBackend::eigen, GemmBackend::blas};
+  return {GemmBackend::eigen};
+}
+
+// Per element, sum_k |op(A)_ik| |op(B)_kj|: any two summation orders differ by at most 2 K eps times this.
+std::vector<double> abs_products(index_t M, index_t N, index_t K, const std::vector<float>& A,
+                                 const std::vector<float>& B) {
+  std::vector<double> s(static_cast<std::size_t>(M * N), 0.0);
+  for (index_t i = 0; i < M; ++i)
+    for (index_t k = 0; k < K; ++k)
+      for (index_t j = 0; j < N; ++j) s[i * N + j] += std::abs(double(A[i * K + k])) * std::abs(double(B[k * N + j]));
+  return s;
+}
 }  // namespace
 
 TEMPLATE_TEST_CASE("gemm matches the naive loop for every transpose, stride and beta", "[gemm]", float, double) {
   ThreadPool pool(2);
-  const Case cases[] = {{1, 1, 1, 0}, {3, 5, 7, 2}, {17, 9, 33, 3}, {70, 65, 80, 5}, {128, 96, 64, 0}};
+  const Case cases[] = {{1, 1, 1, 0}, {3, 5, 7, 2}, {17, 9, 33, 3}, {70, 65, 80, 5}, {128, 96, 64, 0}, {1, 300, 200, 1}};
   // Per-element bound: K products of values in [-1, 1], with a few ulps of slack per accumulation.
-  for (const auto& c : cases)
-    for (Trans ta : {Trans::no, Trans::yes})
-      for (Trans tb : {Trans::no, Trans::yes})
-        for (TestType beta : {TestType(0), TestType(1), TestType(-0.5)}) {
-          INFO("M " << c.M << " N " << c.N << " K " << c.K << " pad " << c.pad << " ta " << int(ta) << " tb "
-                    << int(tb) << " beta " << beta);
-          const index_t a_rows = ta == Trans::no ? c.M : c.K, a_cols = ta == Trans::no ? c.K : c.M;
-          const index_t b_rows = tb == Trans::no ? c.K : c.N, b_cols = tb == Trans::no ? c.N : c.K;
-          const index_t lda = a_cols + c.pad, ldb = b_cols + 2 * c.pad, ldc = c.N + c.pad;
-          const auto A = random_vector<TestType>(static_cast<std::size_t>(a_rows * lda), 11);
-          const auto B = random_vector<TestType>(static_cast<std::size_t>(b_rows * ldb), 12);
-          auto C = random_vector<TestType>(static_cast<std::size_t>(c.M * ldc), 13);
-          auto expected = C;
-          const TestType alpha = TestType(1.25);
-          gemm(ta, tb, c.M, c.N, c.K, alpha, A.data(), lda, B.data(), ldb, beta, C.data(), ldc, pool);
-          naive_gemm(ta, tb, c.M, c.N, c.K, alpha, A.data(), lda, B.data(), ldb, beta, expected.data(), ldc);
-          const double tol = 4.0 * double(c.K + 2) * std::numeric_limits<TestType>::epsilon();
-          REQUIRE(max_abs_diff(C, expected) <= tol);
-          // Padding columns of C are never written.
-          if (c.pad > 0) {
-            const auto original = random_vector<TestType>(static_cast<std::size_t>(c.M * ldc), 13);
-            for (index_t i = 0; i < c.M; ++i)
-              for (index_t j = c.N; j < ldc; ++j) REQUIRE(C[i * ldc + j] == original[i * ldc + j]);
+  for (GemmBackend backend : available_backends())
+    for (const auto& c : cases)
+      for (Trans ta : {Trans::no, Trans::yes})
+        for (Trans tb : {Trans::no, Trans::yes})
+          for (TestType beta : {TestType(0), TestType(1), TestType(-0.5)}) {
+            INFO("backend " << gemm_backend_name(backend) << " M " << c.M << " N " << c.N << " K " << c.K << " pad "
+                            << c.pad << " ta " << int(ta) << " tb " << int(tb) << " beta " << beta);
+            const index_t a_rows = ta == Trans::no ? c.M : c.K, a_cols = ta == Trans::no ? c.K : c.M;
+            const index_t b_rows = tb == Trans::no ? c.K : c.N, b_cols = tb == Trans::no ? c.N : c.K;
+            const index_t lda = a_cols + c.pad, ldb = b_cols + 2 * c.pad, ldc = c.N + c.pad;
+            const auto A = random_vector<TestType>(static_cast<std::size_t>(a_rows * lda), 11);
+            const auto B = random_vector<TestType>(static_cast<std::size_t>(b_rows * ldb), 12);
+            auto C = random_vector<TestType>(static_cast<std::size_t>(c.M * ldc), 13);
+            auto expected = C;
+            const TestType alpha = TestType(1.25);
+            gemm(backend, ta, tb, c.M, c.N, c.K, alpha, A.data(), lda, B.data(), ldb, beta, C.data(), ldc, pool);
+            naive_gemm(ta, tb, c.M, c.N, c.K, alpha, A.data(), lda, B.data(), ldb, beta, expected.data(), ldc);
+            const double tol = 4.0 * double(c.K + 2) * std::numeric_limits<TestType>::epsilon();
+            REQUIRE(max_abs_diff(C, expected) <= tol);
+            // Padding columns of C are never written.
+            if (c.pad > 0) {
+              const auto original = random_vector<TestType>(static_cast<std::size_t>(c.M * ldc), 13);
+              for (index_t i = 0; i < c.M; ++i)
+                for (index_t j = c.N; j < ldc; ++j) REQUIRE(C[i * ldc + j] == original[i * ldc + j]);
+            }
           }
-        }
 }
 
 TEMPLATE_TEST_CASE("gemm with beta 0 ignores NaN in C and K = 0 only scales C", "[gemm]", float, double) {
-  const index_t M = 4, N = 3, K = 5;
-  const auto A = random_vector<TestType>(M * K, 1), B = random_vector<TestType>(K * N, 2);
-  std::vector<TestType> C(M * N, std::numeric_limits<TestType>::quiet_NaN()), expected(M * N, 0);
-  gemm(Trans::no, Trans::no, M, N, K, TestType(1), A.data(), K, B.data(), N, TestType(0), C.data(), N);
-  naive_gemm(Trans::no, Trans::no, M, N, K, TestType(1), A.data(), K, B.data(), N, TestType(0), expected.data(), N);
-  for (auto v : C) REQUIRE(std::isfinite(v));
-  CHECK(max_abs_diff(C, expected) <= 1e-5);
-  std::vector<TestType> D(M * N, TestType(2));
-  gemm(Trans::no, Trans::no, M, N, 0, TestType(1), A.data(), K, B.data(), N, TestType(3), D.data(), N);
-  for (auto v : D) CHECK(v == TestType(6));
+  // 40 x 30 x 50 is above gemm_blas_min_madds: the BLAS backend really calls the BLAS.
+  for (GemmBackend backend : available_backends())
+    for (index_t M : {4, 40}) {
+      const index_t N = M == 4 ? 3 : 30, K = M == 4 ? 5 : 50;
+      INFO("backend " << gemm_backend_name(backend) << " M " << M);
+      if (M == 40) REQUIRE(M * N * K >= gemm_blas_min_madds);
+      const auto A = random_vector<TestType>(M * K, 1), B = random_vector<TestType>(K * N, 2);
+      std::vector<TestType> C(M * N, std::numeric_limits<TestType>::quiet_NaN()), expected(M * N, 0);
+      gemm(backend, Trans::no, Trans::no, M, N, K, TestType(1), A.data(), K, B.data(), N, TestType(0), C.data(), N);
+      naive_gemm(Trans::no, Trans::no, M, N, K, TestType(1), A.data(), K, B.data(), N, TestType(0), expected.data(), N);
+      for (auto v : C) REQUIRE(std::isfinite(v));
+      CHECK(max_abs_diff(C, expected) <= 4.0 * double(K + 2) * std::numeric_limits<TestType>::epsilon());
+      std::vector<TestType> D(M * N, TestType(2));
+      gemm(backend, Trans::no, Trans::no, M, N, 0, TestType(1), A.data(), K, B.data(), N, TestType(3), D.data(), N);
+      for (auto v : D) CHECK(v == TestType(6));
+      std::vector<TestType> E(M * N, TestType(2));
+      gemm(backend, Trans::no, Trans::no, M, N, K, TestType(0), A.data(), K, B.data(), N, TestType(-1), E.data(), N);
+      for (auto v : E) CHECK(v == TestType(-2));
+    }
+}
+
+TEST_CASE("gemm accepts any stride for single-row operands and rejects short strides on the BLAS path", "[gemm]") {
+  // With M = 1 the strides of A and C are never used, so 0 is valid there (a CBLAS would reject it unadjusted).
+  const index_t M = 1, N = 600, K = 300;
+  const auto A = random_vector<float>(K, 41), B = random_vector<float>(K * N, 42);
+  for (GemmBackend backend : available_backends()) {
+    INFO("backend " << gemm_backend_name(backend));
+    std::vector<float> C(N), expected(N);
+    gemm(backend, Trans::no, Trans::no, M, N, K, 1.0f, A.data(), 0, B.data(), N, 0.0f, C.data(), 0);
+    naive_gemm(Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, expected.data(), N);
+    CHECK(max_abs_diff(C, expected) <= 4.0 * double(K + 2) * std::numeric_limits<float>::epsilon());
+  }
+  if (have_blas) {
+    std::vector<float> C(4 * N);
+    const auto A4 = random_vector<float>(4 * K, 43);
+    CHECK_THROWS_AS(gemm(GemmBackend::blas, Trans::no, Trans::no, index_t(4), N, K, 1.0f, A4.data(), K - 1, B.data(), N,
+                         0.0f, C.data(), N),
+                    Error);
+  } else {
+    std::vector<float> C(N);
+    CHECK_THROWS_AS(gemm(GemmBackend::blas, Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f,
+                         C.data(), N),
+                    Error);
+  }
 }
 
 TEMPLATE_TEST_CASE("gemm_batched matches per-matrix products, serial and parallel", "[gemm]", float, double) {
@@ -111,14 +162,26 @@ TEMPLATE_TEST_CASE("gemm_batched matches per-matrix products, serial and paralle
   }
 }
 
-TEST_CASE("gemm is deterministic across thread counts", "[gemm]") {
+TEST_CASE("gemm is bitwise deterministic for a thread count, and the backends agree within 2 K eps", "[gemm]") {
   const index_t M = 200, N = 150, K = 120;
   const auto A = random_vector<float>(M * K, 31), B = random_vector<float>(K * N, 32);
-  std::vector<float> c1(M * N), c2(M * N), c2_again(M * N);
+  const auto bound = abs_products(M, N, K, A, B);
+  const double eps = std::numeric_limits<float>::epsilon();
   ThreadPool one(1), two(2);
-  gemm(Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, c1.data(), N, one);
-  gemm(Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, c2.data(), N, two);
-  gemm(Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, c2_again.data(), N, two);
-  CHECK(c2 == c2_again);
-  CHECK(max_abs_diff(c1, c2) <= 1e-4);
+  std::vector<std::vector<float>> results;
+  for (GemmBackend backend : available_backends())
+    for (ThreadPool* pool : {&one, &two}) {
+      INFO("backend " << gemm_backend_name(backend) << " threads " << pool->size());
+      std::vector<float> c(M * N), again(M * N, 1.0f);
+      gemm(backend, Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, c.data(), N, *pool);
+      gemm(backend, Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, again.data(), N, *pool);
+      CHECK(std::memcmp(c.data(), again.data(), c.size() * sizeof(float)) == 0);
+      results.push_back(std::move(c));
+    }
+  // Every pair (thread counts, backends): two summation orders of the same K products.
+  for (std::size_t r = 1; r < results.size(); ++r)
+    for (std::size_t i = 0; i < bound.size(); ++i) {
+      INFO("result " << r << " element " << i);
+      REQUIRE(std::abs(double(results[r][i]) - double(results[0][i])) <= 2.0 * double(K) * eps * bound[i]);
+    }
 }
