@@ -41,6 +41,12 @@ TEST_CASE("AdamW steps match a hand computation, with decay on the matrix only",
   const double expected = p1 * 0.999 - lr * (m / (1 - 0.81)) / (std::sqrt(v / (1 - 0.998001)) + 1e-8);
   CHECK(store.param("layer.weight")[3] == Approx(expected).epsilon(1e-13));
   CHECK_THROWS_WITH(train::adamw_step(store, c, lr, 0), Catch::Contains("1-based"));
+  // A per-tensor learning-rate scale acts as that tensor's own learning rate.
+  auto scaled = two_tensor_store();
+  scaled.set_lr_scale("layer.bias", 0.5);
+  train::adamw_step(scaled, c, lr, 1);
+  CHECK(scaled.param("layer.bias")[0] == Approx(1.0 - 0.005 * 0.5 / (0.5 + 1e-8)).epsilon(1e-14));
+  CHECK(scaled.param("layer.weight")[2] == Approx(2.0 * 0.999).epsilon(1e-14));
 }
 
 TEST_CASE("gradient clipping: norm, scaling, and the first non-finite tensor named", "[train][optimizer]") {

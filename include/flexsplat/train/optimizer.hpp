@@ -23,8 +23,8 @@ struct AdamWConfig {
 };
 
 // One AdamW update with learning rate lr; step is the 1-based number of this update (bias correction). For every
-// tensor, element-wise: p -= lr * wd * p (decay tensors only); m = b1 m + (1 - b1) g; v = b2 v + (1 - b2) g^2;
-// p -= lr * (m / (1 - b1^step)) / (sqrt(v / (1 - b2^step)) + eps).
+// tensor, with lr_t = lr * ParamInfo::lr_scale, element-wise: p -= lr_t * wd * p (decay tensors only);
+// m = b1 m + (1 - b1) g; v = b2 v + (1 - b2) g^2; p -= lr_t * (m / (1 - b1^step)) / (sqrt(v / (1 - b2^step)) + eps).
 template <class T>
 void adamw_step(ParamStore<T>& store, const AdamWConfig& c, double lr, std::uint64_t step,
                 ThreadPool& pool = global_pool()) {
@@ -36,14 +36,15 @@ void adamw_step(ParamStore<T>& store, const AdamWConfig& c, double lr, std::uint
   const double c1 = 1.0 - std::pow(c.beta1, static_cast<double>(step));
   const double c2 = 1.0 - std::pow(c.beta2, static_cast<double>(step));
   const T b1 = static_cast<T>(c.beta1), b2 = static_cast<T>(c.beta2), one = T(1);
-  const T step_size = static_cast<T>(lr / c1), inv_sqrt_c2 = static_cast<T>(1.0 / std::sqrt(c2));
-  const T eps = static_cast<T>(c.eps);
+  const T inv_sqrt_c2 = static_cast<T>(1.0 / std::sqrt(c2)), eps = static_cast<T>(c.eps);
   T* p = store.params();
   T* m = store.adam_m();
   T* v = store.adam_v();
   const T* g = store.grads();
   for (const auto& t : store.tensors()) {
-    const T shrink = static_cast<T>(1.0 - (t.decay ? lr * c.weight_decay : 0.0));
+    const double lr_t = lr * t.lr_scale;
+    const T shrink = static_cast<T>(1.0 - (t.decay ? lr_t * c.weight_decay : 0.0));
+    const T step_size = static_cast<T>(lr_t / c1);
     const index_t o = t.offset;
     parallel_for(t.numel, [&](index_t i0, index_t i1, int) {
       for (index_t i = o + i0; i < o + i1; ++i) {

@@ -4,6 +4,7 @@
 // name (offset, span, shape) or in registration order. Geometry weights bind into the params block without copies
 // (bind_views); the decoder's flat block is one contiguous segment (decoder::append_model_specs).
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <map>
 #include <span>
@@ -42,7 +43,8 @@ struct ParamInfo {
   std::vector<index_t> shape;
   index_t offset = 0;  // elements from the start of every block
   index_t numel = 0;
-  bool decay = false;  // AdamW weight decay applies
+  bool decay = false;     // AdamW weight decay applies
+  double lr_scale = 1.0;  // this tensor's learning rate is lr_scale x the schedule's (a PyTorch param group's lr)
 };
 
 // A registered group of tensors stored back to back (no padding inside); its start is 64-byte aligned.
@@ -117,6 +119,13 @@ public:
     auto it = index_.find(name);
     if (it == index_.end()) fail("parameter store: no tensor '", name, "'");
     return tensors_[it->second];
+  }
+  // Per-tensor learning-rate multiplier (default 1).
+  void set_lr_scale(const std::string& name, double scale) {
+    require(std::isfinite(scale) && scale >= 0, "parameter store: learning-rate scale ", scale, " for '", name,
+            "' must be finite and >= 0");
+    info(name);
+    tensors_[index_.at(name)].lr_scale = scale;
   }
   // Overrides the weight-decay rule for one tensor.
   void set_decay(const std::string& name, bool decay) {
