@@ -2,6 +2,7 @@
 // Deterministic random parameters for a list of tensor specs (benchmarks and tests run the real architecture
 // without downloading weights). Values follow the usual initialisations closely enough to keep activations finite:
 // LayerNorm weights 1, biases 0, LayerScale gammas `layer_scale`, matrices uniform with variance 1/fan_in.
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <string>
@@ -27,6 +28,34 @@ inline std::uint64_t splitmix64(std::uint64_t x) {
 }
 }  // namespace detail
 
+// Constant-initialised tensors (norm weights, biases, LayerScale gammas) draw no random stream.
+inline bool draws_random_values(const TensorSpec& spec) {
+  const bool is_norm = spec.name.find("norm") != std::string::npos;
+  return !(is_norm && detail::ends_with(spec.name, ".weight")) && !detail::ends_with(spec.name, ".bias") &&
+         !detail::ends_with(spec.name, ".gamma");
+}
+
+// Fills `values` (spec's element count) with spec's deterministic initial values; `stream` seeds a random tensor.
+template <class T>
+void random_parameter_values(T* values, const TensorSpec& spec, std::uint64_t stream, double layer_scale = 0.01) {
+  index_t n = 1;
+  for (index_t e : spec.shape) n *= e;
+  if (!draws_random_values(spec)) {
+    const bool gamma = detail::ends_with(spec.name, ".gamma"), bias = detail::ends_with(spec.name, ".bias");
+    std::fill(values, values + n, gamma ? static_cast<T>(layer_scale) : bias ? T(0) : T(1));
+  } else {
+    const index_t fan_in = spec.shape.size() >= 2 ? n / spec.shape[0] : spec.shape.back();
+    const double bound = std::sqrt(3.0 / static_cast<double>(fan_in > 0 ? fan_in : 1));
+    const std::uint64_t base = detail::splitmix64(stream);
+    parallel_for(n, [&](index_t i0, index_t i1, int) {
+      for (index_t i = i0; i < i1; ++i) {
+        const double u = static_cast<double>(detail::splitmix64(base + static_cast<std::uint64_t>(i)) >> 11) * 0x1.0p-53;
+        values[i] = static_cast<T>((2.0 * u - 1.0) * bound);
+      }
+    });
+  }
+}
+
 template <class T>
 void add_random_parameters(ParamSource<T>& src, const std::vector<TensorSpec>& specs, std::uint64_t seed,
                            double layer_scale = 0.01) {
@@ -35,24 +64,7 @@ void add_random_parameters(ParamSource<T>& src, const std::vector<TensorSpec>& s
     index_t n = 1;
     for (index_t e : spec.shape) n *= e;
     std::vector<T> values(static_cast<std::size_t>(n));
-    const bool is_norm = spec.name.find("norm") != std::string::npos;
-    if (is_norm && detail::ends_with(spec.name, ".weight")) {
-      std::fill(values.begin(), values.end(), T(1));
-    } else if (detail::ends_with(spec.name, ".bias")) {
-      std::fill(values.begin(), values.end(), T(0));
-    } else if (detail::ends_with(spec.name, ".gamma")) {
-      std::fill(values.begin(), values.end(), static_cast<T>(layer_scale));
-    } else {
-      const index_t fan_in = spec.shape.size() >= 2 ? n / spec.shape[0] : spec.shape.back();
-      const double bound = std::sqrt(3.0 / static_cast<double>(fan_in > 0 ? fan_in : 1));
-      const std::uint64_t base = detail::splitmix64(stream++);
-      parallel_for(n, [&](index_t i0, index_t i1, int) {
-        for (index_t i = i0; i < i1; ++i) {
-          const double u = static_cast<double>(detail::splitmix64(base + static_cast<std::uint64_t>(i)) >> 11) * 0x1.0p-53;
-          values[static_cast<std::size_t>(i)] = static_cast<T>((2.0 * u - 1.0) * bound);
-        }
-      });
-    }
+    random_parameter_values(values.data(), spec, draws_random_values(spec) ? stream++ : stream, layer_scale);
     src.add(spec.name, spec.shape, std::move(values));
   }
 }

@@ -1,0 +1,236 @@
+#pragma once
+// The appearance half of FlexSplat's training objective: from the geometry stage's outputs (cameras, depth,
+// confidence, depth features) through UNet, fusion and the Gaussian decoder, every decoder layer rendered at every
+// requested view, and the paper's loss
+//   L = lambda_E MSE(RGB head, inputs) + sum over layers [lambda_D MSE(render, target) + lambda_P LPIPS(render, target)]
+//       + lambda_depth |(D_rendered - D_vggt) * U|   (input views rendered with their predicted cameras)
+// with gradients into the appearance parameters and into the geometry outputs (extrinsics and K through the
+// rasterizer's camera adjoints, depth through both the decoder's eq. 2 and the depth term, depth features through
+// the fusion). Each view is rendered, scored and differentiated before the next, so one render workspace serves all.
+#include <algorithm>
+#include <cmath>
+#include <span>
+#include <vector>
+
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/core/gaussians.hpp"
+#include "flexsplat/decoder/model.hpp"
+#include "flexsplat/loss/image.hpp"
+#include "flexsplat/loss/lpips.hpp"
+#include "flexsplat/model/cameras.hpp"
+#include "flexsplat/raster/render.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace model {
+
+struct ObjectiveWeights {
+  double rgb_head = 1.0;       // lambda_E: the UNet/fusion RGB head reconstructs the inputs
+  double render = 1.0;         // lambda_D: per decoder layer, mean over views
+  double depth = 0.1;          // confidence-weighted L1 of rendered against predicted depth, input views
+  double lpips = 0.0;          // lambda_P: per decoder layer; 0 until the LPIPS stage (the paper adds it later)
+  bool initial_layer = false;  // also render the initial splat head's Gaussians (before the first decoder layer)
+
+  void validate() const {
+    for (double v : {rgb_head, render, depth, lpips})
+      require(std::isfinite(v) && v >= 0, "objective: loss weights must be finite and >= 0, got ", v);
+  }
+};
+
+// What the appearance side reads from the geometry stage, in the library's conventions (docs/conventions.md). The
+// same struct holds the gradients with respect to each field.
+template <class T>
+struct GeometryResult {
+  index_t views = 0, h = 0, w = 0;                            // model input size; depth is [V, h, w]
+  index_t feature_channels = 0, feature_h = 0, feature_w = 0;  // depth features [V, C, fh, fw]
+  std::vector<T> extrinsics;  // [V, 3, 4] world-to-camera
+  std::vector<T> K;           // [V, 3, 3] pixel centres at +0.5
+  std::vector<T> depth;       // [V, h, w] camera z
+  std::vector<T> confidence;  // [V, h, w] the depth head's confidence (>= 1 for VGGT's expp1)
+  std::vector<T> features;    // [V, C, fh, fw]
+
+  void resize(index_t v, index_t height, index_t width, index_t c, index_t fh, index_t fw) {
+    views = v, h = height, w = width, feature_channels = c, feature_h = fh, feature_w = fw;
+    extrinsics.resize(static_cast<std::size_t>(12 * v));
+    K.resize(static_cast<std::size_t>(9 * v));
+    depth.resize(static_cast<std::size_t>(v * h * w));
+    confidence.resize(depth.size());
+    features.resize(static_cast<std::size_t>(v * c * fh * fw));
+  }
+  // Same sizes as `like`, all zero (a gradient accumulator).
+  void zero_like(const GeometryResult& like) {
+    resize(like.views, like.h, like.w, like.feature_channels, like.feature_h, like.feature_w);
+    for (auto* v : {&extrinsics, &K, &depth, &confidence, &features}) std::fill(v->begin(), v->end(), T(0));
+  }
+  decoder::ViewGeometry<T> view_geometry() const {
+    return {views, w, h, w, h, K.data(), extrinsics.data(), depth.data()};
+  }
+};
+
+// A camera to render and what it should show. input_view >= 0 renders with that input view's predicted camera (its
+// gradient reaches the geometry stage); otherwise K and world_to_camera (in the model's frame) are used as given.
+template <class T>
+struct RenderView {
+  std::array<T, 9> K{};
+  std::array<T, 12> world_to_camera{};
+  int width = 0, height = 0;
+  index_t input_view = -1;
+  const T* target = nullptr;  // [height, width, 3] in [0, 1]
+  const T* mask = nullptr;    // [height, width] object mask for the depth term (input views; null: every pixel)
+};
+
+struct LossParts {
+  double total = 0, rgb_head = 0, render = 0, depth = 0, lpips = 0;
+  double psnr_last = 0;  // mean PSNR of the last decoder layer's renders (a metric)
+};
+
+template <class T>
+struct ObjectiveWorkspace {
+  decoder::ModelWorkspace<T> model;
+  raster::RenderWorkspace<T> render;
+  raster::RenderOutputs<T> out;
+  std::vector<GaussianSetGrad<T>> d_gaussians;
+  std::vector<T> d_rgb, d_image, d_depth, weights;
+  loss::LpipsCache<T> lpips;
+  std::vector<T> render_chw, target_chw, d_render_chw;
+};
+
+namespace detail {
+template <class T>
+void hwc_to_chw(T* out, const T* in, index_t h, index_t w) {
+  for (index_t p = 0; p < h * w; ++p)
+    for (int c = 0; c < 3; ++c) out[c * h * w + p] = in[3 * p + c];
+}
+template <class T>
+void add_chw_to_hwc(T* out, const T* in, index_t h, index_t w) {
+  for (index_t p = 0; p < h * w; ++p)
+    for (int c = 0; c < 3; ++c) out[3 * p + c] += in[c * h * w + p];
+}
+}  // namespace detail
+
+// Forward, loss and backward of the appearance side for one scene. images [V, 3, h, w] in [0, 1]; params/d_params:
+// the decoder::ModelParamLayout block and its gradient (added into); d_geometry (may be null: geometry frozen) is
+// added into and must be shaped like g (GeometryResult::zero_like). lpips may be null when weights.lpips is 0.
+template <class T>
+LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_params, const decoder::ModelConfig& c,
+                               index_t n_queries, const T* images, const GeometryResult<T>& g,
+                               GeometryResult<T>* d_geometry, std::span<const RenderView<T>> views,
+                               const ObjectiveWeights& weights, const raster::RenderOptions& render_options,
+                               const loss::LpipsWeights<T>* lpips = nullptr) {
+  weights.validate();
+  require(!views.empty(), "objective: no views to render");
+  require(weights.lpips == 0 || lpips, "objective: lambda_P is ", weights.lpips, " but no LPIPS weights were given");
+  const index_t V = g.views, h = g.h, w = g.w;
+  const decoder::ViewGeometry<T> vg = g.view_geometry();
+  decoder::model_forward(ws.model, n_queries, params, c, images, h, w, g.features.data(), g.feature_h, g.feature_w, vg);
+  const auto& sets = ws.model.gaussians();
+  const index_t first = weights.initial_layer ? 0 : 1, layers = static_cast<index_t>(sets.size()) - first;
+  require(layers >= 1, "objective: the decoder returned no layer to render");
+
+  LossParts parts;
+  // lambda_E: the RGB head against the inputs.
+  const loss::ImageShape rgb_shape{V, 3, h, w, loss::Layout::nchw};
+  ws.d_rgb.assign(ws.model.rgb.size(), T(0));
+  if (weights.rgb_head > 0) {
+    parts.rgb_head = weights.rgb_head * loss::mse_forward(ws.model.rgb.data(), images, static_cast<const T*>(nullptr), rgb_shape);
+    loss::mse_backward(ws.d_rgb.data(), static_cast<T*>(nullptr), weights.rgb_head, ws.model.rgb.data(), images,
+                       static_cast<const T*>(nullptr), rgb_shape);
+  }
+
+  ws.d_gaussians.resize(sets.size());
+  for (std::size_t s = 0; s < sets.size(); ++s) {
+    if (static_cast<index_t>(s) >= first) resize_gaussian_grad(ws.d_gaussians[s], sets[s]);
+    else ws.d_gaussians[s] = GaussianSetGrad<T>();
+    ws.d_gaussians[s].zero();
+  }
+  raster::RenderOptions ro = render_options;
+  ro.expected_depth = true;  // the depth term compares camera z with the depth head's
+  const double per_view = 1.0 / static_cast<double>(views.size());
+  double psnr_sum = 0;
+  for (const auto& view : views) {
+    require(view.target, "objective: a render view has no target image");
+    const bool predicted = view.input_view >= 0;
+    require(view.input_view < V, "objective: render view refers to input view ", view.input_view, " of ", V);
+    require(!predicted || (view.width == w && view.height == h), "objective: input view ", view.input_view,
+            " is rendered at ", view.width, " x ", view.height, ", the model's input is ", w, " x ", h);
+    const T* K = predicted ? g.K.data() + 9 * view.input_view : view.K.data();
+    const T* E = predicted ? g.extrinsics.data() + 12 * view.input_view : view.world_to_camera.data();
+    const raster::Camera<T> cam = render_camera(K, E, view.width, view.height);
+    const index_t H = view.height, W = view.width, pixels = H * W;
+    const loss::ImageShape shape{1, 3, H, W, loss::Layout::nhwc};
+    for (index_t l = 0; l < layers; ++l) {
+      const auto& set = sets[static_cast<std::size_t>(first + l)];
+      raster::render_forward(set, cam, ro, ws.render, ws.out);
+      const T* img = ws.out.image.data();
+      ws.d_image.assign(static_cast<std::size_t>(3 * pixels), T(0));
+      ws.d_depth.assign(static_cast<std::size_t>(pixels), T(0));
+      bool any_depth = false;
+      if (weights.render > 0) {
+        const double scale = weights.render * per_view;
+        parts.render += scale * loss::mse_forward(img, view.target, static_cast<const T*>(nullptr), shape);
+        loss::mse_backward(ws.d_image.data(), static_cast<T*>(nullptr), scale, img, view.target,
+                           static_cast<const T*>(nullptr), shape);
+      }
+      if (weights.lpips > 0) {
+        const double scale = weights.lpips * per_view;
+        ws.render_chw.resize(static_cast<std::size_t>(3 * pixels));
+        ws.target_chw.resize(ws.render_chw.size());
+        ws.d_render_chw.assign(ws.render_chw.size(), T(0));
+        detail::hwc_to_chw(ws.render_chw.data(), img, H, W);
+        detail::hwc_to_chw(ws.target_chw.data(), view.target, H, W);
+        T value = 0;
+        loss::lpips_forward(&value, static_cast<T*>(nullptr), ws.render_chw.data(), ws.target_chw.data(), 1, H, W,
+                            lpips->params.data(), lpips->layout, ws.lpips, true);
+        parts.lpips += scale * static_cast<double>(value);
+        const T d_value = static_cast<T>(scale);
+        loss::lpips_backward(ws.d_render_chw.data(), static_cast<T*>(nullptr), &d_value, static_cast<const T*>(nullptr),
+                             lpips->params.data(), lpips->layout, ws.lpips);
+        detail::add_chw_to_hwc(ws.d_image.data(), ws.d_render_chw.data(), H, W);
+      }
+      if (predicted && weights.depth > 0) {
+        // U is the depth head's confidence normalised to mean 1 over the compared pixels, held constant.
+        const T* conf = g.confidence.data() + view.input_view * pixels;
+        ws.weights.resize(static_cast<std::size_t>(pixels));
+        double sum = 0, count = 0;
+        for (index_t p = 0; p < pixels; ++p) {
+          const double m = view.mask ? static_cast<double>(view.mask[p]) : 1.0;
+          sum += m * static_cast<double>(conf[p]);
+          count += m;
+        }
+        const double norm = sum > 0 ? count / sum : 0.0;
+        for (index_t p = 0; p < pixels; ++p) ws.weights[static_cast<std::size_t>(p)] = static_cast<T>(conf[p] * norm);
+        const T* vggt_depth = g.depth.data() + view.input_view * pixels;
+        const double scale = weights.depth * per_view;
+        parts.depth += scale * loss::depth_l1_forward(ws.out.depth.data(), vggt_depth, ws.weights.data(), view.mask, pixels);
+        loss::depth_l1_backward(ws.d_depth.data(),
+                                d_geometry ? d_geometry->depth.data() + view.input_view * pixels : static_cast<T*>(nullptr),
+                                scale, ws.out.depth.data(), vggt_depth, ws.weights.data(), view.mask, pixels);
+        any_depth = true;
+      }
+      if (first + l == static_cast<index_t>(sets.size()) - 1)
+        psnr_sum += loss::psnr(img, view.target, 3 * pixels);
+      raster::RenderOutputGrads<T> d_out;
+      d_out.image = TensorView<const T, 3>(ws.d_image.data(), Shape<3>{H, W, 3});
+      if (any_depth) d_out.depth = TensorView<const T, 2>(ws.d_depth.data(), Shape<2>{H, W});
+      raster::CameraGrad<T> d_cam;
+      const bool camera_grad = predicted && d_geometry;
+      raster::render_backward(set, cam, ro, ws.render, d_out, ws.d_gaussians[static_cast<std::size_t>(first + l)],
+                              camera_grad ? &d_cam : nullptr);
+      if (camera_grad)
+        render_camera_backward(d_geometry->K.data() + 9 * view.input_view,
+                               d_geometry->extrinsics.data() + 12 * view.input_view, d_cam);
+    }
+  }
+  parts.psnr_last = psnr_sum * per_view;
+  parts.total = parts.rgb_head + parts.render + parts.depth + parts.lpips;
+
+  decoder::ViewGeometryGrad<T> d_vg;
+  if (d_geometry) d_vg = {d_geometry->K.data(), d_geometry->extrinsics.data(), d_geometry->depth.data()};
+  decoder::model_backward(d_params, d_geometry ? d_geometry->features.data() : static_cast<T*>(nullptr), d_vg,
+                          ws.d_gaussians, ws.d_rgb.data(), ws.model, params, c, images, g.features.data(), vg);
+  return parts;
+}
+
+}  // namespace model
+}  // namespace v0
+}  // namespace flexsplat

@@ -1,0 +1,118 @@
+#include <catch2/catch.hpp>
+
+#include <cmath>
+
+#include "decoder/decoder_test_util.hpp"
+#include "flexsplat/model/objective.hpp"
+#include "flexsplat/testing/gradcheck.hpp"
+
+using namespace flexsplat;
+
+namespace {
+// Two views of a tiny appearance model, geometry as given inputs, two render views: input view 0 with its predicted
+// camera (depth term on, camera gradients) and view 1's camera as a fixed target camera.
+struct TinyObjective {
+  decoder::ModelConfig cfg;
+  index_t n = 12, h = 20, w = 24, fh = 5, fw = 6, fc = 3;
+  std::vector<double> params, images, target0, target1, mask0;
+  model::GeometryResult<double> g;
+  std::vector<model::RenderView<double>> views;
+  TinyObjective() {
+    cfg.unet = {3, 2, 1};
+    cfg.fusion = {fc, 2, 3};
+    auto& d = cfg.decoder;
+    d.dim = 8, d.ffn = 12, d.heads = 2, d.layers = 2, d.points = 2, d.max_views = 2, d.value_dim = 3, d.max_queries = 16;
+    params.resize(decoder::ModelParamLayout(cfg).size);
+    decoder::model_init(params.data(), cfg, 5);
+    auto noise = random_normal(params.size(), 301, 0.05);
+    for (std::size_t i = 0; i < params.size(); ++i) params[i] += noise[i];
+    const TestRig rig = make_rig(2, 3.0, w, h, w, h);
+    g.resize(2, h, w, fc, fh, fw);
+    g.K = rig.K, g.extrinsics = rig.E, g.depth = rig.depth;
+    const auto conf = random_uniform(g.confidence.size(), 302, 1.0, 3.0);
+    g.confidence.assign(conf.begin(), conf.end());
+    const auto feat = random_normal(g.features.size(), 303);
+    g.features.assign(feat.begin(), feat.end());
+    images = random_uniform(2 * 3 * h * w, 304, 0.0, 1.0);
+    target0 = random_uniform(h * w * 3, 305, 0.0, 1.0);
+    target1 = random_uniform(h * w * 3, 306, 0.0, 1.0);
+    mask0 = random_uniform(h * w, 307, 0.0, 1.0);
+    model::RenderView<double> v0;
+    v0.width = int(w), v0.height = int(h), v0.input_view = 0, v0.target = target0.data(), v0.mask = mask0.data();
+    model::RenderView<double> v1;
+    std::copy(rig.K.begin() + 9, rig.K.begin() + 18, v1.K.begin());
+    std::copy(rig.E.begin() + 12, rig.E.begin() + 24, v1.world_to_camera.begin());
+    v1.width = int(w), v1.height = int(h), v1.target = target1.data();
+    views = {v0, v1};
+  }
+};
+}  // namespace
+
+TEST_CASE("appearance objective passes the float64 gradient check into parameters and geometry outputs",
+          "[model][objective]") {
+  TinyObjective t;
+  model::ObjectiveWeights weights;
+  weights.depth = 0.3;
+  model::ObjectiveWorkspace<double> ws;
+  raster::RenderOptions ro;
+  ro.background = {1, 1, 1};
+  std::vector<double> dp(t.params.size());
+  model::GeometryResult<double> dg;
+  dg.zero_like(t.g);
+  auto run = [&](double* d_params, model::GeometryResult<double>* d_geometry) {
+    return model::appearance_objective<double>(ws, t.params.data(), d_params, t.cfg, t.n, t.images.data(), t.g,
+                                               d_geometry, t.views, weights, ro);
+  };
+  auto result = testing::check_gradients(
+      {{"params", t.params, dp},
+       {"extrinsics", t.g.extrinsics, dg.extrinsics},
+       {"K", t.g.K, dg.K},
+       {"depth", t.g.depth, dg.depth},
+       {"features", t.g.features, dg.features}},
+      1,
+      [&](std::span<double> o) {
+        std::vector<double> scratch(t.params.size());
+        model::GeometryResult<double> sg;
+        sg.zero_like(t.g);
+        o[0] = run(scratch.data(), &sg).total;
+      },
+      [&](std::span<const double> c) {
+        std::vector<double> p(t.params.size());
+        model::GeometryResult<double> sg;
+        sg.zero_like(t.g);
+        run(p.data(), &sg);
+        for (std::size_t i = 0; i < p.size(); ++i) dp[i] += c[0] * p[i];
+        auto add = [&](std::vector<double>& to, const std::vector<double>& from) {
+          for (std::size_t i = 0; i < to.size(); ++i) to[i] += c[0] * from[i];
+        };
+        add(dg.extrinsics, sg.extrinsics), add(dg.K, sg.K), add(dg.depth, sg.depth), add(dg.features, sg.features);
+      },
+      {1e-6, 1e-7, 1e-5, 64});
+  INFO(result.summary());
+  CHECK(result.ok());
+}
+
+TEST_CASE("appearance objective reports its parts and rejects what it cannot score", "[model][objective]") {
+  TinyObjective t;
+  model::ObjectiveWorkspace<double> ws;
+  raster::RenderOptions ro;
+  std::vector<double> dp(t.params.size());
+  model::ObjectiveWeights weights;
+  const auto parts = model::appearance_objective<double>(ws, t.params.data(), dp.data(), t.cfg, t.n, t.images.data(),
+                                                         t.g, nullptr, t.views, weights, ro);
+  CHECK(parts.rgb_head > 0);
+  CHECK(parts.render > 0);
+  CHECK(parts.depth > 0);
+  CHECK(parts.lpips == 0);
+  CHECK(parts.total == Approx(parts.rgb_head + parts.render + parts.depth));
+  CHECK(std::isfinite(parts.psnr_last));
+  weights.lpips = 1;
+  CHECK_THROWS_WITH(model::appearance_objective<double>(ws, t.params.data(), dp.data(), t.cfg, t.n, t.images.data(), t.g,
+                                                        nullptr, t.views, weights, ro),
+                    Catch::Contains("no LPIPS weights"));
+  weights.lpips = 0;
+  t.views[0].width = 10;
+  CHECK_THROWS_WITH(model::appearance_objective<double>(ws, t.params.data(), dp.data(), t.cfg, t.n, t.images.data(), t.g,
+                                                        nullptr, t.views, weights, ro),
+                    Catch::Contains("model's input is 24 x 20"));
+}
