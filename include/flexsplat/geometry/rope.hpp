@@ -76,24 +76,28 @@ void rope2d_forward(T* x, index_t rows, index_t row_stride, index_t heads, index
   });
 }
 
-// Adjoint of rope2d_forward (a rotation: the transpose rotates back); adds into d_x.
+// Adjoint of rope2d_forward (a rotation: the transpose rotates back); adds into d_x (d_x must not alias d_out).
 template <class T>
 void rope2d_backward(T* d_x, const T* d_out, index_t rows, index_t row_stride, index_t heads, index_t head_dim,
                      const std::int32_t* positions, const Rope2DTable<T>& table) {
+  require(head_dim == 4 * table.quarter, "2-D RoPE table was built for head_dim ", 4 * table.quarter, ", got ",
+          head_dim);
   const index_t q = table.quarter;
-  for (index_t r = 0; r < rows; ++r)
-    for (int axis = 0; axis < 2; ++axis) {
-      const T* c = table.cos.data() + positions[2 * r + axis] * q;
-      const T* s = table.sin.data() + positions[2 * r + axis] * q;
-      for (index_t h = 0; h < heads; ++h) {
-        const index_t off = r * row_stride + h * head_dim + axis * 2 * q;
-        for (index_t j = 0; j < q; ++j) {
-          const T ga = d_out[off + j], gb = d_out[off + q + j];
-          d_x[off + j] += ga * c[j] + gb * s[j];
-          d_x[off + q + j] += gb * c[j] - ga * s[j];
+  parallel_for(rows, [&](index_t r0, index_t r1, int) {
+    for (index_t r = r0; r < r1; ++r)
+      for (int axis = 0; axis < 2; ++axis) {
+        const T* c = table.cos.data() + positions[2 * r + axis] * q;
+        const T* s = table.sin.data() + positions[2 * r + axis] * q;
+        for (index_t h = 0; h < heads; ++h) {
+          const index_t off = r * row_stride + h * head_dim + axis * 2 * q;
+          for (index_t j = 0; j < q; ++j) {
+            const T ga = d_out[off + j], gb = d_out[off + q + j];
+            d_x[off + j] += ga * c[j] + gb * s[j];
+            d_x[off + q + j] += gb * c[j] - ga * s[j];
+          }
         }
       }
-    }
+  });
 }
 
 }  // namespace geometry
