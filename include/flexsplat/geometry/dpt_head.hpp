@@ -261,6 +261,59 @@ inline DptWorkspaceLayout dpt_workspace_layout(const DptHeadConfig& cfg, const D
   return L;
 }
 
+// Rows [r0, r0 + rows) of the im2col matrix of a k x k, stride-1, (k-1)/2-padded convolution of in [cin, h, w]:
+// cols[(c*k + i)*k + j, oy*w + x] = in[c, r0 + oy + i - pad, x + j - pad] (zero outside).
+template <class T>
+void im2col_band(T* cols, const T* in, index_t cin, index_t h, index_t w, index_t k, index_t r0, index_t rows) {
+  const index_t pad = (k - 1) / 2, hw = h * w, n = rows * w;
+  parallel_for(cin * k, [&](index_t b0, index_t b1, int) {
+    for (index_t ci = b0; ci < b1; ++ci) {
+      const index_t c = ci / k, i = ci % k;
+      for (index_t j = 0; j < k; ++j) {
+        T* dst = cols + ((c * k + i) * k + j) * n;
+        for (index_t oy = 0; oy < rows; ++oy, dst += w) {
+          const index_t y = r0 + oy + i - pad;
+          if (y < 0 || y >= h) {
+            std::fill(dst, dst + w, T(0));
+            continue;
+          }
+          const T* src = in + c * hw + y * w;
+          const index_t x_lo = std::max<index_t>(0, pad - j), x_hi = std::min<index_t>(w, w + pad - j);
+          std::fill(dst, dst + x_lo, T(0));
+          std::copy(src + x_lo + j - pad, src + x_hi + j - pad, dst + x_lo);
+          std::fill(dst + x_hi, dst + w, T(0));
+        }
+      }
+    }
+  });
+}
+
+// The adjoint of im2col_band: in += scatter(cols). Channels split over the pool (each writes its own plane).
+template <class T>
+void col2im_band_add(T* in, const T* cols, index_t cin, index_t h, index_t w, index_t k, index_t r0, index_t rows) {
+  const index_t pad = (k - 1) / 2, hw = h * w, n = rows * w;
+  parallel_for(cin, [&](index_t c0, index_t c1, int) {
+    for (index_t c = c0; c < c1; ++c)
+      for (index_t i = 0; i < k; ++i)
+        for (index_t j = 0; j < k; ++j) {
+          const T* src = cols + ((c * k + i) * k + j) * n;
+          const index_t x_lo = std::max<index_t>(0, pad - j), x_hi = std::min<index_t>(w, w + pad - j);
+          for (index_t oy = 0; oy < rows; ++oy, src += w) {
+            const index_t y = r0 + oy + i - pad;
+            if (y < 0 || y >= h) continue;
+            T* dst = in + c * hw + y * w + j - pad;
+            for (index_t x = x_lo; x < x_hi; ++x) dst[x] += src[x];
+          }
+        }
+  });
+}
+
+inline index_t conv_band_rows(index_t h, index_t row_cols, std::size_t scratch) {
+  const index_t band = std::min(h, static_cast<index_t>(scratch) / row_cols);
+  require(band >= 1, "DPT conv: scratch of ", scratch, " elements cannot hold one row (", row_cols, ")");
+  return band;
+}
+
 // k x k convolution, stride 1, zero padding (k-1)/2, NCHW single image; bands of output rows bound the im2col size.
 template <class T>
 void conv2d_same(T* out, const T* in, const T* weight, const T* bias, index_t cin, index_t cout, index_t h, index_t w,
@@ -272,35 +325,49 @@ void conv2d_same(T* out, const T* in, const T* weight, const T* bias, index_t ci
     gemm(Trans::no, Trans::no, cout, hw, cin, T(1), weight, cin, in, hw, bias ? T(1) : T(0), out, hw);
     return;
   }
-  const index_t pad = (k - 1) / 2, K = cin * k * k, row_cols = K * w;
-  const index_t band = std::min(h, static_cast<index_t>(scratch.size()) / row_cols);
-  require(band >= 1, "DPT conv: scratch of ", scratch.size(), " elements cannot hold one row (", row_cols, ")");
+  const index_t K = cin * k * k, band = conv_band_rows(h, K * w, scratch.size());
   T* cols = scratch.data();
   for (index_t r0 = 0; r0 < h; r0 += band) {
     const index_t rows = std::min(band, h - r0), n = rows * w;
-    parallel_for(cin * k, [&](index_t b0, index_t b1, int) {
-      for (index_t ci = b0; ci < b1; ++ci) {
-        const index_t c = ci / k, i = ci % k;
-        for (index_t j = 0; j < k; ++j) {
-          T* dst = cols + ((c * k + i) * k + j) * n;
-          for (index_t oy = 0; oy < rows; ++oy, dst += w) {
-            const index_t y = r0 + oy + i - pad;
-            if (y < 0 || y >= h) {
-              std::fill(dst, dst + w, T(0));
-              continue;
-            }
-            const T* src = in + c * hw + y * w;
-            const index_t x_lo = std::max<index_t>(0, pad - j), x_hi = std::min<index_t>(w, w + pad - j);
-            std::fill(dst, dst + x_lo, T(0));
-            std::copy(src + x_lo + j - pad, src + x_hi + j - pad, dst + x_lo);
-            std::fill(dst + x_hi, dst + w, T(0));
-          }
-        }
-      }
-    });
+    im2col_band(cols, in, cin, h, w, k, r0, rows);
     if (bias)
       for (index_t o = 0; o < cout; ++o) std::fill(out + o * hw + r0 * w, out + o * hw + r0 * w + n, bias[o]);
     gemm(Trans::no, Trans::no, cout, n, K, T(1), weight, K, cols, n, bias ? T(1) : T(0), out + r0 * w, hw);
+  }
+}
+
+// Backward of conv2d_same: adds into d_in, d_weight, d_bias (each may be null), banded like the forward.
+template <class T>
+void conv2d_same_backward(T* d_in, T* d_weight, T* d_bias, const T* d_out, const T* in, const T* weight, index_t cin,
+                          index_t cout, index_t h, index_t w, index_t k, std::span<T> scratch) {
+  const index_t hw = h * w;
+  if (d_bias)
+    parallel_for(cout, [&](index_t o0, index_t o1, int) {
+      for (index_t o = o0; o < o1; ++o) {
+        T sum = 0;
+        for (index_t p = 0; p < hw; ++p) sum += d_out[o * hw + p];
+        d_bias[o] += sum;
+      }
+    });
+  if (k == 1) {
+    if (d_weight) gemm(Trans::no, Trans::yes, cout, cin, hw, T(1), d_out, hw, in, hw, T(1), d_weight, cin);
+    if (d_in) gemm(Trans::yes, Trans::no, cin, hw, cout, T(1), weight, cin, d_out, hw, T(1), d_in, hw);
+    return;
+  }
+  if (!d_in && !d_weight) return;
+  const index_t K = cin * k * k, band = conv_band_rows(h, K * w, scratch.size());
+  T* cols = scratch.data();
+  for (index_t r0 = 0; r0 < h; r0 += band) {
+    const index_t rows = std::min(band, h - r0), n = rows * w;
+    const T* dy = d_out + r0 * w;
+    if (d_weight) {
+      im2col_band(cols, in, cin, h, w, k, r0, rows);
+      gemm(Trans::no, Trans::yes, cout, K, n, T(1), dy, hw, cols, n, T(1), d_weight, K);
+    }
+    if (d_in) {
+      gemm(Trans::yes, Trans::no, K, n, cout, T(1), weight, K, dy, hw, T(0), cols, n);
+      col2im_band_add(d_in, cols, cin, h, w, k, r0, rows);
+    }
   }
 }
 
@@ -323,6 +390,23 @@ template <class T>
 void resize_align_corners(T* out, const T* in, index_t planes, index_t h, index_t w, index_t oh, index_t ow) {
   parallel_for(planes, [&](index_t p0, index_t p1, int) {
     nn::bilinear_resize_forward(out + p0 * oh * ow, in + p0 * h * w, p1 - p0, h, w, oh, ow, true);
+  });
+}
+
+template <class T>
+void resize_align_corners_backward(T* d_in, const T* d_out, index_t planes, index_t h, index_t w, index_t oh,
+                                   index_t ow) {
+  parallel_for(planes, [&](index_t p0, index_t p1, int) {
+    nn::bilinear_resize_backward(d_in + p0 * h * w, d_out + p0 * oh * ow, p1 - p0, h, w, oh, ow, true);
+  });
+}
+
+// ReLU backward in place: d is zeroed where `activated` = relu(pre) is not positive (exactly where pre <= 0).
+template <class T>
+void relu_mask(T* d, const T* activated, index_t n) {
+  parallel_for((n + 8191) / 8192, [&](index_t c0, index_t c1, int) {
+    for (index_t i = c0 * 8192, e = std::min(n, c1 * 8192); i < e; ++i)
+      if (!(activated[i] > T(0))) d[i] = T(0);
   });
 }
 
@@ -380,6 +464,35 @@ T dpt_activate(T v, DptActivation a) {
   return v;
 }
 
+// Derivatives of the activations with respect to their pre-activation input v.
+template <class T>
+T dpt_activate_grad(T v, DptActivation a) {
+  switch (a) {
+    case DptActivation::exp: return std::exp(v);
+    case DptActivation::linear: return T(1);
+    case DptActivation::relu: return v > T(0) ? T(1) : T(0);
+    case DptActivation::inv_log: return std::exp(std::abs(v));
+    case DptActivation::sigmoid: {
+      const T s = T(1) / (T(1) + std::exp(-v));
+      return s * (T(1) - s);
+    }
+  }
+  return T(1);
+}
+
+template <class T>
+T dpt_conf_activate_grad(T v, DptConfActivation a) {
+  switch (a) {
+    case DptConfActivation::expp1:
+    case DptConfActivation::expp0: return std::exp(v);
+    case DptConfActivation::sigmoid: {
+      const T s = T(1) / (T(1) + std::exp(-v));
+      return s * (T(1) - s);
+    }
+  }
+  return T(1);
+}
+
 template <class T>
 T dpt_conf_activate(T v, DptConfActivation a) {
   switch (a) {
@@ -401,16 +514,106 @@ template <class T>
 struct DptHeadOutputs {
   T* preds = nullptr;          // [frames, OH, OW, output_dim - 1] activated predictions (depth for the depth head)
   T* conf = nullptr;           // [frames, OH, OW] activated confidence
-  T* features = nullptr;       // [frames, features/2, OH, OW]: the full-resolution map entering output_conv2
+  T* features = nullptr;       // [frames, features/2, OH, OW]: the full-resolution map entering output_conv2 (the
+                               // depth features FlexSplat's decoder fusion consumes)
   T* fused_features = nullptr; // [frames, features/2, 8 patch_h, 8 patch_w]: output_conv1, before upsampling
 };
 
-// layers[i] points to aggregator block output i as [frames, tokens, dim_in] (one batch entry); tokens =
-// patch_start + patch_h * patch_w with patch_h = image_h / patch, patch_w = image_w / patch (integer division).
+// Gradients with respect to DptHeadOutputs for dpt_head_backward; every pointer may be null (no gradient).
 template <class T>
-void dpt_head_forward(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, const DptHeadWeights<T>& wt,
-                      std::span<const T* const> layers, index_t frames, index_t tokens, index_t patch_start,
-                      index_t image_h, index_t image_w, std::span<T> workspace) {
+struct DptHeadOutputGrads {
+  const T* preds = nullptr;           // [frames, OH, OW, output_dim - 1]
+  const T* conf = nullptr;            // [frames, OH, OW]
+  const T* features = nullptr;        // [frames, features/2, OH, OW]
+  const T* fused_features = nullptr;  // [frames, features/2, 8 patch_h, 8 patch_w]
+};
+
+// Gradient slots mirroring DptHeadWeights (null where the weight is absent or its gradient is not wanted).
+template <class T>
+struct ConvGrads {
+  T* weight = nullptr;
+  T* bias = nullptr;
+};
+
+template <class T>
+struct ResidualConvUnitGrads {
+  ConvGrads<T> conv1, conv2;
+};
+
+template <class T>
+struct FusionBlockGrads {
+  ResidualConvUnitGrads<T> unit1;  // null in refinenet4
+  ResidualConvUnitGrads<T> unit2;
+  ConvGrads<T> out_conv;
+};
+
+template <class T>
+struct DptHeadGrads {
+  T *norm_weight = nullptr, *norm_bias = nullptr;
+  std::array<ConvGrads<T>, 4> projects;
+  std::array<ConvGrads<T>, 4> resize;  // [2] stays null
+  std::array<T*, 4> layer_rn{};
+  std::array<FusionBlockGrads<T>, 4> refinenet;
+  ConvGrads<T> output_conv1, output_conv2_0, output_conv2_2;
+};
+
+namespace detail {
+template <class T>
+T* rebase_grad(const T* p, const T* params_base, T* grads_base) {
+  return p ? grads_base + (p - params_base) : nullptr;
+}
+template <class T>
+ConvGrads<T> rebase_conv_grads(const ConvWeights<T>& c, const T* params_base, T* grads_base) {
+  return {rebase_grad(c.weight, params_base, grads_base), rebase_grad(c.bias, params_base, grads_base)};
+}
+}  // namespace detail
+
+// Each weight's gradient sits at the same offset in the flat gradient block `grads_base` as the weight in the flat
+// parameter block `params_base` (every non-null weight must point into that block).
+template <class T>
+DptHeadGrads<T> dpt_head_grads(const DptHeadWeights<T>& w, const T* params_base, T* grads_base) {
+  auto conv = [&](const ConvWeights<T>& c) { return detail::rebase_conv_grads(c, params_base, grads_base); };
+  DptHeadGrads<T> g;
+  g.norm_weight = detail::rebase_grad(w.norm_weight, params_base, grads_base);
+  g.norm_bias = detail::rebase_grad(w.norm_bias, params_base, grads_base);
+  for (int i = 0; i < 4; ++i) {
+    g.projects[i] = conv(w.projects[i]);
+    g.resize[i] = conv(w.resize[i]);
+    g.layer_rn[i] = detail::rebase_grad(w.layer_rn[i], params_base, grads_base);
+    const auto& fb = w.refinenet[i];
+    auto& gb = g.refinenet[i];
+    gb.unit1 = {conv(fb.unit1.conv1), conv(fb.unit1.conv2)};
+    gb.unit2 = {conv(fb.unit2.conv1), conv(fb.unit2.conv2)};
+    gb.out_conv = conv(fb.out_conv);
+  }
+  g.output_conv1 = conv(w.output_conv1);
+  g.output_conv2_0 = conv(w.output_conv2_0);
+  g.output_conv2_2 = conv(w.output_conv2_2);
+  return g;
+}
+
+// What dpt_head_forward_train keeps for dpt_head_backward (every vector holds all frames; sizes in
+// docs/geometry_heads.md). The layers themselves are not copied: backward takes the same pointers again.
+template <class T>
+struct DptHeadCache {
+  index_t frames = 0, tokens = 0, patch_start = 0, image_h = 0, image_w = 0;
+  std::vector<T> ln_mean, ln_rstd;         // [frames, 4, P] statistics of `norm` on each level's patch tokens
+  std::array<std::vector<T>, 4> proj;      // [frames, oc_i, P]: projection + embedding, the resize layer's input ([2] unused)
+  std::array<std::vector<T>, 4> level;     // [frames, oc_i, h_i, w_i]: resize output, layer_rn's input
+  std::array<std::vector<T>, 4> unit1_r, unit1_u, unit2_r, unit2_u;  // [frames, F, h_i, w_i]: relu(x), relu(conv1(relu(x)))
+  std::array<std::vector<T>, 4> block_out;  // [frames, F, h_i, w_i]: unit2's output, out_conv's input
+  std::vector<T> fused;                     // [frames, F, 8 ph, 8 pw]: output_conv1's input
+  std::vector<T> up;                        // [frames, F/2, OH, OW]: the depth features, output_conv2.0's input
+  std::vector<T> hidden;                    // [frames, 32, OH, OW] after its ReLU
+  std::vector<T> logits;                    // [frames, output_dim, OH, OW] before the activations
+  std::vector<T> grad_ws;                   // dpt_head_backward's buffers
+};
+
+namespace detail {
+template <class T>
+void dpt_head_run(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, const DptHeadWeights<T>& wt,
+                  std::span<const T* const> layers, index_t frames, index_t tokens, index_t patch_start,
+                  index_t image_h, index_t image_w, std::span<T> workspace, DptHeadCache<T>* k) {
   cfg.validate();
   require(out.preds && out.conf, "DPT head: the prediction and confidence outputs are required");
   require(image_h >= cfg.patch_size && image_w >= cfg.patch_size, "DPT head: image ", image_h, "x", image_w,
@@ -423,7 +626,7 @@ void dpt_head_forward(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, co
   for (index_t idx : cfg.intermediate_layer_idx)
     require(idx < static_cast<index_t>(layers.size()) && layers[idx] != nullptr, "DPT head: intermediate layer ", idx,
             " is not among the ", layers.size(), " aggregator outputs given");
-  const auto L = detail::dpt_workspace_layout(cfg, g);
+  const auto L = dpt_workspace_layout(cfg, g);
   require(static_cast<index_t>(workspace.size()) >= L.total, "DPT head: workspace has ", workspace.size(),
           " elements, needs ", L.total);
   T* ws = workspace.data();
@@ -431,29 +634,59 @@ void dpt_head_forward(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, co
   const index_t F = cfg.features, Fh = cfg.head_features(), D = cfg.dim_in;
   const double aspect = static_cast<double>(image_w) / static_cast<double>(image_h);
   const auto& oc = cfg.out_channels;
+  const index_t full = g.out_h * g.out_w, fused_n = F * g.fused_h * g.fused_w;
+  constexpr index_t Hh = DptHeadConfig::head_hidden;
+
+  if (k) {
+    k->frames = frames, k->tokens = tokens, k->patch_start = patch_start, k->image_h = image_h, k->image_w = image_w;
+    auto fit = [&](std::vector<T>& v, index_t per_frame) { v.resize(static_cast<std::size_t>(frames * per_frame)); };
+    fit(k->ln_mean, 4 * P);
+    fit(k->ln_rstd, 4 * P);
+    for (int i = 0; i < 4; ++i) {
+      const index_t n = F * g.level_size(i);
+      fit(k->proj[i], i == 2 ? 0 : oc[i] * P);
+      fit(k->level[i], oc[i] * g.level_size(i));
+      fit(k->unit1_r[i], i == 3 ? 0 : n);
+      fit(k->unit1_u[i], i == 3 ? 0 : n);
+      fit(k->unit2_r[i], n);
+      fit(k->unit2_u[i], n);
+      fit(k->block_out[i], n);
+    }
+    fit(k->fused, fused_n);
+    fit(k->up, Fh * full);
+    fit(k->hidden, Hh * full);
+    fit(k->logits, cfg.output_dim * full);
+  }
+  auto save = [](std::vector<T>& dst, index_t f, const T* src, index_t n) {
+    std::copy(src, src + n, dst.data() + f * n);
+  };
 
   for (index_t f = 0; f < frames; ++f) {
     // Token pyramid: norm, 1x1 projection (straight from token-major rows), embedding, resize.
     for (int i = 0; i < 4; ++i) {
       const T* tok = layers[cfg.intermediate_layer_idx[i]] + (f * tokens + patch_start) * D;
       T* normed = ws + L.normed;
-      nn::layernorm_forward(normed, tok, wt.norm_weight, wt.norm_bias, P, D, static_cast<T>(cfg.norm_eps));
+      nn::LayerNormCache<T> ln_cache;
+      if (k) ln_cache = {k->ln_mean.data() + (f * 4 + i) * P, k->ln_rstd.data() + (f * 4 + i) * P};
+      nn::layernorm_forward(normed, tok, wt.norm_weight, wt.norm_bias, P, D, static_cast<T>(cfg.norm_eps), ln_cache);
       T* proj = i == 2 ? ws + L.level[2] : ws + L.proj;
       for (index_t o = 0; o < oc[i]; ++o) std::fill(proj + o * P, proj + (o + 1) * P, wt.projects[i].bias[o]);
       gemm(Trans::no, Trans::yes, oc[i], P, D, T(1), wt.projects[i].weight, D, normed, D, T(1), proj, P);
       if (cfg.pos_embed)
-        detail::add_uv_pos_embed(proj, oc[i], g.patch_h, g.patch_w, aspect, cfg.pos_embed_ratio, cfg.pos_embed_omega,
-                                 ws + L.pos_table);
+        add_uv_pos_embed(proj, oc[i], g.patch_h, g.patch_w, aspect, cfg.pos_embed_ratio, cfg.pos_embed_omega,
+                         ws + L.pos_table);
+      if (k && i != 2) save(k->proj[i], f, proj, oc[i] * P);
       if (i == 0 || i == 1) {
-        const index_t k = i == 0 ? 4 : 2;
+        const index_t kk = i == 0 ? 4 : 2;
         nn::conv_transpose2d_forward(ws + L.level[i], proj, wt.resize[i].weight, wt.resize[i].bias,
-                                     {1, oc[i], oc[i], g.patch_h, g.patch_w, k, k, k, 0}, scratch);
+                                     {1, oc[i], oc[i], g.patch_h, g.patch_w, kk, kk, kk, 0}, scratch);
       } else if (i == 3) {
         nn::conv2d_forward(ws + L.level[3], proj, wt.resize[3].weight, wt.resize[3].bias,
                            {1, oc[3], oc[3], g.patch_h, g.patch_w, 3, 3, 2, 1}, scratch);
       }
-      detail::conv2d_same(ws + L.rn[i], ws + L.level[i], wt.layer_rn[i], static_cast<const T*>(nullptr), oc[i], F,
-                          g.h[i], g.w[i], 3, scratch);
+      if (k) save(k->level[i], f, ws + L.level[i], oc[i] * g.level_size(i));
+      conv2d_same(ws + L.rn[i], ws + L.level[i], wt.layer_rn[i], static_cast<const T*>(nullptr), oc[i], F, g.h[i],
+                  g.w[i], 3, scratch);
     }
 
     // Fusion, coarse to fine. Each block: [prev + unit1(skip)] -> unit2 -> out_conv -> resize to the next level.
@@ -461,14 +694,21 @@ void dpt_head_forward(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, co
     T* B = ws + L.b;
     T* C = ws + L.c;
     T* Dbuf = ws + L.d;
+    // result = relu(x) + conv2(relu(conv1(relu(x)))); save_r / save_u receive relu(x) and relu(conv1(relu(x))).
     auto unit = [&](T* result, const T* x, const ResidualConvUnitWeights<T>& u, T* tmp1, T* tmp2, index_t h,
-                    index_t w) {  // result = relu(x) + conv2(relu(conv1(relu(x))))
+                    index_t w, T* save_r, T* save_u) {
       const index_t n = F * h * w;
-      detail::relu_copy(result, x, n);
-      detail::conv2d_same(tmp1, result, u.conv1.weight, u.conv1.bias, F, F, h, w, 3, scratch);
-      detail::relu_copy(tmp1, tmp1, n);
-      detail::conv2d_same(tmp2, tmp1, u.conv2.weight, u.conv2.bias, F, F, h, w, 3, scratch);
-      detail::add_into(result, tmp2, n);
+      relu_copy(result, x, n);
+      if (save_r) std::copy(result, result + n, save_r);
+      conv2d_same(tmp1, result, u.conv1.weight, u.conv1.bias, F, F, h, w, 3, scratch);
+      relu_copy(tmp1, tmp1, n);
+      if (save_u) std::copy(tmp1, tmp1 + n, save_u);
+      conv2d_same(tmp2, tmp1, u.conv2.weight, u.conv2.bias, F, F, h, w, 3, scratch);
+      add_into(result, tmp2, n);
+    };
+    using Slots = std::array<std::vector<T>, 4> DptHeadCache<T>::*;
+    auto slot = [&](Slots member, int level) {
+      return k ? ((*k).*member)[level].data() + f * F * g.level_size(level) : static_cast<T*>(nullptr);
     };
     // prev (the coarser block's resized output) lives in Dbuf between levels.
     bool has_prev = false;
@@ -477,48 +717,242 @@ void dpt_head_forward(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, co
       const index_t h = g.h[level], w = g.w[level], n = F * h * w;
       const T* x = ws + L.rn[level];
       if (has_prev) {
-        unit(A, x, fb.unit1, B, C, h, w);
-        detail::add_into(A, Dbuf, n);
+        unit(A, x, fb.unit1, B, C, h, w, slot(&DptHeadCache<T>::unit1_r, level), slot(&DptHeadCache<T>::unit1_u, level));
+        add_into(A, Dbuf, n);
         x = A;
       }
-      unit(B, x, fb.unit2, C, Dbuf, h, w);
+      unit(B, x, fb.unit2, C, Dbuf, h, w, slot(&DptHeadCache<T>::unit2_r, level), slot(&DptHeadCache<T>::unit2_u, level));
+      if (k) std::copy(B, B + n, slot(&DptHeadCache<T>::block_out, level));
       // The 1x1 out_conv commutes with bilinear resizing (weights sum to one), so it runs at the smaller size.
-      detail::conv2d_same(C, B, fb.out_conv.weight, fb.out_conv.bias, F, F, h, w, 1, scratch);
-      if (level > 0) detail::resize_align_corners(Dbuf, C, F, h, w, g.h[level - 1], g.w[level - 1]);
-      else detail::resize_align_corners(ws + L.fused, C, F, h, w, g.fused_h, g.fused_w);
+      conv2d_same(C, B, fb.out_conv.weight, fb.out_conv.bias, F, F, h, w, 1, scratch);
+      if (level > 0) resize_align_corners(Dbuf, C, F, h, w, g.h[level - 1], g.w[level - 1]);
+      else resize_align_corners(ws + L.fused, C, F, h, w, g.fused_h, g.fused_w);
       has_prev = true;
     }
 
     // Head: output_conv1, upsample to the image grid, embedding, output_conv2, activations.
     T* fused = ws + L.fused;
+    if (k) save(k->fused, f, fused, fused_n);
     T* head_in = ws + L.head_in;
-    detail::conv2d_same(head_in, fused, wt.output_conv1.weight, wt.output_conv1.bias, F, Fh, g.fused_h, g.fused_w, 3,
-                        scratch);
-    const index_t full = g.out_h * g.out_w;
+    conv2d_same(head_in, fused, wt.output_conv1.weight, wt.output_conv1.bias, F, Fh, g.fused_h, g.fused_w, 3, scratch);
     if (out.fused_features)
       std::copy(head_in, head_in + Fh * g.fused_h * g.fused_w, out.fused_features + f * Fh * g.fused_h * g.fused_w);
     T* up = ws + L.up;
-    detail::resize_align_corners(up, head_in, Fh, g.fused_h, g.fused_w, g.out_h, g.out_w);
+    resize_align_corners(up, head_in, Fh, g.fused_h, g.fused_w, g.out_h, g.out_w);
     if (cfg.pos_embed)
-      detail::add_uv_pos_embed(up, Fh, g.out_h, g.out_w, aspect, cfg.pos_embed_ratio, cfg.pos_embed_omega,
-                               ws + L.pos_table);
+      add_uv_pos_embed(up, Fh, g.out_h, g.out_w, aspect, cfg.pos_embed_ratio, cfg.pos_embed_omega, ws + L.pos_table);
     if (out.features) std::copy(up, up + Fh * full, out.features + f * Fh * full);
+    if (k) save(k->up, f, up, Fh * full);
     T* hidden = ws + L.hidden;
-    detail::conv2d_same(hidden, up, wt.output_conv2_0.weight, wt.output_conv2_0.bias, Fh, DptHeadConfig::head_hidden,
-                        g.out_h, g.out_w, 3, scratch);
-    detail::relu_copy(hidden, hidden, DptHeadConfig::head_hidden * full);
+    conv2d_same(hidden, up, wt.output_conv2_0.weight, wt.output_conv2_0.bias, Fh, Hh, g.out_h, g.out_w, 3, scratch);
+    relu_copy(hidden, hidden, Hh * full);
+    if (k) save(k->hidden, f, hidden, Hh * full);
     T* logits = ws + L.out;
-    detail::conv2d_same(logits, hidden, wt.output_conv2_2.weight, wt.output_conv2_2.bias, DptHeadConfig::head_hidden,
-                        cfg.output_dim, g.out_h, g.out_w, 1, scratch);
+    conv2d_same(logits, hidden, wt.output_conv2_2.weight, wt.output_conv2_2.bias, Hh, cfg.output_dim, g.out_h, g.out_w,
+                1, scratch);
+    if (k) save(k->logits, f, logits, cfg.output_dim * full);
     const index_t np = cfg.output_dim - 1;
     T* preds = out.preds + f * full * np;
     T* conf = out.conf + f * full;
     parallel_for(full, [&](index_t p0, index_t p1, int) {
       for (index_t p = p0; p < p1; ++p) {
-        for (index_t c = 0; c < np; ++c) preds[p * np + c] = detail::dpt_activate(logits[c * full + p], cfg.activation);
-        conf[p] = detail::dpt_conf_activate(logits[np * full + p], cfg.conf_activation);
+        for (index_t c = 0; c < np; ++c) preds[p * np + c] = dpt_activate(logits[c * full + p], cfg.activation);
+        conf[p] = dpt_conf_activate(logits[np * full + p], cfg.conf_activation);
       }
     });
+  }
+}
+}  // namespace detail
+
+// layers[i] points to aggregator block output i as [frames, tokens, dim_in] (one batch entry); tokens =
+// patch_start + patch_h * patch_w with patch_h = image_h / patch, patch_w = image_w / patch (integer division).
+template <class T>
+void dpt_head_forward(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, const DptHeadWeights<T>& wt,
+                      std::span<const T* const> layers, index_t frames, index_t tokens, index_t patch_start,
+                      index_t image_h, index_t image_w, std::span<T> workspace) {
+  detail::dpt_head_run<T>(out, cfg, wt, layers, frames, tokens, patch_start, image_h, image_w, workspace, nullptr);
+}
+
+// dpt_head_forward (same arguments, same results bit for bit) that also fills `cache` for dpt_head_backward.
+template <class T>
+void dpt_head_forward_train(const DptHeadOutputs<T>& out, DptHeadCache<T>& cache, const DptHeadConfig& cfg,
+                            const DptHeadWeights<T>& wt, std::span<const T* const> layers, index_t frames,
+                            index_t tokens, index_t patch_start, index_t image_h, index_t image_w,
+                            std::span<T> workspace) {
+  detail::dpt_head_run<T>(out, cfg, wt, layers, frames, tokens, patch_start, image_h, image_w, workspace, &cache);
+}
+
+// Backward of dpt_head_forward_train. Adds into `grads` (null slots skipped) and into d_layers[i] (parallel to
+// `layers`; entries or the whole span may be empty/null): only the patch-token rows of the intermediate layers
+// receive gradient, the special tokens get none. `layers` must hold the values the forward saw.
+template <class T>
+void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grads, const DptHeadOutputGrads<T>& d_out,
+                       DptHeadCache<T>& k, const DptHeadConfig& cfg, const DptHeadWeights<T>& wt,
+                       std::span<const T* const> layers) {
+  cfg.validate();
+  require(k.frames >= 1 && !k.up.empty(), "DPT head backward: the cache is empty (run dpt_head_forward_train first)");
+  const DptGeometry g(k.image_h / cfg.patch_size, k.image_w / cfg.patch_size, cfg.patch_size);
+  const index_t P = g.patch_h * g.patch_w, F = cfg.features, Fh = cfg.head_features(), D = cfg.dim_in;
+  require(static_cast<index_t>(k.up.size()) == k.frames * Fh * g.out_h * g.out_w,
+          "DPT head backward: the cache was filled for another configuration");
+  for (index_t idx : cfg.intermediate_layer_idx)
+    require(idx < static_cast<index_t>(layers.size()) && layers[idx] != nullptr, "DPT head backward: intermediate layer ",
+            idx, " is not among the ", layers.size(), " aggregator outputs given");
+  require(d_layers.empty() || d_layers.size() == layers.size(), "DPT head backward: ", d_layers.size(),
+          " layer gradients for ", layers.size(), " layers");
+  const auto& oc = cfg.out_channels;
+  const index_t full = g.out_h * g.out_w, fused_hw = g.fused_h * g.fused_w, l0 = F * g.level_size(0);
+  const index_t od = cfg.output_dim, np = od - 1;
+  constexpr index_t Hh = DptHeadConfig::head_hidden;
+  const auto L = detail::dpt_workspace_layout(cfg, g);
+  index_t max_level = 0;
+  for (int i = 0; i < 4; ++i) max_level = std::max(max_level, oc[i] * g.level_size(i));
+  const index_t max_oc = *std::max_element(oc.begin(), oc.end());
+
+  index_t cursor = 0;
+  auto take = [&](index_t n) {
+    const index_t at = cursor;
+    cursor += (n + 15) / 16 * 16;
+    return at;
+  };
+  const index_t o_logits = take(od * full), o_hidden = take(Hh * full), o_up = take(Fh * full),
+                o_head_in = take(Fh * fused_hw), o_fused = take(F * fused_hw), o_c = take(l0), o_b = take(l0),
+                o_a = take(l0), o_r = take(l0), o_u = take(l0);
+  index_t o_rn[4];
+  for (int i = 0; i < 4; ++i) o_rn[i] = take(F * g.level_size(i));
+  const index_t o_level = take(max_level), o_proj = take(max_oc * P), o_normed = take(P * D), o_dnormed = take(P * D),
+                o_scratch = take(L.scratch_size);
+  if (static_cast<index_t>(k.grad_ws.size()) < cursor) k.grad_ws.resize(static_cast<std::size_t>(cursor));
+  T* ws = k.grad_ws.data();
+  std::span<T> scratch(ws + o_scratch, static_cast<std::size_t>(L.scratch_size));
+  auto zero = [](T* p, index_t n) { std::fill(p, p + n, T(0)); };
+
+  // d_x += d(result) through result = r + conv2(u), u = relu(conv1(r)), r = relu(x) (r, u saved by the forward).
+  auto unit_backward = [&](T* d_x, const T* d_result, const ResidualConvUnitWeights<T>& u,
+                           const ResidualConvUnitGrads<T>& gu, const T* r, const T* uu, index_t h, index_t w) {
+    const index_t n = F * h * w;
+    T* d_r = ws + o_r;
+    T* d_u = ws + o_u;
+    std::copy(d_result, d_result + n, d_r);
+    zero(d_u, n);
+    detail::conv2d_same_backward(d_u, gu.conv2.weight, gu.conv2.bias, d_result, uu, u.conv2.weight, F, F, h, w, 3,
+                                 scratch);
+    detail::relu_mask(d_u, uu, n);
+    detail::conv2d_same_backward(d_r, gu.conv1.weight, gu.conv1.bias, d_u, r, u.conv1.weight, F, F, h, w, 3, scratch);
+    detail::relu_mask(d_r, r, n);
+    detail::add_into(d_x, d_r, n);
+  };
+
+  for (index_t f = 0; f < k.frames; ++f) {
+    // Activations.
+    T* d_logits = ws + o_logits;
+    const T* logits = k.logits.data() + f * od * full;
+    parallel_for(full, [&](index_t p0, index_t p1, int) {
+      for (index_t p = p0; p < p1; ++p) {
+        for (index_t c = 0; c < np; ++c)
+          d_logits[c * full + p] = d_out.preds ? d_out.preds[(f * full + p) * np + c] *
+                                                     detail::dpt_activate_grad(logits[c * full + p], cfg.activation)
+                                               : T(0);
+        d_logits[np * full + p] = d_out.conf ? d_out.conf[f * full + p] * detail::dpt_conf_activate_grad(
+                                                                              logits[np * full + p], cfg.conf_activation)
+                                             : T(0);
+      }
+    });
+    // output_conv2: 1x1 after the ReLU'd 3x3.
+    const T* hidden = k.hidden.data() + f * Hh * full;
+    T* d_hidden = ws + o_hidden;
+    zero(d_hidden, Hh * full);
+    detail::conv2d_same_backward(d_hidden, grads.output_conv2_2.weight, grads.output_conv2_2.bias, d_logits, hidden,
+                                 wt.output_conv2_2.weight, Hh, od, g.out_h, g.out_w, 1, scratch);
+    detail::relu_mask(d_hidden, hidden, Hh * full);
+    T* d_up = ws + o_up;
+    if (d_out.features) std::copy(d_out.features + f * Fh * full, d_out.features + (f + 1) * Fh * full, d_up);
+    else zero(d_up, Fh * full);
+    detail::conv2d_same_backward(d_up, grads.output_conv2_0.weight, grads.output_conv2_0.bias, d_hidden,
+                                 k.up.data() + f * Fh * full, wt.output_conv2_0.weight, Fh, Hh, g.out_h, g.out_w, 3,
+                                 scratch);
+    // The uv embedding is a constant add; the upsampling and output_conv1 are linear.
+    T* d_head_in = ws + o_head_in;
+    if (d_out.fused_features)
+      std::copy(d_out.fused_features + f * Fh * fused_hw, d_out.fused_features + (f + 1) * Fh * fused_hw, d_head_in);
+    else zero(d_head_in, Fh * fused_hw);
+    detail::resize_align_corners_backward(d_head_in, d_up, Fh, g.fused_h, g.fused_w, g.out_h, g.out_w);
+    T* d_fused = ws + o_fused;
+    zero(d_fused, F * fused_hw);
+    detail::conv2d_same_backward(d_fused, grads.output_conv1.weight, grads.output_conv1.bias, d_head_in,
+                                 k.fused.data() + f * F * fused_hw, wt.output_conv1.weight, F, Fh, g.fused_h, g.fused_w,
+                                 3, scratch);
+
+    // Fusion, fine to coarse. d_c holds the gradient of the current level's out_conv output.
+    T* d_c = ws + o_c;
+    T* d_b = ws + o_b;
+    T* d_a = ws + o_a;
+    zero(d_c, l0);
+    detail::resize_align_corners_backward(d_c, d_fused, F, g.h[0], g.w[0], g.fused_h, g.fused_w);
+    for (int i = 0; i < 4; ++i) zero(ws + o_rn[i], F * g.level_size(i));
+    for (int level = 0; level < 4; ++level) {
+      const auto& fb = wt.refinenet[level];
+      const auto& gb = grads.refinenet[level];
+      const index_t h = g.h[level], w = g.w[level], n = F * h * w, at = f * n;
+      zero(d_b, n);
+      detail::conv2d_same_backward(d_b, gb.out_conv.weight, gb.out_conv.bias, d_c, k.block_out[level].data() + at,
+                                   fb.out_conv.weight, F, F, h, w, 1, scratch);
+      if (level == 3) {
+        unit_backward(ws + o_rn[3], d_b, fb.unit2, gb.unit2, k.unit2_r[3].data() + at, k.unit2_u[3].data() + at, h, w);
+        break;
+      }
+      zero(d_a, n);
+      unit_backward(d_a, d_b, fb.unit2, gb.unit2, k.unit2_r[level].data() + at, k.unit2_u[level].data() + at, h, w);
+      // unit2's input is unit1(rn) + prev, prev the coarser level's out_conv output resized to this level.
+      unit_backward(ws + o_rn[level], d_a, fb.unit1, gb.unit1, k.unit1_r[level].data() + at,
+                    k.unit1_u[level].data() + at, h, w);
+      zero(d_c, F * g.level_size(level + 1));
+      detail::resize_align_corners_backward(d_c, d_a, F, g.h[level + 1], g.w[level + 1], h, w);
+    }
+
+    // Token pyramid, per level: layer_rn, resize layer, embedding (constant), projection, norm.
+    for (int i = 0; i < 4; ++i) {
+      const index_t ls = g.level_size(i);
+      T* d_level = ws + o_level;
+      zero(d_level, oc[i] * ls);
+      detail::conv2d_same_backward(d_level, grads.layer_rn[i], static_cast<T*>(nullptr), ws + o_rn[i],
+                                   k.level[i].data() + f * oc[i] * ls, wt.layer_rn[i], oc[i], F, g.h[i], g.w[i], 3,
+                                   scratch);
+      T* d_proj = d_level;
+      if (i != 2) {
+        d_proj = ws + o_proj;
+        zero(d_proj, oc[i] * P);
+        const T* proj = k.proj[i].data() + f * oc[i] * P;
+        if (i == 3) {
+          nn::conv2d_backward(d_proj, grads.resize[3].weight, grads.resize[3].bias, d_level, proj, wt.resize[3].weight,
+                              {1, oc[3], oc[3], g.patch_h, g.patch_w, 3, 3, 2, 1}, scratch);
+        } else {
+          const index_t kk = i == 0 ? 4 : 2;
+          nn::conv_transpose2d_backward(d_proj, grads.resize[i].weight, grads.resize[i].bias, d_level, proj,
+                                        wt.resize[i].weight, {1, oc[i], oc[i], g.patch_h, g.patch_w, kk, kk, kk, 0},
+                                        scratch);
+        }
+      }
+      const index_t idx = cfg.intermediate_layer_idx[i];
+      const T* tok = layers[idx] + (f * k.tokens + k.patch_start) * D;
+      T* normed = ws + o_normed;
+      // The norm's output is recomputed from the tokens (bit-identical to the forward's) rather than stored.
+      nn::layernorm_forward(normed, tok, wt.norm_weight, wt.norm_bias, P, D, static_cast<T>(cfg.norm_eps));
+      if (grads.projects[i].bias)
+        for (index_t o = 0; o < oc[i]; ++o) {
+          T sum = 0;
+          for (index_t p = 0; p < P; ++p) sum += d_proj[o * P + p];
+          grads.projects[i].bias[o] += sum;
+        }
+      if (grads.projects[i].weight)
+        gemm(Trans::no, Trans::no, oc[i], D, P, T(1), d_proj, P, normed, D, T(1), grads.projects[i].weight, D);
+      T* d_tok = d_layers.empty() || !d_layers[idx] ? nullptr : d_layers[idx] + (f * k.tokens + k.patch_start) * D;
+      if (!d_tok && !grads.norm_weight && !grads.norm_bias) continue;
+      T* d_normed = ws + o_dnormed;
+      gemm(Trans::yes, Trans::no, P, D, oc[i], T(1), d_proj, P, wt.projects[i].weight, D, T(0), d_normed, D);
+      nn::layernorm_backward(d_tok, grads.norm_weight, grads.norm_bias, d_normed, tok, wt.norm_weight, P, D,
+                             nn::LayerNormCache<T>{k.ln_mean.data() + (f * 4 + i) * P, k.ln_rstd.data() + (f * 4 + i) * P});
+    }
   }
 }
 
