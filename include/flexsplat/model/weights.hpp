@@ -1,0 +1,111 @@
+#pragma once
+// The parameters of a whole FlexSplat model in one train::ParamStore: segment "geometry" holds the VGGT tensors under
+// VGGT's state_dict names (so the official checkpoint or any VGGT-layout file initialises it), segment "appearance"
+// the UNet, fusion and decoder tensors in decoder::ModelParamLayout order (one contiguous block). The geometry weight
+// structs point into the store's params block; gradients live at the same offsets of the grads block.
+#include <cstdint>
+#include <filesystem>
+#include <memory>
+#include <random>
+#include <string>
+
+#include "flexsplat/decoder/param_names.hpp"
+#include "flexsplat/geometry/random_weights.hpp"
+#include "flexsplat/geometry/weights.hpp"
+#include "flexsplat/model/config.hpp"
+#include "flexsplat/train/checkpoint.hpp"
+#include "flexsplat/train/params.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace model {
+
+inline constexpr const char* geometry_segment = "geometry";
+inline constexpr const char* appearance_segment = "appearance";
+
+// Every tensor of a model, in store order: geometry (VGGT names), then appearance ("appearance." + decoder names).
+inline std::vector<geometry::TensorSpec> appearance_parameter_specs(const FlexSplatConfig& c) {
+  std::vector<geometry::TensorSpec> specs;
+  decoder::append_model_specs(specs, c.appearance, "appearance.");
+  return specs;
+}
+
+template <class T>
+class FlexSplatWeights {
+public:
+  // training: also allocate gradients and Adam moments. The object must stay where it is (the weights point into it),
+  // hence create() returns it by pointer.
+  static std::unique_ptr<FlexSplatWeights> create(const FlexSplatConfig& c, bool training) {
+    c.validate();
+    auto w = std::unique_ptr<FlexSplatWeights>(new FlexSplatWeights());
+    w->config_ = c;
+    w->store_.add_segment(geometry_segment, geometry::vggt_parameter_specs(c.geometry));
+    w->store_.add_segment(appearance_segment, appearance_parameter_specs(c));
+    require(w->store_.segment(appearance_segment).size == decoder::ModelParamLayout(c.appearance).size,
+            "FlexSplat weights: appearance names cover ", w->store_.segment(appearance_segment).size,
+            " values, the decoder layout has ", decoder::ModelParamLayout(c.appearance).size);
+    w->store_.allocate(training);
+    w->store_.bind_views(w->source_, geometry_segment);
+    w->geometry_ = geometry::load_vggt_weights(w->source_, c.geometry);
+    return w;
+  }
+
+  // Fresh initial values from one seed: geometry as geometry::random_parameter_values (LayerNorm 1, biases 0,
+  // LayerScale 0.01, uniform matrices of variance 1/fan_in), appearance as decoder::model_init.
+  void init(std::uint64_t seed) {
+    const auto& seg = store_.segment(geometry_segment);
+    std::uint64_t stream = seed;
+    for (std::size_t i = seg.first; i < seg.first + seg.count; ++i) {
+      const auto& t = store_.tensors()[i];
+      const geometry::TensorSpec spec{t.name, t.shape};
+      const bool random = geometry::draws_random_values(spec);
+      geometry::random_parameter_values(store_.params() + t.offset, spec, random ? stream++ : stream,
+                                        config_.geometry.aggregator.init_values);
+    }
+    decoder::model_init(appearance(), config_.appearance, seed ^ 0x5851f42d4c957f2dull);
+  }
+
+  // A flexsplat model or training-state file written by save(); the configuration must match.
+  train::CheckpointInfo load(const std::filesystem::path& path, bool with_optimizer_state = true) {
+    const nlohmann::json expected = to_json(config_);
+    return train::load_checkpoint(path, store_, with_optimizer_state, &expected);
+  }
+  // VGGT's model.safetensors (or any VGGT-layout file): initialises the geometry segment only.
+  void load_geometry(const std::filesystem::path& path, const std::string& file_prefix = {}) {
+    train::load_vggt_geometry(path, store_, geometry_segment, file_prefix);
+  }
+  void save(const std::filesystem::path& path, std::uint64_t step = 0) const {
+    train::save_model(path, store_, to_json(config_), step);
+  }
+
+  const FlexSplatConfig& config() const noexcept { return config_; }
+  train::ParamStore<T>& store() noexcept { return store_; }
+  const train::ParamStore<T>& store() const noexcept { return store_; }
+  const geometry::VggtWeights<T>& geometry() const noexcept { return geometry_; }
+  T* appearance() { return store_.segment_params(appearance_segment); }
+  const T* appearance() const { return store_.params() + store_.segment(appearance_segment).offset; }
+  T* appearance_grads() { return store_.segment_grads(appearance_segment); }
+
+private:
+  FlexSplatWeights() = default;
+  FlexSplatConfig config_;
+  train::ParamStore<T> store_;
+  geometry::ParamSource<T> source_;
+  geometry::VggtWeights<T> geometry_;
+};
+
+// Reads the configuration a model file was saved with (its __metadata__), creates the weights and loads them.
+template <class T>
+std::unique_ptr<FlexSplatWeights<T>> load_flexsplat(const std::filesystem::path& path, bool training = false) {
+  const auto file = safetensors::File::open(path);
+  require(file.has_metadata(train::checkpoint_config_key), "model file '", path.string(),
+          "' has no configuration in its metadata (not a flexsplat model; a VGGT checkpoint goes to --init)");
+  const FlexSplatConfig c = flexsplat_config_from_json(file.metadata(train::checkpoint_config_key));
+  auto w = FlexSplatWeights<T>::create(c, training);
+  w->load(path, training);
+  return w;
+}
+
+}  // namespace model
+}  // namespace v0
+}  // namespace flexsplat
