@@ -123,6 +123,77 @@ void pose_encoding_to_extri_intri(T* extrinsics, T* intrinsics, const T* pose_en
   }
 }
 
+// Adds into d_q (x, y, z, w) the gradient of quat_to_mat's R given d_R (row-major); nothing for |q| = 0.
+// R = C + s P(q) with s = 2 / |q|^2, so dR/dq_a = s dP/dq_a - s^2 q_a P.
+template <class T>
+void quat_to_mat_backward(T* d_q, const T* d_R, const T* q) {
+  const double i = q[0], j = q[1], k = q[2], r = q[3];
+  const double norm_sq = i * i + j * j + k * k + r * r;
+  if (!(norm_sq > 0.0)) return;
+  const double s = 2.0 / norm_sq;
+  double g[9];
+  for (int m = 0; m < 9; ++m) g[m] = static_cast<double>(d_R[m]);
+  const double P[9] = {-(j * j + k * k), i * j - k * r, i * k + j * r, i * j + k * r, -(i * i + k * k),
+                       j * k - i * r,    i * k - j * r, j * k + i * r, -(i * i + j * j)};
+  double gp = 0.0;
+  for (int m = 0; m < 9; ++m) gp += g[m] * P[m];
+  const double di = g[1] * j + g[2] * k + g[3] * j - 2 * g[4] * i - g[5] * r + g[6] * k + g[7] * r - 2 * g[8] * i;
+  const double dj = -2 * g[0] * j + g[1] * i + g[2] * r + g[3] * i + g[5] * k - g[6] * r + g[7] * k - 2 * g[8] * j;
+  const double dk = -2 * g[0] * k - g[1] * r + g[2] * i + g[3] * r - 2 * g[4] * k + g[5] * j + g[6] * i + g[7] * j;
+  const double dr = -g[1] * k + g[2] * j + g[3] * k - g[5] * i - g[6] * j + g[7] * i;
+  const double d[4] = {di, dj, dk, dr};
+  for (int a = 0; a < 4; ++a) d_q[a] += static_cast<T>(s * d[a] - s * s * static_cast<double>(q[a]) * gp);
+}
+
+// Backward of pose_encoding_to_extri_intri: adds into d_pose_enc [n, 9] from d_extrinsics [n, 3, 4] and
+// d_intrinsics [n, 3, 3] (either may be null). Entries the options' clamp replaced by a constant (a FoV outside
+// (0, pi), an all-zero quaternion) get zero gradient, as a clamp's derivative is; under the error policy they throw
+// as in the forward. The principal point is a constant of the image size: its gradient goes nowhere.
+template <class T>
+void pose_encoding_to_extri_intri_backward(T* d_pose_enc, const T* d_extrinsics, const T* d_intrinsics,
+                                           const T* pose_enc, index_t n, index_t image_h, index_t image_w,
+                                           PoseDecodeOptions options = {}) {
+  require(n >= 0, "pose_encoding_to_extri_intri_backward: negative frame count ", n);
+  require(d_intrinsics == nullptr || (image_h > 0 && image_w > 0), "pose_encoding_to_extri_intri_backward: image size ",
+          image_h, "x", image_w, " must be positive");
+  const double pi = std::numbers::pi;
+  for (index_t f = 0; f < n; ++f) {
+    const T* e = pose_enc + f * pose_encoding_dim;
+    T* de = d_pose_enc + f * pose_encoding_dim;
+    for (index_t c = 0; c < pose_encoding_dim; ++c)
+      require(std::isfinite(static_cast<double>(e[c])), "pose encoding of frame ", f, ": entry ", c, " is ",
+              static_cast<double>(e[c]), " (not finite)");
+    if (d_extrinsics) {
+      const T* dE = d_extrinsics + f * 12;
+      T dR[9];
+      for (int r = 0; r < 3; ++r) {
+        for (int c = 0; c < 3; ++c) dR[r * 3 + c] = dE[r * 4 + c];
+        de[r] += dE[r * 4 + 3];
+      }
+      const double q_sq = static_cast<double>(e[3]) * e[3] + static_cast<double>(e[4]) * e[4] +
+                          static_cast<double>(e[5]) * e[5] + static_cast<double>(e[6]) * e[6];
+      require(q_sq > 0.0 || options.policy == DegeneratePosePolicy::clamp, "pose encoding of frame ", f,
+              ": quaternion (x, y, z, w) = (0, 0, 0, 0) has no rotation");
+      quat_to_mat_backward(de + 3, dR, e + 3);
+    }
+    if (!d_intrinsics) continue;
+    const T* dK = d_intrinsics + f * 9;
+    const double size[2] = {static_cast<double>(image_h), static_cast<double>(image_w)};
+    const double d_focal[2] = {static_cast<double>(dK[4]), static_cast<double>(dK[0])};  // (fy, fx)
+    for (int a = 0; a < 2; ++a) {
+      const double fov = static_cast<double>(e[7 + a]);
+      if (!(fov > 0.0 && fov < pi)) {
+        require(options.policy == DegeneratePosePolicy::clamp, "pose encoding of frame ", f, ": ",
+                a == 0 ? "fov_h" : "fov_w", " = ", fov, " rad is outside (0, pi)");
+        continue;
+      }
+      // focal = (size / 2) / tan(fov / 2): d focal / d fov = -(size / 4) / sin^2(fov / 2).
+      const double sn = std::sin(0.5 * fov);
+      de[7 + a] += static_cast<T>(-0.25 * size[a] / (sn * sn) * d_focal[a]);
+    }
+  }
+}
+
 // The inverse: extrinsics [n, 3, 4] + intrinsics [n, 3, 3] -> pose_enc [n, 9] with fov = 2 atan((size/2) / focal).
 template <class T>
 void extri_intri_to_pose_encoding(T* pose_enc, const T* extrinsics, const T* intrinsics, index_t n, index_t image_h,

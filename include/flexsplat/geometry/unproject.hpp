@@ -2,6 +2,7 @@
 // Depth maps to world points as VGGT's unproject_depth_map_to_point_map: pixel (u, v) at integer coordinates,
 // camera point ((u - cx) d / fx, (v - cy) d / fy, d), world point R^T (p - t) for world-to-camera [R | t].
 #include <cmath>
+#include <vector>
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/parallel.hpp"
@@ -52,6 +53,75 @@ void unproject_depth_forward(T* world_points, const T* depth, const T* extrinsic
       }
     }
   });
+}
+
+// Backward of unproject_depth_forward: adds into d_depth [frames, H, W], d_extrinsics [frames, 3, 4] and
+// d_intrinsics [frames, 3, 3] (only fx, fy, cx, cy: K[0], K[4], K[2], K[5]); each may be null. Per-row partial sums of
+// the camera gradients are reduced in row order, so the result does not depend on the thread count.
+template <class T>
+void unproject_depth_backward(T* d_depth, T* d_extrinsics, T* d_intrinsics, const T* d_world_points, const T* depth,
+                              const T* extrinsics, const T* intrinsics, index_t frames, index_t height, index_t width) {
+  require(frames >= 0 && height >= 0 && width >= 0, "unproject_depth_backward: negative size ", frames, "x", height,
+          "x", width);
+  for (index_t f = 0; f < frames; ++f) {
+    const T* K = intrinsics + f * 9;
+    require(std::isfinite(static_cast<double>(K[0])) && std::isfinite(static_cast<double>(K[4])) && K[0] != T(0) &&
+                K[4] != T(0),
+            "unproject_depth_backward: frame ", f, " has focal lengths (", static_cast<double>(K[0]), ", ",
+            static_cast<double>(K[4]), "); they must be finite and non-zero");
+  }
+  const bool cameras = d_extrinsics || d_intrinsics;
+  constexpr int per_row = 16;  // 12 extrinsic entries, then fx, fy, cx, cy
+  std::vector<double> partial(cameras ? static_cast<std::size_t>(frames * height * per_row) : 0, 0.0);
+  parallel_for(frames * height, [&](index_t r0, index_t r1, int) {
+    for (index_t row = r0; row < r1; ++row) {
+      const index_t f = row / height, v = row % height;
+      const T* K = intrinsics + f * 9;
+      const T* E = extrinsics + f * 12;
+      const double fx = K[0], fy = K[4], cx = K[2], cy = K[5];
+      double R[9], t[3];
+      for (int r = 0; r < 3; ++r) {
+        for (int c = 0; c < 3; ++c) R[r * 3 + c] = E[r * 4 + c];
+        t[r] = E[r * 4 + 3];
+      }
+      const double y_unit = (static_cast<double>(v) - cy) / fy;
+      double* acc = cameras ? partial.data() + row * per_row : nullptr;
+      for (index_t u = 0; u < width; ++u) {
+        const double d = depth[row * width + u];
+        const T* dw = d_world_points + (row * width + u) * 3;
+        const double x_unit = (static_cast<double>(u) - cx) / fx;
+        // world_c = sum_r R[r][c] (p_r - t_r): d p_r = sum_c R[r][c] d world_c.
+        double dp[3];
+        for (int r = 0; r < 3; ++r) dp[r] = R[r * 3 + 0] * dw[0] + R[r * 3 + 1] * dw[1] + R[r * 3 + 2] * dw[2];
+        if (d_depth) d_depth[row * width + u] += static_cast<T>(dp[0] * x_unit + dp[1] * y_unit + dp[2]);
+        if (!acc) continue;
+        const double p[3] = {x_unit * d, y_unit * d, d};
+        for (int r = 0; r < 3; ++r) {
+          for (int c = 0; c < 3; ++c) acc[r * 4 + c] += static_cast<double>(dw[c]) * (p[r] - t[r]);
+          acc[r * 4 + 3] -= dp[r];
+        }
+        acc[12] -= dp[0] * p[0] / fx;  // d p0 / d fx = -(u - cx) d / fx^2
+        acc[13] -= dp[1] * p[1] / fy;
+        acc[14] -= dp[0] * d / fx;
+        acc[15] -= dp[1] * d / fy;
+      }
+    }
+  });
+  if (!cameras) return;
+  for (index_t f = 0; f < frames; ++f) {
+    double sum[per_row] = {};
+    for (index_t v = 0; v < height; ++v)
+      for (int i = 0; i < per_row; ++i) sum[i] += partial[static_cast<std::size_t>((f * height + v) * per_row + i)];
+    if (d_extrinsics)
+      for (int i = 0; i < 12; ++i) d_extrinsics[f * 12 + i] += static_cast<T>(sum[i]);
+    if (d_intrinsics) {
+      T* dK = d_intrinsics + f * 9;
+      dK[0] += static_cast<T>(sum[12]);
+      dK[4] += static_cast<T>(sum[13]);
+      dK[2] += static_cast<T>(sum[14]);
+      dK[5] += static_cast<T>(sum[15]);
+    }
+  }
 }
 
 }  // namespace geometry
