@@ -12,6 +12,7 @@
 #include <ctime>
 #include <random>
 #include <string>
+#include <span>
 #include <vector>
 
 #include "flexsplat/decoder/decoder.hpp"
@@ -59,7 +60,7 @@ Rig make_rig() {
 struct Diff {
   double max_abs = 0, ref_max_abs = 0, rms = 0, ref_rms = 0;
 };
-Diff compare(const std::vector<float>& a, const std::vector<float>& ref) {
+Diff compare(std::span<const float> a, std::span<const float> ref) {
   Diff d;
   for (std::size_t i = 0; i < a.size(); ++i) {
     const double e = static_cast<double>(a[i]) - static_cast<double>(ref[i]);
@@ -137,7 +138,8 @@ int main(int argc, char** argv) {
                                         params.data() + decoder::decoder_layer_offsets(cfg, 0).attn, cfg.self_attention());
       }
       if (!local) {
-        full_means = ws.gaussians.back().means;
+        const auto means = ws.gaussians.back().means.span();
+        full_means.assign(means.begin(), means.end());
         full_sa = sa;
       } else if (!full_means.empty()) {
         // Full attention on the local run's layer-0 input, so both see identical queries.
@@ -146,7 +148,7 @@ int main(int argc, char** argv) {
         decoder::SelfAttentionCache<float> sc;
         decoder::self_attention_forward(full_sa.data(), sc, k.x1.data(), ws.gaussians[0].means.data(), n,
                                         params.data() + decoder::decoder_layer_offsets(cfg, 0).attn, fc);
-        const Diff a = compare(sa, full_sa), m = compare(ws.gaussians.back().means, full_means);
+        const Diff a = compare(sa, full_sa), m = compare(ws.gaussians.back().means.span(), full_means);
         std::printf("N_G %6lld local vs full: layer-0 self-attn output max abs err %.3e rms err %.3e (full: max abs %.3e rms %.3e); "
                     "final means max abs err %.3e rms err %.3e (max abs %.3e)\n",
                     static_cast<long long>(n), a.max_abs, a.rms, a.ref_max_abs, a.ref_rms, m.max_abs, m.rms, m.ref_max_abs);

@@ -15,13 +15,13 @@ int main(int argc, char** argv) {
   for (int degree : {0, 3}) {
     std::mt19937 rng(5);
     std::uniform_real_distribution<double> u(-1.0, 1.0), u01(0.0, 1.0);
-    auto set = gaussians::make_gaussian_set<float>(n, degree);
+    auto set = make_gaussian_set<float>(n, degree);
     for (index_t i = 0; i < n; ++i) {
       double q[4], norm = 0;
       for (double& v : q) { v = u(rng); norm += v * v; }
-      for (int c = 0; c < 4; ++c) set.rotations(i, c) = float(q[c] / std::sqrt(norm));
+      for (int c = 0; c < 4; ++c) set.quats(i, c) = float(q[c] / std::sqrt(norm));
       for (int c = 0; c < 3; ++c) {
-        set.positions(i, c) = float(u(rng));
+        set.means(i, c) = float(u(rng));
         set.scales(i, c) = float(std::exp(-7.0 + 6.0 * u01(rng)));  // 0.0009 .. 0.37, log-uniform like trained sets
       }
       set.opacities(i) = float(u01(rng));
@@ -50,7 +50,7 @@ int main(int argc, char** argv) {
       double rot = 0, scale = 0, opacity = 0;
       for (index_t i = 0; i < n; ++i) {
         double dot = 0;
-        for (int c = 0; c < 4; ++c) dot += double(set.rotations(i, c)) * back.rotations(i, c);
+        for (int c = 0; c < 4; ++c) dot += double(set.quats(i, c)) * back.quats(i, c);
         rot = std::max(rot, 2 * std::acos(std::min(1.0, std::abs(dot))) * 180 / 3.14159265358979323846);
         for (int c = 0; c < 3; ++c)
           scale = std::max(scale, std::abs(double(back.scales(i, c)) - set.scales(i, c)) / set.scales(i, c));

@@ -23,12 +23,8 @@ using namespace flexsplat::raster;
 namespace {
 
 template <class T>
-struct Scene {
-  Tensor<T, 2> means, quats, scales;
-  Tensor<T, 1> opacities;
-  Tensor<T, 3> sh;
+struct Scene : GaussianSet<T> {
   Camera<T> camera;
-  GaussianInputs<T> inputs() const { return {means.view(), quats.view(), scales.view(), opacities.view(), sh.view(), {}}; }
 };
 
 // The OpenSplat comparison scene: means uniform in a cube of side 2 centred 4 units in front of a pinhole camera
@@ -63,9 +59,7 @@ Scene<T> make_scene(index_t n, int size, int degree, unsigned seed = 7) {
 template <class T>
 struct Result {
   RenderOutputs<T> out;
-  Tensor<T, 2> d_means, d_quats, d_scales;
-  Tensor<T, 1> d_opacities;
-  Tensor<T, 3> d_sh;
+  GaussianSetGrad<T> d;
   CameraGrad<T> d_cam;
   double forward_ms = 0, backward_ms = 0, forward_cpu_ms = 0, backward_cpu_ms = 0;  // wall and process CPU time
   double contributors_per_pixel = 0, entries = 0;
@@ -83,11 +77,7 @@ Result<T> run(const Scene<T>& s, const RenderOptions& opt, int reps, unsigned co
   for (auto& v : d_image.span()) v = T(normal(rng));
   for (auto& v : d_alpha.span()) v = T(normal(rng));
   for (auto& v : d_depth.span()) v = T(0.1 * normal(rng));
-  r.d_means.resize({n, 3});
-  r.d_quats.resize({n, 4});
-  r.d_scales.resize({n, 3});
-  r.d_opacities.resize({n});
-  r.d_sh.resize(s.sh.shape());
+  resize_gaussian_grad(r.d, s);
   RenderWorkspace<T> ws;
   std::vector<double> fwd, bwd, fwd_cpu, bwd_cpu;
   std::vector<ForwardStageTimes> stages;
@@ -99,17 +89,15 @@ Result<T> run(const Scene<T>& s, const RenderOptions& opt, int reps, unsigned co
   for (int rep = 0; rep < reps + 1; ++rep) {  // first repetition warms the workspace up
     const double c0 = cpu_ms();
     auto t0 = std::chrono::steady_clock::now();
-    render_forward(s.inputs(), s.camera, opt, ws, r.out);
+    render_forward(s, s.camera, opt, ws, r.out);
     auto t1 = std::chrono::steady_clock::now();
     const double c1 = cpu_ms();
-    for (auto* t : {&r.d_means, &r.d_quats, &r.d_scales}) t->fill(0);
-    r.d_opacities.fill(0);
-    r.d_sh.fill(0);
+    r.d.zero();
     r.d_cam = {};
-    GaussianGrads<T> g{r.d_means.view(), r.d_quats.view(), r.d_scales.view(), r.d_opacities.view(), r.d_sh.view(), {}, &r.d_cam};
     const double c2 = cpu_ms();
     auto t2 = std::chrono::steady_clock::now();
-    render_backward(s.inputs(), s.camera, opt, ws, RenderOutputGrads<T>{d_image.view(), d_alpha.view(), d_depth.view(), {}}, g);
+    render_backward<T>(s, s.camera, opt, ws, RenderOutputGrads<T>{d_image.view(), d_alpha.view(), d_depth.view(), {}}, r.d,
+                       &r.d_cam);
     auto t3 = std::chrono::steady_clock::now();
     const double c3 = cpu_ms();
     if (rep > 0 || reps == 0) {
@@ -251,9 +239,9 @@ int main(int argc, char** argv) {
           const int reps = n >= 1000000 ? 3 : 7;
           const auto r = run(sf, opt, reps);
           const double image_err = std::max(max_abs_error(r.out.image, ref.out.image), max_abs_error(r.out.alpha, ref.out.alpha));
-          const double grad_err = std::max({max_rel_error(r.d_means, ref.d_means), max_rel_error(r.d_quats, ref.d_quats),
-                                            max_rel_error(r.d_scales, ref.d_scales),
-                                            max_rel_error(r.d_opacities, ref.d_opacities), max_rel_error(r.d_sh, ref.d_sh)});
+          const double grad_err = std::max({max_rel_error(r.d.means, ref.d.means), max_rel_error(r.d.quats, ref.d.quats),
+                                            max_rel_error(r.d.scales, ref.d.scales),
+                                            max_rel_error(r.d.opacities, ref.d.opacities), max_rel_error(r.d.sh, ref.d.sh)});
           rows.push_back({n, size, degree, threads, r.forward_ms, r.backward_ms, r.contributors_per_pixel, image_err, grad_err});
           std::printf("%8lld %5d %3d %3d %10.2f %10.2f %8.2f %10.2e %10.2e\n", (long long)n, size, degree, threads,
                       r.forward_ms, r.backward_ms, r.contributors_per_pixel, image_err, grad_err);

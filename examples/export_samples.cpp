@@ -18,16 +18,16 @@ using namespace flexsplat;
 
 namespace {
 
-gaussians::GaussianSet<float> sample_set(index_t n, int degree, unsigned seed) {
+GaussianSet<float> sample_set(index_t n, int degree, unsigned seed) {
   std::mt19937 rng(seed);
   std::uniform_real_distribution<double> u(-1.0, 1.0), u01(0.0, 1.0);
-  auto set = gaussians::make_gaussian_set<float>(n, degree);
+  auto set = make_gaussian_set<float>(n, degree);
   for (index_t i = 0; i < n; ++i) {
     double q[4], norm = 0;
     for (double& v : q) { v = u(rng); norm += v * v; }
-    for (int c = 0; c < 4; ++c) set.rotations(i, c) = float(q[c] / std::sqrt(norm));
+    for (int c = 0; c < 4; ++c) set.quats(i, c) = float(q[c] / std::sqrt(norm));
     for (int c = 0; c < 3; ++c) {
-      set.positions(i, c) = float(0.8 * u(rng));
+      set.means(i, c) = float(0.8 * u(rng));
       set.scales(i, c) = float(0.005 + 0.05 * u01(rng));
     }
     set.opacities(i) = float(u01(rng));
@@ -81,10 +81,12 @@ int main(int argc, char** argv) {
     medium.opacity = gltf::UnitEncoding::UInt16Normalized;
     medium.color_space = "lin_rec709_display";
     std::printf("quantized16.glb: %zu bytes\n", gltf::write_glb(set, dir / "quantized16.glb", medium).bytes);
-    if (argc == 3) set.cameras = gaussians::load_cameras_json(argv[2]);
-    else set.cameras = {gaussians::Camera{"synthetic", 64, 48, {60, 0, 32, 0, 60, 24, 0, 0, 1}, {1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 3}}};
-    std::printf("cameras.glb: %zu bytes, %zu cameras\n", gltf::write_glb(set, dir / "cameras.glb").bytes, set.cameras.size());
-    write_broken(gltf::encode_glb(set), dir / "broken_max.glb");
+    gltf::WriteOptions with_cameras;
+    if (argc == 3) with_cameras.cameras = gaussians::load_cameras_json(argv[2]);
+    else with_cameras.cameras = {gaussians::Camera{"synthetic", 64, 48, {60, 0, 32, 0, 60, 24, 0, 0, 1}, {1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 3}}};
+    std::printf("cameras.glb: %zu bytes, %zu cameras\n", gltf::write_glb(set, dir / "cameras.glb", with_cameras).bytes,
+                with_cameras.cameras.size());
+    write_broken(gltf::encode_glb(set, with_cameras), dir / "broken_max.glb");
     return 0;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "export_samples: error: %s\n", e.what());

@@ -35,15 +35,18 @@ int convert(Args args) {
   if (take_option(args, "--opacity", value)) options.opacity = parse_unit("--opacity", value);
   if (take_option(args, "--color-space", value)) options.color_space = value;
   if (take_flag(args, "--no-color")) options.color_fallback = false;
-  if (take_flag(args, "--no-cameras")) options.cameras = false;
-  std::string cameras;
-  take_option(args, "--cameras", cameras);
+  const bool no_cameras = take_flag(args, "--no-cameras");
+  std::string camera_spec;
+  take_option(args, "--cameras", camera_spec);
   require(args.size() == 2, "convert needs IN and OUT (got ", args.size(), " positional arguments)");
-  auto set = gaussians::read_gaussians(args[0]);
-  if (!cameras.empty()) set.cameras = gaussians::load_camera_spec(cameras);
+  const auto set = gaussians::read_gaussians(args[0], &options.cameras);
+  if (!camera_spec.empty()) options.cameras = gaussians::load_camera_spec(camera_spec);
+  // A .ply holds no cameras: a .glb's own cameras are dropped there, explicitly requested ones are an error.
+  const bool to_ply = gaussians::format_of(args[1]) == gaussians::FileFormat::Ply;
+  if (no_cameras || (to_ply && camera_spec.empty())) options.cameras.clear();
   const auto report = gaussians::write_gaussians(set, args[1], options);
   std::printf("%s -> %s: %lld Gaussians, SH degree %d, %lld cameras, %zu bytes\n", args[0].c_str(), args[1].c_str(),
-              static_cast<long long>(set.size()), set.sh_degree(), static_cast<long long>(set.cameras.size()),
+              static_cast<long long>(set.size()), set.sh_degree(), static_cast<long long>(options.cameras.size()),
               report.bytes);
   if (report.repairs.opacities_clamped || report.repairs.rotations_renormalised)
     std::printf("repaired: %lld opacities clamped to [0, 1], %lld quaternions renormalised\n",

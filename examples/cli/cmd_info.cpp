@@ -10,7 +10,8 @@ namespace {
 
 int info(Args args) {
   require(args.size() == 1, "info needs exactly one FILE");
-  const auto set = gaussians::read_gaussians(args[0]);
+  std::vector<gaussians::Camera> cameras;
+  const auto set = gaussians::read_gaussians(args[0], &cameras);
   const auto b = gaussians::position_bounds(set);
   std::printf("file: %s\n", args[0].c_str());
   std::printf("gaussians: %lld\n", static_cast<long long>(set.size()));
@@ -24,8 +25,8 @@ int info(Args args) {
     std::printf("scale_range: %.6g %.6g\n", *std::min_element(s.begin(), s.end()), *std::max_element(s.begin(), s.end()));
     std::printf("opacity_range: %.6g %.6g\n", *std::min_element(o.begin(), o.end()), *std::max_element(o.begin(), o.end()));
   }
-  std::printf("cameras: %zu\n", set.cameras.size());
-  for (const auto& cam : set.cameras)
+  std::printf("cameras: %zu\n", cameras.size());
+  for (const auto& cam : cameras)
     std::printf("  %s %dx%d fx=%.6g fy=%.6g cx=%.6g cy=%.6g\n", cam.name.c_str(), cam.width, cam.height, cam.K[0],
                 cam.K[4], cam.K[2], cam.K[5]);
   return 0;

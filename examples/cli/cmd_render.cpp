@@ -33,8 +33,9 @@ int render(Args args) {
   const bool rgba = take_flag(args, "--rgba");
   require(args.size() == 1, "render needs exactly one Gaussian FILE (got ", args.size(), " positional arguments)");
   options.background = parse_background(background);
-  const auto set = gaussians::read_gaussians(args[0]);
-  std::vector<gaussians::Camera> cameras = camera_spec.empty() ? set.cameras : gaussians::load_camera_spec(camera_spec);
+  std::vector<gaussians::Camera> cameras;
+  const auto set = gaussians::read_gaussians(args[0], &cameras);
+  if (!camera_spec.empty()) cameras = gaussians::load_camera_spec(camera_spec);
   require(!cameras.empty(), "render: no camera (pass --camera cameras.json[:index]; '", args[0], "' has none)");
   if (!index_text.empty()) {
     const std::size_t index = std::stoul(index_text);

@@ -1,5 +1,6 @@
 #pragma once
 // Random fills shared by the decoder tests.
+#include <algorithm>
 #include <random>
 #include <vector>
 
@@ -62,4 +63,26 @@ inline TestRig make_rig(flexsplat::index_t views, double radius = 3.0, flexsplat
       r.depth.push_back(radius + 0.3 * std::sin(0.7 * static_cast<double>(i) + static_cast<double>(v)));
   }
   return r;
+}
+
+// A decoder Gaussian set (SH degree 1, no features) as one flat vector for the gradient checker, 23 values per Gaussian:
+// means, quats, scales, opacities, sh, each field whole.
+inline constexpr flexsplat::index_t flat_set_values = 23;
+
+inline double* flatten_set(const flexsplat::GaussianSet<double>& g, double* p) {
+  for (const auto* t : {&g.means, &g.quats, &g.scales}) p = std::copy(t->data(), t->data() + t->size(), p);
+  p = std::copy(g.opacities.data(), g.opacities.data() + g.opacities.size(), p);
+  return std::copy(g.sh.data(), g.sh.data() + g.sh.size(), p);
+}
+
+// The gradient with respect to a flattened set of n Gaussians back as a GaussianSetGrad.
+inline flexsplat::GaussianSetGrad<double> unflatten_grad(const double* p, flexsplat::index_t n) {
+  flexsplat::GaussianSetGrad<double> d = flexsplat::make_gaussian_grad(flexsplat::make_gaussian_set<double>(n, 1));
+  for (auto* t : {&d.means, &d.quats, &d.scales}) {
+    std::copy(p, p + t->size(), t->data());
+    p += t->size();
+  }
+  std::copy(p, p + n, d.opacities.data());
+  std::copy(p + n, p + n + 12 * n, d.sh.data());
+  return d;
 }

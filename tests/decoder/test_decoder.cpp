@@ -1,5 +1,7 @@
 #include <catch2/catch.hpp>
 
+#include <algorithm>
+
 #include <atomic>
 #include <cmath>
 #include <cstdlib>
@@ -29,21 +31,18 @@ struct Tiny {
   decoder::FeatureMaps<double> maps() const { return {rig.views, cfg.value_dim, fh, fw, features.data()}; }
 };
 
-index_t set_size(index_t n) { return n * 23; }
-void flatten(const decoder::GaussianSet<double>& g, double* p) {
-  for (auto* v : {&g.means, &g.quats, &g.scales, &g.opacities, &g.sh}) p = std::copy(v->begin(), v->end(), p);
-}
+index_t set_size(index_t n) { return n * flat_set_values; }
 }  // namespace
 
 TEST_CASE("decoder returns every layer's Gaussians, finite", "[decoder][decoder]") {
   Tiny t(2, false);
-  decoder::DecoderState<double> st;
+  decoder::DecoderWorkspace<double> st;
   decoder::decoder_forward(st, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry());
   REQUIRE(st.gaussians.size() == 3);
   for (const auto& g : st.gaussians) {
-    REQUIRE(g.count == t.n);
-    for (double v : g.means) REQUIRE(std::isfinite(v));
-    for (double v : g.opacities) REQUIRE((v > 0 && v < 1));
+    REQUIRE(g.size() == t.n);
+    for (double v : g.means.span()) REQUIRE(std::isfinite(v));
+    for (double v : g.opacities.span()) REQUIRE((v > 0 && v < 1));
   }
   CHECK(st.scene_centre.from_axes);
 }
@@ -51,7 +50,7 @@ TEST_CASE("decoder returns every layer's Gaussians, finite", "[decoder][decoder]
 TEST_CASE("decoder passes the float64 gradient check end to end", "[decoder][decoder]") {
   for (bool local : {false, true}) {
     Tiny t(2, local);
-    decoder::DecoderState<double> st;
+    decoder::DecoderWorkspace<double> st;
     std::vector<double> dp(t.params.size()), df(t.features.size()), dK(t.rig.K.size()), dE(t.rig.E.size()),
         dD(t.rig.depth.size());
     const index_t per = set_size(t.n), sets = t.cfg.layers + 1;
@@ -61,14 +60,11 @@ TEST_CASE("decoder passes the float64 gradient check end to end", "[decoder][dec
         per * sets,
         [&](std::span<double> o) {
           decoder::decoder_forward(st, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry());
-          for (index_t s = 0; s < sets; ++s) flatten(st.gaussians[s], o.data() + s * per);
+          for (index_t s = 0; s < sets; ++s) flatten_set(st.gaussians[s], o.data() + s * per);
         },
         [&](std::span<const double> g) {
-          std::vector<decoder::GaussianSetGrad<double>> dg;
-          for (index_t s = 0; s < sets; ++s) {
-            const double* p = g.data() + s * per;
-            dg.push_back({p, p + 3 * t.n, p + 7 * t.n, p + 10 * t.n, p + 11 * t.n});
-          }
+          std::vector<GaussianSetGrad<double>> dg;
+          for (index_t s = 0; s < sets; ++s) dg.push_back(unflatten_grad(g.data() + s * per, t.n));
           decoder::decoder_backward(dp.data(), df.data(), {dK.data(), dE.data(), dD.data()}, dg, st, t.params.data(), t.cfg,
                                     t.maps(), t.rig.geometry());
         },
@@ -80,16 +76,16 @@ TEST_CASE("decoder passes the float64 gradient check end to end", "[decoder][dec
 
 TEST_CASE("decoder handles one view, identical cameras and rejects bad budgets", "[decoder][decoder]") {
   Tiny one(1, false);
-  decoder::DecoderState<double> st;
+  decoder::DecoderWorkspace<double> st;
   decoder::decoder_forward(st, one.n, one.params.data(), one.cfg, one.maps(), one.rig.geometry());
   CHECK_FALSE(st.scene_centre.from_axes);
   for (const auto& g : st.gaussians)
-    for (double v : g.means) REQUIRE(std::isfinite(v));
+    for (double v : g.means.span()) REQUIRE(std::isfinite(v));
   Tiny same(2, true);
   std::copy(same.rig.E.begin(), same.rig.E.begin() + 12, same.rig.E.begin() + 12);
   decoder::decoder_forward(st, same.n, same.params.data(), same.cfg, same.maps(), same.rig.geometry());
   for (const auto& g : st.gaussians)
-    for (double v : g.means) REQUIRE(std::isfinite(v));
+    for (double v : g.means.span()) REQUIRE(std::isfinite(v));
   CHECK_THROWS_WITH(decoder::decoder_forward(st, 10, same.params.data(), same.cfg, same.maps(), same.rig.geometry()),
                     Catch::Contains("budget 10 is outside [1, 9]"));
 }
@@ -136,16 +132,24 @@ TEST_CASE("decoder workspace: reserved once, repeated forward/backward neither g
     const std::size_t reserved = ws.capacity_bytes();
     REQUIRE(reserved > 0);
     std::vector<double> dp(t.params.size()), df(t.features.size()), dK(t.rig.K.size()), dE(t.rig.E.size()),
-        dD(t.rig.depth.size()), dm(3 * t.n, 1.0), dop(t.n, 1.0);
-    const std::vector<decoder::GaussianSetGrad<double>> dg(t.cfg.layers + 1, {dm.data(), nullptr, nullptr, dop.data(), nullptr});
+        dD(t.rig.depth.size());
+    // Gradients of the means and opacities only (the other fields stay empty: no gradient), for budgets n and n - 2.
+    auto means_opacities = [&](index_t n) {
+      GaussianSetGrad<double> d;
+      d.means = Tensor<double, 2>({n, 3}, 1.0);
+      d.opacities = Tensor<double, 1>({n}, 1.0);
+      return std::vector<GaussianSetGrad<double>>(static_cast<std::size_t>(t.cfg.layers + 1), d);
+    };
+    const auto dg_full = means_opacities(t.n), dg_smaller = means_opacities(t.n - 2);
     auto round = [&](index_t n) {
+      const auto& dg = n == t.n ? dg_full : dg_smaller;
       decoder::decoder_forward(ws, n, t.params.data(), t.cfg, t.maps(), t.rig.geometry());
       decoder::decoder_backward(dp.data(), df.data(), {dK.data(), dE.data(), dD.data()}, dg, ws, t.params.data(), t.cfg,
                                 t.maps(), t.rig.geometry());
     };
     round(t.n);
     CHECK(ws.capacity_bytes() == reserved);
-    const auto first = ws.gaussians.back().means;
+    const auto first = copy_of(ws.gaussians.back().means.view());
     g_allocations = 0;
     g_count_allocations = true;
     {  // the counter works: one vector, one allocation
@@ -161,7 +165,7 @@ TEST_CASE("decoder workspace: reserved once, repeated forward/backward neither g
     CHECK(probe_count == 1);
     CHECK(g_allocations.load() == 0);
     CHECK(ws.capacity_bytes() == reserved);
-    CHECK(ws.gaussians.back().means == first);  // reuse leaves no stale state behind
+    CHECK(std::ranges::equal(ws.gaussians.back().means.span(), first.span()));  // reuse leaves no stale state behind
   }
 }
 

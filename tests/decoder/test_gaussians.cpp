@@ -26,20 +26,20 @@ TEST_CASE("eq. 2 back-projection reproduces the depth-map point for zero offsets
   for (index_t i = 0; i < 6; ++i) state[i * 24 + decoder::splat_quat] = 1.0;
   std::vector<unsigned char> used(6);
   decoder::anchor_depths(base.data(), used.data(), g, a, centre.data());
-  decoder::GaussianSet<double> out;
+  GaussianSet<double> out;
   decoder::gaussians_forward(out, state.data(), base.data(), a, g);
   for (index_t i = 0; i < 6; ++i) {
     CHECK(used[i]);
     // Projecting the centre back must land on the anchor at depth 2.5.
     const double* E = &rig.E[12 * a.view[i]];
     const double* K = &rig.K[9 * a.view[i]];
-    const double* X = &out.means[3 * i];
+    const double* X = out.means.data() + 3 * i;
     const double c[3] = {E[0] * X[0] + E[1] * X[1] + E[2] * X[2] + E[3], E[4] * X[0] + E[5] * X[1] + E[6] * X[2] + E[7],
                          E[8] * X[0] + E[9] * X[1] + E[10] * X[2] + E[11]};
     CHECK(c[2] == Approx(2.5));
     CHECK(K[0] * c[0] / c[2] + K[2] == Approx(a.pixel[2 * i]));
     CHECK(K[4] * c[1] / c[2] + K[5] == Approx(a.pixel[2 * i + 1]));
-    CHECK(out.opacities[i] == Approx(0.5));
+    CHECK(out.opacities(i) == Approx(0.5));
   }
 }
 
@@ -54,18 +54,16 @@ TEST_CASE("gaussians_forward passes the float64 gradient check into state, depth
   auto forward = [&](std::span<double> o) {
     const auto g = rig.geometry();
     decoder::anchor_depths(base.data(), used.data(), g, a, centre.data());
-    decoder::GaussianSet<double> gs;
+    GaussianSet<double> gs;
     decoder::gaussians_forward(gs, state.data(), base.data(), a, g);
-    double* p = o.data();
-    for (auto* v : {&gs.means, &gs.quats, &gs.scales, &gs.opacities, &gs.sh}) p = std::copy(v->begin(), v->end(), p);
+    flatten_set(gs, o.data());
   };
   auto result = testing::check_gradients(
       {{"state", state, dstate}, {"K", rig.K, dK}, {"world_to_camera", rig.E, dE}, {"depth", rig.depth, dD}}, n_out, forward,
       [&](std::span<const double> g) {
         const auto geo = rig.geometry();
         decoder::anchor_depths(base.data(), used.data(), geo, a, centre.data());
-        const double* p = g.data();
-        decoder::GaussianSetGrad<double> d{p, p + 21, p + 49, p + 70, p + 77};
+        const GaussianSetGrad<double> d = unflatten_grad(g.data(), 7);
         decoder::gaussians_backward(dstate.data(), {dK.data(), dE.data(), dD.data()}, d, state.data(), base.data(),
                                     used.data(), a, geo);
       },

@@ -39,14 +39,15 @@ TEST_CASE("model chains UNet, fusion and decoder with the RGB head in (0, 1)", "
   REQUIRE(ws.rgb.size() == static_cast<std::size_t>(2 * 3 * t.h * t.w));
   for (double v : ws.rgb) REQUIRE((v > 0 && v < 1));
   for (const auto& g : ws.gaussians())
-    for (double v : g.means) REQUIRE(std::isfinite(v));
+    for (double v : g.means.span()) REQUIRE(std::isfinite(v));
   // The decoder really reads the fused features: changing the depth features moves the refined Gaussians.
-  const auto before = ws.gaussians().back().means;
+  const auto before = copy_of(ws.gaussians().back().means.view());
   for (double& v : t.depth_features) v += 0.5;
   decoder::model_forward(ws, t.n, t.params.data(), t.cfg, t.images.data(), t.h, t.w, t.depth_features.data(), t.dh, t.dw,
                          t.rig.geometry());
   double moved = 0;
-  for (std::size_t i = 0; i < before.size(); ++i) moved = std::max(moved, std::abs(before[i] - ws.gaussians().back().means[i]));
+  for (index_t i = 0; i < before.size(); ++i)
+    moved = std::max(moved, std::abs(before.data()[i] - ws.gaussians().back().means.data()[i]));
   CHECK(moved > 1e-6);
 }
 
@@ -54,7 +55,7 @@ TEST_CASE("model passes the float64 gradient check end to end (params, depth fea
           "[decoder][model]") {
   TinyModel t;
   decoder::ModelWorkspace<double> ws;
-  const index_t per = t.n * 23, sets = t.cfg.decoder.layers + 1, n_rgb = 2 * 3 * t.h * t.w;
+  const index_t per = t.n * flat_set_values, sets = t.cfg.decoder.layers + 1, n_rgb = 2 * 3 * t.h * t.w;
   std::vector<double> dp(t.params.size()), dfeat(t.depth_features.size()), dK(t.rig.K.size()), dE(t.rig.E.size()),
       dD(t.rig.depth.size());
   auto result = testing::check_gradients(
@@ -65,16 +66,12 @@ TEST_CASE("model passes the float64 gradient check end to end (params, depth fea
         decoder::model_forward(ws, t.n, t.params.data(), t.cfg, t.images.data(), t.h, t.w, t.depth_features.data(), t.dh,
                                t.dw, t.rig.geometry());
         double* p = o.data();
-        for (const auto& g : ws.gaussians())
-          for (auto* v : {&g.means, &g.quats, &g.scales, &g.opacities, &g.sh}) p = std::copy(v->begin(), v->end(), p);
+        for (const auto& g : ws.gaussians()) p = flatten_set(g, p);
         std::copy(ws.rgb.begin(), ws.rgb.end(), p);
       },
       [&](std::span<const double> g) {
-        std::vector<decoder::GaussianSetGrad<double>> dg;
-        for (index_t s = 0; s < sets; ++s) {
-          const double* p = g.data() + s * per;
-          dg.push_back({p, p + 3 * t.n, p + 7 * t.n, p + 10 * t.n, p + 11 * t.n});
-        }
+        std::vector<GaussianSetGrad<double>> dg;
+        for (index_t s = 0; s < sets; ++s) dg.push_back(unflatten_grad(g.data() + s * per, t.n));
         decoder::model_backward(dp.data(), dfeat.data(), {dK.data(), dE.data(), dD.data()}, dg, g.data() + per * sets, ws,
                                 t.params.data(), t.cfg, t.images.data(), t.depth_features.data(), t.rig.geometry());
       },

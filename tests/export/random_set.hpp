@@ -9,18 +9,18 @@
 namespace flexsplat_test {
 
 template <class T = float>
-flexsplat::gaussians::GaussianSet<T> random_set(flexsplat::index_t n, int degree, unsigned seed = 7) {
+flexsplat::GaussianSet<T> random_set(flexsplat::index_t n, int degree, unsigned seed = 7) {
   using namespace flexsplat;
   std::mt19937 rng(seed);
   std::uniform_real_distribution<double> u(-1.0, 1.0), u01(0.0, 1.0);
-  auto set = gaussians::make_gaussian_set<T>(n, degree);
+  auto set = make_gaussian_set<T>(n, degree);
   for (index_t i = 0; i < n; ++i) {
     double q[4], norm = 0;
     for (double& v : q) { v = u(rng); norm += v * v; }
     norm = std::sqrt(norm);
-    for (int c = 0; c < 4; ++c) set.rotations(i, c) = T(q[c] / norm);
+    for (int c = 0; c < 4; ++c) set.quats(i, c) = T(q[c] / norm);
     for (int c = 0; c < 3; ++c) {
-      set.positions(i, c) = T(u(rng));
+      set.means(i, c) = T(u(rng));
       set.scales(i, c) = T(0.01 + 0.2 * u01(rng));
     }
     set.opacities(i) = T(u01(rng));

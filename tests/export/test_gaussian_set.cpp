@@ -25,11 +25,11 @@ TEST_CASE("a random set validates and reports its degree and bounds", "[export]"
 TEST_CASE("validate names the offending tensor and Gaussian", "[export]") {
   auto set = random_set(10, 1);
   SECTION("NaN position") {
-    set.positions(3, 1) = std::numeric_limits<float>::quiet_NaN();
-    CHECK_THROWS_WITH(gaussians::validate(set), Catch::Contains("'positions'") && Catch::Contains("Gaussian 3"));
+    set.means(3, 1) = std::numeric_limits<float>::quiet_NaN();
+    CHECK_THROWS_WITH(gaussians::validate(set), Catch::Contains("'means'") && Catch::Contains("Gaussian 3"));
   }
   SECTION("non-unit quaternion") {
-    set.rotations(4, 0) *= 2.0f;
+    set.quats(4, 0) *= 2.0f;
     CHECK_THROWS_WITH(gaussians::validate(set), Catch::Contains("rotation of Gaussian 4 is not a unit quaternion"));
   }
   SECTION("opacity above one") {
@@ -54,7 +54,7 @@ TEST_CASE("export repairs clamp opacities and renormalise quaternions, counting 
   auto set = random_set<double>(8, 0);
   set.opacities(0) = -0.25;
   set.opacities(1) = 1.75;
-  set.rotations(2, 1) += 0.5;
+  set.quats(2, 1) += 0.5;
   const auto repairs = gaussians::repair_for_export(set);
   CHECK(repairs.opacities_clamped == 2);
   CHECK(repairs.rotations_renormalised == 1);
@@ -66,7 +66,7 @@ TEST_CASE("export repairs clamp opacities and renormalise quaternions, counting 
 TEST_CASE("export refuses what it cannot repair", "[export]") {
   auto set = random_set<double>(4, 0);
   SECTION("zero quaternion") {
-    for (int c = 0; c < 4; ++c) set.rotations(1, c) = 0;
+    for (int c = 0; c < 4; ++c) set.quats(1, c) = 0;
     CHECK_THROWS_WITH(gaussians::repair_for_export(set), Catch::Contains("rotation of Gaussian 1 cannot be normalised"));
   }
   SECTION("NaN opacity") {
@@ -75,11 +75,19 @@ TEST_CASE("export refuses what it cannot repair", "[export]") {
   }
 }
 
-TEST_CASE("element type conversion keeps values and cameras", "[export]") {
+TEST_CASE("element type conversion keeps values and shapes", "[export]") {
   auto set = random_set<float>(5, 3);
-  set.cameras.push_back(flexsplat_test::test_camera(30, "cam"));
-  const auto d = gaussians::convert_set<double>(set);
+  set.features = Tensor<float, 2>({5, 2}, 0.25f);
+  const auto d = convert_gaussian_set<double>(set);
   CHECK(d.sh(4, 15, 2) == double(set.sh(4, 15, 2)));
-  CHECK(d.cameras.size() == 1);
-  CHECK(d.cameras[0].K[2] == 161.5);
+  CHECK(d.quats(3, 1) == double(set.quats(3, 1)));
+  CHECK(d.features.shape() == Shape<2>{5, 2});
+  CHECK(d.features(4, 1) == 0.25);
+}
+
+TEST_CASE("cameras are checked for size, finiteness and focal lengths", "[export]") {
+  std::vector<gaussians::Camera> cams{flexsplat_test::test_camera(30, "cam")};
+  CHECK_NOTHROW(gaussians::check_cameras(cams, "test"));
+  cams[0].K[4] = -1;
+  CHECK_THROWS_WITH(gaussians::check_cameras(cams, "test"), Catch::Contains("camera 'cam' has focal lengths"));
 }

@@ -14,10 +14,10 @@ using flexsplat_test::random_set;
 
 namespace {
 
-gaussians::GaussianSet<float> decode_ply(const std::string& bytes) {
+GaussianSet<float> decode_ply(const std::string& bytes) {
   return ply::decode_ply(reinterpret_cast<const unsigned char*>(bytes.data()), bytes.size(), "test.ply");
 }
-gaussians::GaussianSet<float> decode_ply(const std::vector<unsigned char>& bytes) {
+GaussianSet<float> decode_ply(const std::vector<unsigned char>& bytes) {
   return ply::decode_ply(bytes.data(), bytes.size(), "test.ply");
 }
 
@@ -47,7 +47,7 @@ TEST_CASE("PLY stores logit opacity, log scale, w-first quaternion and channel-m
   set.opacities(0) = 0.8f;
   set.scales(0, 1) = 0.05f;
   const float q[4] = {0.5f, -0.5f, 0.5f, 0.5f};
-  for (int c = 0; c < 4; ++c) set.rotations(0, c) = q[c];
+  for (int c = 0; c < 4; ++c) set.quats(0, c) = q[c];
   for (int k = 1; k < 4; ++k)
     for (int c = 0; c < 3; ++c) set.sh(0, k, c) = float(10 * c + k);  // channel c, coefficient k
   const auto bytes = ply::encode_ply(set);
@@ -68,13 +68,13 @@ TEST_CASE("PLY round trip at every SH degree", "[ply]") {
     const auto back = decode_ply(ply::encode_ply(set));
     REQUIRE(back.sh_degree() == degree);
     REQUIRE(back.size() == 25);
-    CHECK(std::memcmp(back.positions.data(), set.positions.data(), 4 * set.positions.size()) == 0);
+    CHECK(std::memcmp(back.means.data(), set.means.data(), 4 * set.means.size()) == 0);
     CHECK(std::memcmp(back.sh.data(), set.sh.data(), 4 * set.sh.size()) == 0);
     for (index_t i = 0; i < set.size(); ++i) {
       // logit/sigmoid and log/exp through float32 storage: a few ulps.
       CHECK(back.opacities(i) == Approx(set.opacities(i)).epsilon(1e-5).margin(1e-6));
       for (int c = 0; c < 3; ++c) CHECK(back.scales(i, c) == Approx(set.scales(i, c)).epsilon(1e-5));
-      for (int c = 0; c < 4; ++c) CHECK(back.rotations(i, c) == Approx(set.rotations(i, c)).margin(1e-6));
+      for (int c = 0; c < 4; ++c) CHECK(back.quats(i, c) == Approx(set.quats(i, c)).margin(1e-6));
     }
   }
 }
@@ -96,6 +96,10 @@ TEST_CASE("PLY to glb to PLY keeps the set", "[ply][gltf]") {
   for (const char* f : {"flexsplat_conv_a.ply", "flexsplat_conv_b.glb", "flexsplat_conv_c.ply"})
     std::filesystem::remove(dir / f);
   CHECK_THROWS_WITH(gaussians::read_gaussians(dir / "x.splat"), Catch::Contains("unknown Gaussian file extension"));
+  gltf::WriteOptions with_cameras;
+  with_cameras.cameras = {flexsplat_test::test_camera(0, "front")};
+  CHECK_THROWS_WITH(gaussians::write_gaussians(set, dir / "flexsplat_conv_d.ply", with_cameras),
+                    Catch::Contains("cannot store the 1 cameras"));
 }
 
 TEST_CASE("PLY reader normalises training quaternions and accepts ASCII", "[ply]") {
@@ -109,12 +113,12 @@ TEST_CASE("PLY reader normalises training quaternions and accepts ASCII", "[ply]
   const auto set = decode_ply(ascii);
   REQUIRE(set.size() == 2);
   CHECK(set.sh_degree() == 0);
-  CHECK(set.positions(1, 2) == 6.0f);
+  CHECK(set.means(1, 2) == 6.0f);
   CHECK(set.opacities(0) == 0.5f);
   CHECK(set.opacities(1) == 1.0f);
   CHECK(set.scales(0, 2) == Approx(std::exp(-3.0)));
-  CHECK(set.rotations(0, 0) == 1.0f);
-  CHECK(set.rotations(1, 3) == -1.0f);
+  CHECK(set.quats(0, 0) == 1.0f);
+  CHECK(set.quats(1, 3) == -1.0f);
 }
 
 TEST_CASE("PLY reader rejects bad input with a clear message", "[ply]") {

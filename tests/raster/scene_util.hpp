@@ -10,16 +10,12 @@ namespace rastertest {
 using namespace flexsplat;
 using namespace flexsplat::raster;
 
+// A Gaussian set with the camera and options it is rendered with.
 template <class T>
-struct Scene {
-  Tensor<T, 2> means, quats, scales, features;
-  Tensor<T, 1> opacities;
-  Tensor<T, 3> sh;
+struct Scene : GaussianSet<T> {
   Camera<T> camera;
   RenderOptions options;
-  GaussianInputs<T> inputs() const {
-    return {means.view(), quats.view(), scales.view(), opacities.view(), sh.view(), features.view()};
-  }
+  const GaussianSet<T>& set() const { return *this; }
 };
 
 struct SceneSpec {

@@ -14,12 +14,12 @@ void compare_with_brute_force(const SceneSpec& spec, bool expected_depth = false
   auto scene = make_scene<float>(spec);
   scene.options.expected_depth = expected_depth;
   RenderOutputs<float> reference, fast;
-  render_brute_force(scene.inputs(), scene.camera, scene.options, reference);
+  render_brute_force(scene.set(), scene.camera, scene.options, reference);
   for (bool skips_on : {true, false}) {
     RenderOptions opt = scene.options;
     opt.skips.opacity_aware_extent = opt.skips.exact_tile_test = opt.skips.early_exit = skips_on;
     RenderWorkspace<float> ws;
-    render_forward(scene.inputs(), scene.camera, opt, ws, fast);
+    render_forward(scene.set(), scene.camera, opt, ws, fast);
     double err_image = 0, err_alpha = 0, err_depth = 0, err_feat = 0, depth_max = 0;
     long contrib_total = 0, contrib_mismatch = 0;
     for (index_t i = 0; i < reference.image.size(); ++i)

@@ -15,18 +15,11 @@ using namespace rastertest;
 
 namespace {
 
+// Gaussian and camera gradients of one backward pass.
 template <class T>
-struct Grads {
-  Tensor<T, 2> means, quats, scales, features;
-  Tensor<T, 1> opacities;
-  Tensor<T, 3> sh;
+struct Grads : GaussianSetGrad<T> {
   CameraGrad<T> camera;
-  explicit Grads(const Scene<T>& s)
-      : means(s.means.shape()), quats(s.quats.shape()), scales(s.scales.shape()), features(s.features.shape()),
-        opacities(s.opacities.shape()), sh(s.sh.shape()) {}
-  GaussianGrads<T> views() {
-    return {means.view(), quats.view(), scales.view(), opacities.view(), sh.view(), features.view(), &camera};
-  }
+  explicit Grads(const Scene<T>& s) : GaussianSetGrad<T>(make_gaussian_grad(s.set())) {}
 };
 
 template <class T>
@@ -70,10 +63,9 @@ struct Run {
 Run run_scene(const Scene<float>& s, const RenderOptions& opt, unsigned cot_seed = 5) {
   Run r(s);
   RenderWorkspace<float> ws;
-  render_forward(s.inputs(), s.camera, opt, ws, r.out);
+  render_forward(s.set(), s.camera, opt, ws, r.out);
   Cotangents<float> cot(s.camera, int(s.features.shape(1)), cot_seed);
-  auto g = r.grads.views();
-  render_backward(s.inputs(), s.camera, opt, ws, cot.views(), g);
+  render_backward(s.set(), s.camera, opt, ws, cot.views(), r.grads, &r.grads.camera);
   return r;
 }
 
@@ -113,7 +105,7 @@ void full_gradcheck(bool antialiased, bool expected_depth, unsigned seed) {
   RenderOutputs<double> out;
   auto forward = [&](std::span<double> flat) {
     sync();
-    render_forward(s.inputs(), s.camera, s.options, ws, out);
+    render_forward(s.set(), s.camera, s.options, ws, out);
     double* p = flat.data();
     for (double v : out.image.span()) *p++ = v;
     for (double v : out.alpha.span()) *p++ = v;
@@ -122,15 +114,14 @@ void full_gradcheck(bool antialiased, bool expected_depth, unsigned seed) {
   };
   auto backward = [&](std::span<const double> d) {
     sync();
-    render_forward(s.inputs(), s.camera, s.options, ws, out);
+    render_forward(s.set(), s.camera, s.options, ws, out);
     const double* p = d.data();
     RenderOutputGrads<double> dg{{p, {spec.height, spec.width, 3}},
                                  {p + pixels * 3, {spec.height, spec.width}},
                                  {p + pixels * 4, {spec.height, spec.width}},
                                  {p + pixels * 5, {spec.height, spec.width, spec.features}}};
     g.camera = CameraGrad<double>{};
-    auto views = g.views();
-    render_backward(s.inputs(), s.camera, s.options, ws, dg, views);
+    render_backward(s.set(), s.camera, s.options, ws, dg, g, &g.camera);
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 4; ++j) d_view[i * 4 + j] += g.camera.world_to_camera[i * 4 + j];
     d_intr[0] += g.camera.fx, d_intr[1] += g.camera.fy, d_intr[2] += g.camera.cx, d_intr[3] += g.camera.cy;
@@ -189,7 +180,7 @@ TEST_CASE("render: rasterize_forward's planar channels equal render_forward's ou
   auto s = make_scene<float>(spec);
   RenderWorkspace<float> ws;
   RenderOutputs<float> out;
-  render_forward(s.inputs(), s.camera, s.options, ws, out);
+  render_forward(s.set(), s.camera, s.options, ws, out);
   const int C = ws.channel_count;
   const index_t pixels = index_t(spec.width) * spec.height;
   std::vector<float> planes(std::size_t(pixels * C), -1.0f);
@@ -287,9 +278,9 @@ TEST_CASE("render: the batched per-Gaussian pass matches the scalar one and keep
     opt.skips.opacity_aware_extent = opt.skips.exact_tile_test = config < 2;
     RenderWorkspace<float> batched, scalar;
     RenderOutputs<float> out;
-    render_forward(s.inputs(), s.camera, opt, batched, out);
+    render_forward(s.set(), s.camera, opt, batched, out);
     opt.skips.force_scalar = true;
-    render_forward(s.inputs(), s.camera, opt, scalar, out);
+    render_forward(s.set(), s.camera, opt, scalar, out);
     const int C = batched.channel_count;
     const float* rb = batched.raster.splat_records();
     const float* rs = scalar.raster.splat_records();
@@ -405,11 +396,10 @@ TEST_CASE("render: stress, 10000 random extreme scenes have no non-finite value"
       s.opacities(i) = r < 0.1 ? 0.f : r < 0.2 ? 1.f : float(u01(rng));
       if (u01(rng) < 0.1) s.quats(i, 0) = 1e-20f, s.quats(i, 1) = s.quats(i, 2) = 0, s.quats(i, 3) = 1e-20f;
     }
-    render_forward(s.inputs(), s.camera, s.options, ws, out);
+    render_forward(s.set(), s.camera, s.options, ws, out);
     Cotangents<float> cot(s.camera, spec.features, unsigned(trial));
     Grads<float> g(s);
-    auto views = g.views();
-    render_backward(s.inputs(), s.camera, s.options, ws, cot.views(), views);
+    render_backward(s.set(), s.camera, s.options, ws, cot.views(), g, &g.camera);
     ++scenes;
     for (auto v : out.n_contrib.span()) contributions += v;
     const bool ok = all_finite<float>(out.image.span()) && all_finite<float>(out.alpha.span()) &&
@@ -438,7 +428,7 @@ TEST_CASE("render: bad input gets a clear error", "[raster][render]") {
   RenderOutputs<float> out;
   auto expect_error = [&](Scene<float>& scene, const std::string& fragment) {
     try {
-      render_forward(scene.inputs(), scene.camera, scene.options, ws, out);
+      render_forward(scene.set(), scene.camera, scene.options, ws, out);
       FAIL("no error; expected one mentioning '" << fragment << "'");
     } catch (const Error& e) {
       INFO(e.what());

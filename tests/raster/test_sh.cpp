@@ -23,7 +23,7 @@ TEST_CASE("sh: float64 gradient check of coefficients and direction for degrees 
     auto backward = [&](std::span<const double> d_out) {
       sh_backward(degree, 3, coeffs.data(), dir.data(), d_out.data(), d_coeffs.data(), d_dir.data());
     };
-    const std::size_t used = std::size_t(sh_coeff_count(degree) * 3);
+    const std::size_t used = std::size_t(sh_coefficients(degree) * 3);
     auto result = testing::check_gradients({{"coeffs", {coeffs.data(), used}, {d_coeffs.data(), used}},
                                             {"dir", dir, d_dir}},
                                            3, forward, backward);

@@ -230,7 +230,7 @@ struct DecoderWorkspace {
     states.resize(sets);
     for (auto& st : states) st.resize(z * splat_values);
     gaussians.resize(sets);
-    for (auto& g : gaussians) g.resize(n_queries);
+    for (auto& g : gaussians) resize_gaussian_set(g, n_queries, 1);
     layers.resize(static_cast<std::size_t>(c.layers));
     for (auto& k : layers) k.resize(c, n_queries, views, feat_h, feat_w, global_pool().size());
   }
@@ -246,15 +246,12 @@ struct DecoderWorkspace {
                     detail::capacity_bytes_of(median_scratch) + grad.capacity_bytes();
     for (const auto& st : states) b += detail::capacity_bytes_of(st);
     for (const auto& g : gaussians)
-      for (auto* v : {&g.means, &g.quats, &g.scales, &g.opacities, &g.sh}) b += detail::capacity_bytes_of(*v);
+      b += sizeof(T) * static_cast<std::size_t>(g.means.size() + g.quats.size() + g.scales.size() + g.opacities.size() +
+                                                g.sh.size());
     for (const auto& k : layers) b += k.capacity_bytes();
     return b;
   }
 };
-
-// The name the first version used.
-template <class T>
-using DecoderState = DecoderWorkspace<T>;
 
 namespace detail {
 // out = a + b elementwise, parallel.
@@ -347,7 +344,7 @@ void decoder_forward(DecoderWorkspace<T>& ws, index_t n_queries, const T* params
   }
 }
 
-// d_gaussians[l] is the loss gradient of gaussians[l] (null members: no gradient). Adds into d_params, d_features
+// d_gaussians[l] is the loss gradient of gaussians[l] (empty fields: no gradient). Adds into d_params, d_features
 // (NCHW like the input, may be null) and d_geometry (K, world_to_camera, depth; null members skipped). Temporaries
 // live in ws.grad.
 template <class T>
@@ -363,11 +360,11 @@ void decoder_backward(T* d_params, T* d_features, const ViewGeometryGrad<T>& d_g
   auto zero = [](std::vector<T>& v) { std::fill(v.begin(), v.end(), T(0)); };
   // Loss gradient plus the gradient that later layers' attention sent into these centres.
   auto gaussians_grad = [&](index_t set, std::vector<T>& d_st) {
-    GaussianSetGrad<T> d = d_gaussians[static_cast<std::size_t>(set)];
+    detail::GaussianGradPointers<T> d = detail::grad_pointers(d_gaussians[static_cast<std::size_t>(set)], n);
     if (d.means) std::transform(d.means, d.means + 3 * n, s.d_centres.begin(), s.d_means.begin(), std::plus<T>());
     else std::copy(s.d_centres.begin(), s.d_centres.end(), s.d_means.begin());
     d.means = s.d_means.data();
-    gaussians_backward(d_st.data(), {d_geometry.K, d_geometry.world_to_camera, d_geometry.depth}, d,
+    detail::gaussians_backward(d_st.data(), {d_geometry.K, d_geometry.world_to_camera, d_geometry.depth}, d,
                        ws.states[static_cast<std::size_t>(set)].data(), ws.base_depth.data(), ws.depth_used.data(),
                        ws.anchors, g);
     zero(s.d_centres);

@@ -8,6 +8,7 @@
 #include <span>
 #include <vector>
 
+#include "flexsplat/core/gaussians.hpp"
 #include "flexsplat/decoder/constants.hpp"
 #include "flexsplat/decoder/splat_head.hpp"
 
@@ -123,23 +124,10 @@ void anchor_depths(T* base_depth, unsigned char* used_map, const ViewGeometry<T>
   }
 }
 
-// Renderable Gaussians of one layer. sh holds the 4 degree-1 coefficients x RGB, coefficient-major ([N, 4, 3]).
+namespace detail {
+// Raw pointers of a gradient set (null where a field is empty).
 template <class T>
-struct GaussianSet {
-  index_t count = 0;
-  std::vector<T> means, quats, scales, opacities, sh;
-  void resize(index_t n) {
-    count = n;
-    means.assign(3 * n, T(0));
-    quats.assign(4 * n, T(0));
-    scales.assign(3 * n, T(0));
-    opacities.assign(n, T(0));
-    sh.assign(12 * n, T(0));
-  }
-};
-
-template <class T>
-struct GaussianSetGrad {
+struct GaussianGradPointers {
   const T* means = nullptr;
   const T* quats = nullptr;
   const T* scales = nullptr;
@@ -147,12 +135,35 @@ struct GaussianSetGrad {
   const T* sh = nullptr;
 };
 
-// state [N, 24] -> world-space Gaussians (eq. 2 centres, Splatter Image activations).
+template <class T>
+GaussianGradPointers<T> grad_pointers(const GaussianSetGrad<T>& d, index_t n) {
+  auto ptr = [&](const auto& t, auto shape, const char* name) -> const T* {
+    if (t.empty()) return nullptr;
+    if (t.shape() != shape)
+      fail("decoder: gradient '", name, "' has shape ", shape_string(t.shape()), ", expected ", shape_string(shape),
+           " or empty");
+    return t.data();
+  };
+  if (!d.features.empty())
+    fail("decoder: its Gaussians have no features, but a features gradient of shape ", shape_string(d.features.shape()),
+         " was given");
+  return {ptr(d.means, Shape<2>{n, 3}, "means"), ptr(d.quats, Shape<2>{n, 4}, "quats"),
+          ptr(d.scales, Shape<2>{n, 3}, "scales"), ptr(d.opacities, Shape<1>{n}, "opacities"),
+          ptr(d.sh, Shape<3>{n, 4, 3}, "sh")};
+}
+}  // namespace detail
+
+// state [N, 24] -> world-space Gaussians (eq. 2 centres, Splatter Image activations), SH degree 1 ([N, 4, 3]).
 template <class T>
 void gaussians_forward(GaussianSet<T>& out, const T* state, const T* base_depth, const Anchors& a,
                        const ViewGeometry<T>& g) {
   const index_t n = static_cast<index_t>(a.view.size());
-  out.resize(n);
+  resize_gaussian_set(out, n, 1);
+  T* means = out.means.data();
+  T* quats = out.quats.data();
+  T* scales = out.scales.data();
+  T* opacities = out.opacities.data();
+  T* sh = out.sh.data();
   for (index_t i = 0; i < n; ++i) {
     const T* s = state + i * splat_values;
     const index_t v = a.view[i];
@@ -162,18 +173,17 @@ void gaussians_forward(GaussianSet<T>& out, const T* state, const T* base_depth,
     const T d = base_depth[i] + s[splat_depth];
     const T cam[3] = {u1 * d + s[splat_offset], u2 * d + s[splat_offset + 1], d + s[splat_offset + 2]};
     const T rel[3] = {cam[0] - E[3], cam[1] - E[7], cam[2] - E[11]};
-    for (int j = 0; j < 3; ++j) out.means[3 * i + j] = E[j] * rel[0] + E[4 + j] * rel[1] + E[8 + j] * rel[2];
-    quat_normalize(s + splat_quat, &out.quats[4 * i]);
-    for (int j = 0; j < 3; ++j) out.scales[3 * i + j] = scale_activation(s[splat_log_scale + j]);
-    out.opacities[i] = opacity_activation(s[splat_opacity]);
-    for (int j = 0; j < 12; ++j) out.sh[12 * i + j] = s[splat_sh + j];
+    for (int j = 0; j < 3; ++j) means[3 * i + j] = E[j] * rel[0] + E[4 + j] * rel[1] + E[8 + j] * rel[2];
+    quat_normalize(s + splat_quat, quats + 4 * i);
+    for (int j = 0; j < 3; ++j) scales[3 * i + j] = scale_activation(s[splat_log_scale + j]);
+    opacities[i] = opacity_activation(s[splat_opacity]);
+    for (int j = 0; j < 12; ++j) sh[12 * i + j] = s[splat_sh + j];
   }
 }
 
-// Adds into d_state [N, 24] and the geometry gradients (null members are skipped). Serial: the camera and depth
-// gradients are shared by many queries and a fixed order keeps the sums deterministic.
+namespace detail {
 template <class T>
-void gaussians_backward(T* d_state, const ViewGeometryGrad<T>& d_geometry, const GaussianSetGrad<T>& d_out,
+void gaussians_backward(T* d_state, const ViewGeometryGrad<T>& d_geometry, const GaussianGradPointers<T>& d_out,
                         const T* state, const T* base_depth, const unsigned char* used_map, const Anchors& a,
                         const ViewGeometry<T>& g) {
   const index_t n = static_cast<index_t>(a.view.size());
@@ -220,6 +230,18 @@ void gaussians_backward(T* d_state, const ViewGeometryGrad<T>& d_geometry, const
       for (int c = 0; c < 4; ++c) d_geometry.depth[tap.index[c]] += tap.weight[c] * d_d;
     }
   }
+}
+}  // namespace detail
+
+// Adds into d_state [N, 24] and the geometry gradients (null members are skipped); empty fields of d_out count as
+// zero. Serial: the camera and depth gradients are shared by many queries and a fixed order keeps the sums
+// deterministic.
+template <class T>
+void gaussians_backward(T* d_state, const ViewGeometryGrad<T>& d_geometry, const GaussianSetGrad<T>& d_out,
+                        const T* state, const T* base_depth, const unsigned char* used_map, const Anchors& a,
+                        const ViewGeometry<T>& g) {
+  detail::gaussians_backward(d_state, d_geometry, detail::grad_pointers(d_out, static_cast<index_t>(a.view.size())),
+                             state, base_depth, used_map, a, g);
 }
 
 }  // namespace decoder

@@ -4,6 +4,7 @@
 #include <cctype>
 #include <filesystem>
 #include <string>
+#include <vector>
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/export/gaussian_set.hpp"
@@ -24,15 +25,21 @@ inline FileFormat format_of(const std::filesystem::path& path) {
   fail("'", path.string(), "': unknown Gaussian file extension '", ext, "' (expected .glb or .ply)");
 }
 
-inline GaussianSet<float> read_gaussians(const std::filesystem::path& path) {
-  return format_of(path) == FileFormat::Glb ? gltf::read_glb(path) : ply::read_ply(path);
+// A .glb's cameras go to *cameras when it is given (a .ply has none: *cameras is cleared).
+inline GaussianSet<float> read_gaussians(const std::filesystem::path& path, std::vector<Camera>* cameras = nullptr) {
+  if (format_of(path) == FileFormat::Glb) return gltf::read_glb(path, cameras);
+  if (cameras) cameras->clear();
+  return ply::read_ply(path);
 }
 
-// Returns what export repaired (clamped opacities, renormalised quaternions) and the file size.
+// Returns what export repaired (clamped opacities, renormalised quaternions) and the file size. options.cameras are
+// written to a .glb; a .ply cannot hold cameras, so asking for them there is an error.
 template <class T>
 gltf::WriteReport write_gaussians(const GaussianSet<T>& set, const std::filesystem::path& path,
                                   const gltf::WriteOptions& options = {}) {
   if (format_of(path) == FileFormat::Glb) return gltf::write_glb(set, path, options);
+  require(options.cameras.empty(), "'", path.string(), "': a .ply file cannot store the ", options.cameras.size(),
+          " cameras given (write a .glb)");
   const ply::WriteReport r = ply::write_ply(set, path);
   return gltf::WriteReport{r.repairs, r.bytes};
 }

@@ -37,7 +37,7 @@ struct WriteOptions {
   UnitEncoding scale = UnitEncoding::Float;
   UnitEncoding opacity = UnitEncoding::Float;
   bool color_fallback = true;  // COLOR_0 for clients without the extension
-  bool cameras = true;         // the set's cameras as glTF camera nodes
+  std::vector<gaussians::Camera> cameras;  // written as glTF camera nodes
   std::string color_space = "srgb_rec709_display";
 };
 
@@ -300,10 +300,10 @@ inline std::vector<double> read_accessor(const tinygltf::Model& model, int index
 // Encodes a set as .glb bytes. Opacities outside [0, 1] are clamped and non-unit quaternions renormalised (counted
 // in the report); NaN, negative scales and zero quaternions are errors.
 template <class T>
-std::vector<unsigned char> encode_glb(const gaussians::GaussianSet<T>& input, const WriteOptions& options = {},
+std::vector<unsigned char> encode_glb(const GaussianSet<T>& input, const WriteOptions& options = {},
                                       WriteReport* report = nullptr) {
   using namespace detail;
-  gaussians::GaussianSet<double> set = gaussians::convert_set<double>(input);
+  GaussianSet<double> set = convert_gaussian_set<double>(input);
   const gaussians::ExportRepairs repairs = gaussians::repair_for_export(set, "glb export");
   const std::size_t n = static_cast<std::size_t>(set.size());
   const int degree = set.sh_degree();
@@ -320,7 +320,7 @@ std::vector<unsigned char> encode_glb(const gaussians::GaussianSet<T>& input, co
 
   std::vector<double> values(n * 3);
   for (std::size_t i = 0; i < n; ++i)
-    for (int c = 0; c < 3; ++c) values[i * 3 + c] = set.positions(i, c);
+    for (int c = 0; c < 3; ++c) values[i * 3 + c] = set.means(i, c);
   prim.attributes["POSITION"] = writer.add(values, 3, kFloat, false, "POSITION", true);
 
   if (options.color_fallback) {
@@ -328,7 +328,7 @@ std::vector<unsigned char> encode_glb(const gaussians::GaussianSet<T>& input, co
     const bool srgb = options.color_space == "srgb_rec709_display";
     for (std::size_t i = 0; i < n; ++i) {
       for (int c = 0; c < 3; ++c) {
-        const double display = std::clamp(gaussians::SH_C0 * set.sh(i, 0, c) + 0.5, 0.0, 1.0);
+        const double display = std::clamp(sh_c0 * set.sh(i, 0, c) + sh_color_offset, 0.0, 1.0);
         color[i * 4 + c] = srgb ? srgb_to_linear(display) : display;  // COLOR_0 is linear by glTF's definition
       }
       color[i * 4 + 3] = set.opacities(i);
@@ -339,9 +339,9 @@ std::vector<unsigned char> encode_glb(const gaussians::GaussianSet<T>& input, co
   std::vector<double> rot(n * 4);
   for (std::size_t i = 0; i < n; ++i) {
     // Integer encodings flip q to -q (same rotation) so that w >= 0; floats are stored untouched for exact reads.
-    const double sign = options.rotation != RotationEncoding::Float && set.rotations(i, 0) < 0 ? -1.0 : 1.0;
-    for (int c = 0; c < 3; ++c) rot[i * 4 + c] = sign * set.rotations(i, c + 1);
-    rot[i * 4 + 3] = sign * set.rotations(i, 0);
+    const double sign = options.rotation != RotationEncoding::Float && set.quats(i, 0) < 0 ? -1.0 : 1.0;
+    for (int c = 0; c < 3; ++c) rot[i * 4 + c] = sign * set.quats(i, c + 1);
+    rot[i * 4 + 3] = sign * set.quats(i, 0);
   }
   const int rot_type = rotation_component(options.rotation);
   prim.attributes[kAttributePrefix + "ROTATION"] = writer.add(rot, 4, rot_type, rot_type != kFloat, "ROTATION");
@@ -384,34 +384,34 @@ std::vector<unsigned char> encode_glb(const gaussians::GaussianSet<T>& input, co
   tinygltf::Scene scene;
   scene.nodes.push_back(0);
 
-  if (options.cameras)
-    for (const gaussians::Camera& cam : set.cameras) {
-      tinygltf::Camera gc;
-      gc.type = "perspective";
-      gc.name = cam.name;
-      const double fx = cam.K[0], fy = cam.K[4];
-      gc.perspective.yfov = 2.0 * std::atan(0.5 * cam.height / fy);
-      gc.perspective.aspectRatio = (cam.width / fx) / (cam.height / fy);
-      gc.perspective.znear = 0.01;
-      gc.perspective.zfar = 1000.0;
-      // Pixel intrinsics that glTF cannot express (principal point, fx != fy) travel in extras for a lossless read.
-      tinygltf::Value::Object intrinsics;
-      intrinsics["width"] = tinygltf::Value(cam.width);
-      intrinsics["height"] = tinygltf::Value(cam.height);
-      tinygltf::Value::Array k;
-      for (double v : cam.K) k.emplace_back(v);
-      intrinsics["K"] = tinygltf::Value(k);
-      tinygltf::Value::Object extras;
-      extras["flexsplat_opencv_intrinsics"] = tinygltf::Value(intrinsics);
-      gc.extras = tinygltf::Value(extras);
-      model.cameras.push_back(gc);
-      tinygltf::Node node;
-      node.name = cam.name.empty() ? "camera_" + std::to_string(model.cameras.size() - 1) : cam.name;
-      node.camera = static_cast<int>(model.cameras.size()) - 1;
-      camera_to_node(cam, node);
-      model.nodes.push_back(node);
-      scene.nodes.push_back(static_cast<int>(model.nodes.size()) - 1);
-    }
+  gaussians::check_cameras(options.cameras, "glb export");
+  for (const gaussians::Camera& cam : options.cameras) {
+    tinygltf::Camera gc;
+    gc.type = "perspective";
+    gc.name = cam.name;
+    const double fx = cam.K[0], fy = cam.K[4];
+    gc.perspective.yfov = 2.0 * std::atan(0.5 * cam.height / fy);
+    gc.perspective.aspectRatio = (cam.width / fx) / (cam.height / fy);
+    gc.perspective.znear = 0.01;
+    gc.perspective.zfar = 1000.0;
+    // Pixel intrinsics that glTF cannot express (principal point, fx != fy) travel in extras for a lossless read.
+    tinygltf::Value::Object intrinsics;
+    intrinsics["width"] = tinygltf::Value(cam.width);
+    intrinsics["height"] = tinygltf::Value(cam.height);
+    tinygltf::Value::Array k;
+    for (double v : cam.K) k.emplace_back(v);
+    intrinsics["K"] = tinygltf::Value(k);
+    tinygltf::Value::Object extras;
+    extras["flexsplat_opencv_intrinsics"] = tinygltf::Value(intrinsics);
+    gc.extras = tinygltf::Value(extras);
+    model.cameras.push_back(gc);
+    tinygltf::Node node;
+    node.name = cam.name.empty() ? "camera_" + std::to_string(model.cameras.size() - 1) : cam.name;
+    node.camera = static_cast<int>(model.cameras.size()) - 1;
+    camera_to_node(cam, node);
+    model.nodes.push_back(node);
+    scene.nodes.push_back(static_cast<int>(model.nodes.size()) - 1);
+  }
   model.scenes.push_back(scene);
   model.defaultScene = 0;
   model.extensionsUsed.push_back(kExtension);
@@ -435,7 +435,7 @@ std::vector<unsigned char> encode_glb(const gaussians::GaussianSet<T>& input, co
 }
 
 template <class T>
-WriteReport write_glb(const gaussians::GaussianSet<T>& set, const std::filesystem::path& path,
+WriteReport write_glb(const GaussianSet<T>& set, const std::filesystem::path& path,
                       const WriteOptions& options = {}) {
   WriteReport report;
   const std::vector<unsigned char> bytes = encode_glb(set, options, &report);
@@ -447,8 +447,9 @@ WriteReport write_glb(const gaussians::GaussianSet<T>& set, const std::filesyste
 }
 
 // Decodes the single KHR_gaussian_splatting primitive of a .glb; float attributes come back bit-exact.
-inline gaussians::GaussianSet<float> decode_glb(const unsigned char* data, std::size_t size,
-                                                const std::string& source) {
+// Cameras stored as perspective camera nodes go to *cameras when it is given.
+inline GaussianSet<float> decode_glb(const unsigned char* data, std::size_t size, const std::string& source,
+                                     std::vector<gaussians::Camera>* cameras = nullptr) {
   using namespace detail;
   require(size >= 12, source, ": ", size, " bytes is too short for a glb header");
   require(std::memcmp(data, "glTF", 4) == 0, source, ": not a binary glTF file (magic is not 'glTF')");
@@ -509,7 +510,7 @@ inline gaussians::GaussianSet<float> decode_glb(const unsigned char* data, std::
   const auto opacities = read_accessor(model, attribute(kAttributePrefix + "OPACITY"), kAttributePrefix + "OPACITY",
                                        TINYGLTF_TYPE_SCALAR, {kFloat, kU8, kU16}, true, n, source);
   int degree = -1;
-  for (int l = 0; l <= gaussians::kMaxShDegree; ++l) {
+  for (int l = 0; l <= max_sh_degree; ++l) {
     int present = 0;
     for (int m = 0; m < 2 * l + 1; ++m) present += splats->attributes.count(sh_attribute(l, m)) ? 1 : 0;
     if (present == 0) break;
@@ -526,15 +527,15 @@ inline gaussians::GaussianSet<float> decode_glb(const unsigned char* data, std::
       require(known, source, ": attribute '", semantic, "' does not belong to a complete SH degree 0..", degree);
     }
 
-  gaussians::GaussianSet<float> set = gaussians::make_gaussian_set<float>(static_cast<index_t>(n), degree);
+  GaussianSet<float> set = make_gaussian_set<float>(static_cast<index_t>(n), degree);
   for (std::size_t i = 0; i < n; ++i) {
     for (int c = 0; c < 3; ++c) {
-      set.positions(i, c) = static_cast<float>(positions[i * 3 + c]);
+      set.means(i, c) = static_cast<float>(positions[i * 3 + c]);
       set.scales(i, c) = static_cast<float>(scales[i * 3 + c]);
     }
     set.opacities(i) = static_cast<float>(opacities[i]);
-    set.rotations(i, 0) = static_cast<float>(rotations[i * 4 + 3]);
-    for (int c = 0; c < 3; ++c) set.rotations(i, c + 1) = static_cast<float>(rotations[i * 4 + c]);
+    set.quats(i, 0) = static_cast<float>(rotations[i * 4 + 3]);
+    for (int c = 0; c < 3; ++c) set.quats(i, c + 1) = static_cast<float>(rotations[i * 4 + c]);
     if (rot_type != kFloat) {
       // Integer quaternions are unit only up to quantisation: check that bound, then renormalise.
       double norm = 0;
@@ -543,7 +544,7 @@ inline gaussians::GaussianSet<float> decode_glb(const unsigned char* data, std::
       const double tolerance = 2.0 / quantize_max(rot_type);
       require(std::abs(norm - 1.0) <= tolerance, source, ": rotation of Gaussian ", i,
               " is not a unit quaternion (norm ", norm, ")");
-      for (int c = 0; c < 4; ++c) set.rotations(i, c) = static_cast<float>(set.rotations(i, c) / norm);
+      for (int c = 0; c < 4; ++c) set.quats(i, c) = static_cast<float>(set.quats(i, c) / norm);
     }
   }
   for (int l = 0; l <= degree; ++l)
@@ -554,6 +555,7 @@ inline gaussians::GaussianSet<float> decode_glb(const unsigned char* data, std::
         for (int c = 0; c < 3; ++c) set.sh(i, l * l + m, c) = static_cast<float>(coef[i * 3 + c]);
     }
 
+  std::vector<gaussians::Camera> node_cameras;
   for (std::size_t i = 0; i < model.nodes.size(); ++i) {
     const int ci = model.nodes[i].camera;
     if (ci < 0) continue;
@@ -585,9 +587,11 @@ inline gaussians::GaussianSet<float> decode_glb(const unsigned char* data, std::
       for (int c = 0; c < 3; ++c) cam.w2c[r * 4 + c] = R(r, c);
       cam.w2c[r * 4 + 3] = t(r);
     }
-    set.cameras.push_back(cam);
+    node_cameras.push_back(cam);
   }
   gaussians::validate(set, source);
+  gaussians::check_cameras(node_cameras, source);
+  if (cameras) *cameras = std::move(node_cameras);
   return set;
 }
 
@@ -597,9 +601,10 @@ inline std::vector<unsigned char> read_file_bytes(const std::filesystem::path& p
   return std::vector<unsigned char>(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
 }
 
-inline gaussians::GaussianSet<float> read_glb(const std::filesystem::path& path) {
+inline GaussianSet<float> read_glb(const std::filesystem::path& path,
+                                   std::vector<gaussians::Camera>* cameras = nullptr) {
   const std::vector<unsigned char> bytes = read_file_bytes(path);
-  return decode_glb(bytes.data(), bytes.size(), path.string());
+  return decode_glb(bytes.data(), bytes.size(), path.string(), cameras);
 }
 
 }  // namespace gltf

@@ -42,7 +42,7 @@ inline double sigmoid(double x) { return x >= 0 ? 1.0 / (1.0 + std::exp(-x)) : s
 
 inline std::vector<std::string> property_names(int sh_degree) {
   std::vector<std::string> names = {"x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"};
-  const int rest = 3 * (gaussians::sh_coefficients(sh_degree) - 1);
+  const int rest = 3 * (sh_coefficients(sh_degree) - 1);
   for (int i = 0; i < rest; ++i) names.push_back("f_rest_" + std::to_string(i));
   for (const char* s : {"opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"})
     names.push_back(s);
@@ -50,12 +50,12 @@ inline std::vector<std::string> property_names(int sh_degree) {
 }
 
 template <class T>
-std::vector<unsigned char> encode_ply(const gaussians::GaussianSet<T>& input, WriteReport* report = nullptr) {
+std::vector<unsigned char> encode_ply(const GaussianSet<T>& input, WriteReport* report = nullptr) {
   static_assert(std::endian::native == std::endian::little, "PLY writer assumes a little-endian host");
-  gaussians::GaussianSet<double> set = gaussians::convert_set<double>(input);
+  GaussianSet<double> set = convert_gaussian_set<double>(input);
   const gaussians::ExportRepairs repairs = gaussians::repair_for_export(set, "ply export");
   const int degree = set.sh_degree();
-  const int rest = gaussians::sh_coefficients(degree) - 1;
+  const int rest = sh_coefficients(degree) - 1;
   const std::vector<std::string> names = property_names(degree);
   std::string header = "ply\nformat binary_little_endian 1.0\ncomment written by flexsplat\nelement vertex " +
                        std::to_string(set.size()) + "\n";
@@ -67,7 +67,7 @@ std::vector<unsigned char> encode_ply(const gaussians::GaussianSet<T>& input, Wr
   out.reserve(out.size() + static_cast<std::size_t>(set.size()) * row * 4);
   for (index_t i = 0; i < set.size(); ++i) {
     std::size_t k = 0;
-    for (int c = 0; c < 3; ++c) values[k++] = static_cast<float>(set.positions(i, c));
+    for (int c = 0; c < 3; ++c) values[k++] = static_cast<float>(set.means(i, c));
     for (int c = 0; c < 3; ++c) values[k++] = 0.0f;
     for (int c = 0; c < 3; ++c) values[k++] = static_cast<float>(set.sh(i, 0, c));
     for (int c = 0; c < 3; ++c)
@@ -75,7 +75,7 @@ std::vector<unsigned char> encode_ply(const gaussians::GaussianSet<T>& input, Wr
     values[k++] = static_cast<float>(logit(set.opacities(i)));
     for (int c = 0; c < 3; ++c)
       values[k++] = static_cast<float>(std::max(std::log(set.scales(i, c)), -kMaxLogMagnitude));
-    for (int c = 0; c < 4; ++c) values[k++] = static_cast<float>(set.rotations(i, c));
+    for (int c = 0; c < 4; ++c) values[k++] = static_cast<float>(set.quats(i, c));
     const auto* bytes = reinterpret_cast<const unsigned char*>(values.data());
     out.insert(out.end(), bytes, bytes + row * 4);
   }
@@ -87,7 +87,7 @@ std::vector<unsigned char> encode_ply(const gaussians::GaussianSet<T>& input, Wr
 }
 
 template <class T>
-WriteReport write_ply(const gaussians::GaussianSet<T>& set, const std::filesystem::path& path) {
+WriteReport write_ply(const GaussianSet<T>& set, const std::filesystem::path& path) {
   WriteReport report;
   const std::vector<unsigned char> bytes = encode_ply(set, &report);
   std::ofstream out(path, std::ios::binary | std::ios::trunc);
@@ -145,7 +145,7 @@ struct Property {
 }  // namespace detail
 
 // Parses a 3DGS PLY. Raw values are validated (NaN, count, size) before conversion; the result is validated as a set.
-inline gaussians::GaussianSet<float> decode_ply(const unsigned char* data, std::size_t size,
+inline GaussianSet<float> decode_ply(const unsigned char* data, std::size_t size,
                                                 const std::string& source) {
   using namespace detail;
   static_assert(std::endian::native == std::endian::little, "PLY reader assumes a little-endian host");
@@ -207,7 +207,7 @@ inline gaussians::GaussianSet<float> decode_ply(const unsigned char* data, std::
                      [&](const Property& p) { return p.name == "f_rest_" + std::to_string(rest_count); }))
     ++rest_count;
   require(rest_count % 3 == 0, source, ": ", rest_count, " f_rest_* properties is not a multiple of 3");
-  const int degree = gaussians::sh_degree_for(1 + rest_count / 3, source);
+  const int degree = sh_degree_for(1 + rest_count / 3, source);
   const int rest = rest_count / 3;
   const std::vector<std::string> needed = property_names(degree);
   std::vector<const Property*> columns;
@@ -252,12 +252,12 @@ inline gaussians::GaussianSet<float> decode_ply(const unsigned char* data, std::
       require(std::isfinite(raw[i * columns.size() + c]), source, ": PLY property '", columns[c]->name,
               "' of vertex ", i, " is not finite (", raw[i * columns.size() + c], ")");
 
-  gaussians::GaussianSet<float> set = gaussians::make_gaussian_set<float>(static_cast<index_t>(n), degree);
+  GaussianSet<float> set = make_gaussian_set<float>(static_cast<index_t>(n), degree);
   const std::size_t width = columns.size();
   for (std::size_t i = 0; i < n; ++i) {
     const double* r = raw.data() + i * width;
     std::size_t k = 0;
-    for (int c = 0; c < 3; ++c) set.positions(i, c) = static_cast<float>(r[k++]);
+    for (int c = 0; c < 3; ++c) set.means(i, c) = static_cast<float>(r[k++]);
     for (int c = 0; c < 3; ++c) set.sh(i, 0, c) = static_cast<float>(r[k++]);
     for (int c = 0; c < 3; ++c)
       for (int j = 1; j <= rest; ++j) set.sh(i, j, c) = static_cast<float>(r[k++]);
@@ -268,13 +268,13 @@ inline gaussians::GaussianSet<float> decode_ply(const unsigned char* data, std::
     norm = std::sqrt(norm);
     // 3DGS training leaves quaternions unnormalised (the renderer normalises): normalise, but a zero one is an error.
     require(norm > 1e-12, source, ": rotation of vertex ", i, " is a zero quaternion");
-    for (int c = 0; c < 4; ++c) set.rotations(i, c) = static_cast<float>(r[k++] / norm);
+    for (int c = 0; c < 4; ++c) set.quats(i, c) = static_cast<float>(r[k++] / norm);
   }
   gaussians::validate(set, source);
   return set;
 }
 
-inline gaussians::GaussianSet<float> read_ply(const std::filesystem::path& path) {
+inline GaussianSet<float> read_ply(const std::filesystem::path& path) {
   std::ifstream in(path, std::ios::binary);
   require(in.good(), "cannot open '", path.string(), "'");
   const std::vector<unsigned char> bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());

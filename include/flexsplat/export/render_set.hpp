@@ -35,14 +35,7 @@ raster::Camera<T> raster_camera(const Camera& cam) {
 template <class T>
 void render_set(const GaussianSet<T>& set, const Camera& cam, const raster::RenderOptions& options,
                 raster::RenderWorkspace<T>& workspace, raster::RenderOutputs<T>& out) {
-  check_shapes(set, "render");
-  raster::GaussianInputs<T> in;
-  in.means = set.positions.view();
-  in.quats = set.rotations.view();
-  in.scales = set.scales.view();
-  in.opacities = set.opacities.view();
-  in.sh = set.sh.view();
-  raster::render_forward(in, raster_camera<T>(cam), options, workspace, out);
+  raster::render_forward(set, raster_camera<T>(cam), options, workspace, out);
 }
 
 // Quantises an [H, W, 3] image in [0, 1] to 8 bits (round to nearest, clamped); with alpha [H, W], writes RGBA.

@@ -17,7 +17,7 @@ inline namespace v0 {
 namespace raster {
 
 template <class T>
-void render_brute_force(const GaussianInputs<T>& in, const Camera<T>& camera, const RenderOptions& opt,
+void render_brute_force(const GaussianSet<T>& in, const Camera<T>& camera, const RenderOptions& opt,
                         RenderOutputs<T>& out) {
   const int degree = detail::validate_inputs(in, camera, opt);
   const index_t n = in.means.shape(0), K = in.sh.shape(1);

@@ -1,6 +1,9 @@
 #pragma once
-// Every threshold of the rasterizer, shared by the forward and backward passes (gsplat conventions).
+// Every threshold of the rasterizer, shared by the forward and backward passes (gsplat conventions). The SH
+// constants, colour offset and maximum degree are core/gaussians.hpp's.
 #include <cstdint>
+
+#include "flexsplat/core/gaussians.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -15,8 +18,6 @@ inline constexpr double fov_clamp_margin = 0.3;   // the Jacobian clamps x/z to 
 inline constexpr double alpha_threshold = 1.0 / 255.0;  // a Gaussian with alpha below this is skipped
 inline constexpr double max_alpha = 0.99;               // alpha = min(max_alpha, o * exp(-sigma))
 inline constexpr double transmittance_stop = 1e-4;      // a pixel stops before T would fall to this
-inline constexpr double sh_color_offset = 0.5;          // colour = SH + 0.5, clamped at 0
-inline constexpr int max_sh_degree = 3;
 
 // Relative and absolute slack of the culling tests: they may keep a few extra pairs that the per-pixel test
 // then rejects, but never drop a pair whose float alpha reaches alpha_threshold.
@@ -25,14 +26,6 @@ inline constexpr double cull_slack_absolute = 1e-3;
 // Extra relative margin of the per-pixel extents per unit of the conic's condition number (trace^2 / det): float
 // rounding of sigma grows with it, and a pixel whose float sigma passes must stay inside the extent.
 inline constexpr double cull_slack_conditioning = 1e-6;
-
-// Real spherical-harmonics constants of the 3DGS papers, bands 0 to 3.
-inline constexpr double sh_c0 = 0.28209479177387814;
-inline constexpr double sh_c1 = 0.4886025119029199;
-inline constexpr double sh_c2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
-                                    -1.0925484305920792, 0.5462742152960396};
-inline constexpr double sh_c3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-                                    -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
 
 }  // namespace raster
 }  // namespace v0

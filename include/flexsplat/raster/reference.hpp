@@ -32,9 +32,10 @@ void check_raster_case(const safetensors::File& file, const std::string& prefix,
   auto get2 = [&](const char* name) { return file.get<T, 2>(prefix + name); };
   const auto params = file.get<std::int64_t, 1>(prefix + "params");
   require(params.size() == 4, "raster bundle '", file.path(), "': ", prefix, "params must hold [W, H, sh_degree, antialiased]");
-  const auto means = get2("means"), quats = get2("quats"), scales = get2("scales");
-  const auto opacities = file.get<T, 1>(prefix + "opacities");
-  const auto sh = file.get<T, 3>(prefix + "sh");
+  GaussianSet<T> in;
+  in.means = get2("means"), in.quats = get2("quats"), in.scales = get2("scales");
+  in.opacities = file.get<T, 1>(prefix + "opacities");
+  in.sh = file.get<T, 3>(prefix + "sh");
   const auto viewmat = get2("viewmat"), K = get2("K");
   const auto background = file.get<T, 1>(prefix + "background");
   require(viewmat.shape(0) == 4 && viewmat.shape(1) == 4, "raster bundle: ", prefix, "viewmat must be [4, 4]");
@@ -48,7 +49,6 @@ void check_raster_case(const safetensors::File& file, const std::string& prefix,
   opt.sh_degree = int(params(2));
   opt.antialiased = params(3) != 0;
   for (int c = 0; c < 3; ++c) opt.background[c] = double(background(c));
-  GaussianInputs<T> in{means.view(), quats.view(), scales.view(), opacities.view(), sh.view(), {}};
   RenderWorkspace<T> ws;
   RenderOutputs<T> out;
   render_forward(in, cam, opt, ws, out);
@@ -80,19 +80,16 @@ void check_raster_case(const safetensors::File& file, const std::string& prefix,
   const auto d_image = file.get<T, 3>(prefix + "d_image");
   const auto d_alpha = file.get<T, 2>(prefix + "d_alpha");
   const auto d_depth = file.get<T, 2>(prefix + "d_depth");
-  const index_t n = means.shape(0);
-  Tensor<T, 2> g_means({n, 3}), g_quats({n, 4}), g_scales({n, 3});
-  Tensor<T, 1> g_opacities({n});
-  Tensor<T, 3> g_sh(sh.shape());
+  GaussianSetGrad<T> grads = make_gaussian_grad(in);
   CameraGrad<T> g_cam;
-  GaussianGrads<T> grads{g_means.view(), g_quats.view(), g_scales.view(), g_opacities.view(), g_sh.view(), {}, &g_cam};
-  render_backward(in, cam, opt, ws, RenderOutputGrads<T>{d_image.view(), d_alpha.view(), d_depth.view(), {}}, grads);
+  render_backward(in, cam, opt, ws, RenderOutputGrads<T>{d_image.view(), d_alpha.view(), d_depth.view(), {}}, grads,
+                  &g_cam);
   const Tolerance grad_tol{ToleranceKind::relative_to_max_abs, 1e-4};
-  row("d_means", g_means.span(), grad_tol);
-  row("d_quats", g_quats.span(), grad_tol);
-  row("d_scales", g_scales.span(), grad_tol);
-  row("d_opacities", g_opacities.span(), grad_tol);
-  row("d_sh", g_sh.span(), grad_tol);
+  row("d_means", grads.means.span(), grad_tol);
+  row("d_quats", grads.quats.span(), grad_tol);
+  row("d_scales", grads.scales.span(), grad_tol);
+  row("d_opacities", grads.opacities.span(), grad_tol);
+  row("d_sh", grads.sh.span(), grad_tol);
   row("d_viewmat", std::span<const T>(g_cam.world_to_camera.data(), 16), grad_tol);
 }
 

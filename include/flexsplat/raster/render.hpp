@@ -1,15 +1,16 @@
 #pragma once
 // CPU tile rasterizer for 3D Gaussians: public entry points.
 //
-//   GaussianInputs<T> in{means [N,3], quats [N,4] (w,x,y,z, normalised inside), scales [N,3] (linear),
-//                        opacities [N] in [0,1], sh [N,K,3] (K >= (degree+1)^2), features [N,F] (optional)};
+//   GaussianSet<T> set;           // core/gaussians.hpp: means [N,3], quats [N,4] (w,x,y,z, normalised inside),
+//                                 // scales [N,3] (linear), opacities [N] in [0,1], sh [N,K,3], features [N,F] (optional)
 //   Camera<T> cam{world_to_camera (4x4 row-major, OpenCV axes, bottom row 0 0 0 1), fx, fy, cx, cy, width, height};
 //   RenderOptions opt;            // sh_degree (-1: from K), eps2d 0.3, near 0.01, far, antialiased, background
 //   RenderWorkspace<T> ws;        // reuse across calls: buffers only grow
 //   RenderOutputs<T> out;         // image [H,W,3], alpha [H,W], depth [H,W], n_contrib [H,W], features [H,W,F]
-//   render_forward(in, cam, opt, ws, out);
-//   GaussianGrads<T> grads{...views of the caller's gradient buffers (may be empty)..., &camera_grad};
-//   render_backward(in, cam, opt, ws, RenderOutputGrads<T>{d_image, d_alpha, d_depth, d_features}, grads);
+//   render_forward(set, cam, opt, ws, out);
+//   GaussianSetGrad<T> grads = make_gaussian_grad(set);   // empty fields are skipped
+//   CameraGrad<T> d_cam;                                  // optional
+//   render_backward(set, cam, opt, ws, RenderOutputGrads<T>{d_image, d_alpha, d_depth, d_features}, grads, &d_cam);
 //
 // Semantics follow gsplat: pixel centres at +0.5, EWA projection with the 1.3x field-of-view clamp in the Jacobian,
 // blur eps2d (antialiased mode multiplies opacity by sqrt(det(cov)/det(cov + eps2d I))), alpha = min(0.99,
@@ -26,6 +27,7 @@
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/gaussians.hpp"
 #include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/simd.hpp"
@@ -67,14 +69,6 @@ struct RenderOptions {
 };
 
 template <class T>
-struct GaussianInputs {
-  TensorView<const T, 2> means, quats, scales;
-  TensorView<const T, 1> opacities;
-  TensorView<const T, 3> sh;
-  TensorView<const T, 2> features;  // optional [N, F]
-};
-
-template <class T>
 struct RenderOutputs {
   Tensor<T, 3> image;
   Tensor<T, 2> alpha, depth;
@@ -88,16 +82,6 @@ struct RenderOutputGrads {
   TensorView<const T, 3> image;
   TensorView<const T, 2> alpha, depth;
   TensorView<const T, 3> features;
-};
-
-// Where render_backward adds gradients; empty views and a null camera are skipped.
-template <class T>
-struct GaussianGrads {
-  TensorView<T, 2> means, quats, scales;
-  TensorView<T, 1> opacities;
-  TensorView<T, 3> sh;
-  TensorView<T, 2> features;
-  CameraGrad<T>* camera = nullptr;
 };
 
 // Wall time of each stage of the last render_forward (milliseconds), for benchmarks and profiling; rasterize
@@ -164,7 +148,7 @@ void require_finite(const T* data, index_t count, const char* what) {
 }
 
 template <class T>
-int validate_inputs(const GaussianInputs<T>& in, const Camera<T>& cam, const RenderOptions& opt) {
+int validate_inputs(const GaussianSet<T>& in, const Camera<T>& cam, const RenderOptions& opt) {
   const index_t n = in.means.shape(0);
   require(in.means.shape(1) == 3, "render: means must be [N, 3], got ", shape_string(in.means.shape()));
   require(in.quats.shape(0) == n && in.quats.shape(1) == 4, "render: quats must be [", n, ", 4], got ",
@@ -179,20 +163,16 @@ int validate_inputs(const GaussianInputs<T>& in, const Camera<T>& cam, const Ren
           shape_string(in.features.shape()));
   require(in.features.empty() || in.features.shape(1) <= 48, "render: at most 48 feature channels, got ",
           in.features.shape(1));
-  for (auto* v : {&in.means, &in.quats, &in.scales})
-    require(v->is_contiguous(), "render: Gaussian tensors must be contiguous");
-  require(in.opacities.is_contiguous() && in.sh.is_contiguous() && (in.features.empty() || in.features.is_contiguous()),
-          "render: Gaussian tensors must be contiguous");
   const index_t k = in.sh.shape(1);
   int degree = opt.sh_degree;
   if (degree < 0) {
     degree = 0;
-    while (degree < max_sh_degree && sh_coeff_count(degree + 1) <= k) ++degree;
-    require(sh_coeff_count(degree) == k, "render: sh has K = ", k,
+    while (degree < max_sh_degree && sh_coefficients(degree + 1) <= k) ++degree;
+    require(sh_coefficients(degree) == k, "render: sh has K = ", k,
             " coefficients, not (degree+1)^2 for a degree 0..3; pass RenderOptions::sh_degree");
   }
   require(degree <= max_sh_degree, "render: sh_degree ", degree, " is above the supported ", max_sh_degree);
-  require(sh_coeff_count(degree) <= k, "render: sh_degree ", degree, " needs ", sh_coeff_count(degree),
+  require(sh_coefficients(degree) <= k, "render: sh_degree ", degree, " needs ", sh_coefficients(degree),
           " coefficients but sh has K = ", k);
   require(cam.width > 0 && cam.height > 0 && cam.width <= 65536 && cam.height <= 65536, "render: image size ",
           cam.width, "x", cam.height, " is not in [1, 65536]");
@@ -213,7 +193,7 @@ int validate_inputs(const GaussianInputs<T>& in, const Camera<T>& cam, const Ren
 
 // The per-value checks (finite inputs, quaternion directions, opacity range), throwing at the first bad value.
 template <class T>
-void validate_values(const GaussianInputs<T>& in) {
+void validate_values(const GaussianSet<T>& in) {
   const index_t n = in.means.shape(0);
   require_finite(in.means.data(), n * 3, "means");
   require_finite(in.quats.data(), n * 4, "quats");
@@ -233,7 +213,7 @@ void validate_values(const GaussianInputs<T>& in) {
 
 // The same verdict as validate_values for Gaussian g alone, without a message (run inside the projection pass).
 template <class T>
-bool gaussian_values_ok(const GaussianInputs<T>& in, index_t g) {
+bool gaussian_values_ok(const GaussianSet<T>& in, index_t g) {
   const index_t k = in.sh.shape(1), f = in.features.empty() ? 0 : in.features.shape(1);
   bool ok = true;
   auto scan = [&ok](const T* data, index_t count) {
@@ -254,7 +234,7 @@ bool gaussian_values_ok(const GaussianInputs<T>& in, index_t g) {
 // Everything the per-Gaussian pass of render_forward reads, shared by its scalar and batched paths.
 template <class T>
 struct GaussianPass {
-  const GaussianInputs<T>* in = nullptr;
+  const GaussianSet<T>* in = nullptr;
   RenderWorkspace<T>* ws = nullptr;
   CameraParams<T> cam;
   ProjectSettings<T> set;
@@ -270,7 +250,7 @@ struct GaussianPass {
 // Scalar path, one Gaussian: value checks, projection, colour, channels, tiles, kernel record; false if a value is bad.
 template <class T>
 bool gaussian_one(const GaussianPass<T>& pass, index_t g) {
-  const GaussianInputs<T>& in = *pass.in;
+  const GaussianSet<T>& in = *pass.in;
   RenderWorkspace<T>& ws = *pass.ws;
   if (!gaussian_values_ok(in, g)) return false;
   const T* m = in.means.data() + g * 3;
@@ -321,7 +301,7 @@ bool gaussian_block(const GaussianPass<T>& pass, index_t g0) {
   using VD = typename simd::double_lanes<V>::type;
   constexpr int L = int(simd::lane_count<V>::value), LD = int(simd::lane_count<VD>::value);
   static_assert(L % LD == 0, "a block splits into whole double batches");
-  const GaussianInputs<T>& in = *pass.in;
+  const GaussianSet<T>& in = *pass.in;
   RenderWorkspace<T>& ws = *pass.ws;
   const int live = int(std::min<index_t>(L, pass.n - g0));
   const index_t K3 = pass.K * 3, F = pass.F;
@@ -375,7 +355,7 @@ bool gaussian_block(const GaussianPass<T>& pass, index_t g0) {
   const T* sh_rows[L];
   for (int l = 0; l < L; ++l) sh_rows[l] = in.sh.data() + (g0 + std::min(l, live - 1)) * K3;
   V coeffs[16 * 3];
-  simd::load_columns<V, T>(sh_rows, sh_coeff_count(pass.degree) * 3, coeffs);
+  simd::load_columns<V, T>(sh_rows, sh_coefficients(pass.degree) * 3, coeffs);
   const V dir[3] = {m[0] - V(pass.campos[0]), m[1] - V(pass.campos[1]), m[2] - V(pass.campos[2])};
   V rgb[3];
   sh_forward_lanes<V>(pass.degree, 3, coeffs, dir, rgb);
@@ -504,7 +484,7 @@ void ensure_shape(Tensor_& t, const Shape<R>& shape) {
 }  // namespace detail
 
 template <class T>
-void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const RenderOptions& opt,
+void render_forward(const GaussianSet<T>& in, const Camera<T>& camera, const RenderOptions& opt,
                     RenderWorkspace<T>& ws, RenderOutputs<T>& out) {
   using clock = std::chrono::steady_clock;
   auto stage_end = [last = clock::now()](double& ms) mutable {
@@ -609,8 +589,9 @@ void render_forward(const GaussianInputs<T>& in, const Camera<T>& camera, const 
 }
 
 template <class T>
-void render_backward(const GaussianInputs<T>& in, const Camera<T>& camera, const RenderOptions& opt,
-                     RenderWorkspace<T>& ws, const RenderOutputGrads<T>& d_out, GaussianGrads<T>& grads) {
+void render_backward(const GaussianSet<T>& in, const Camera<T>& camera, const RenderOptions& opt,
+                     RenderWorkspace<T>& ws, const RenderOutputGrads<T>& d_out, GaussianSetGrad<T>& grads,
+                     CameraGrad<T>* d_camera = nullptr) {
   const index_t n = in.means.shape(0);
   const int C = ws.channel_count, F = C - 4;
   ThreadPool& pool = opt.pool ? *opt.pool : global_pool();
@@ -625,12 +606,16 @@ void render_backward(const GaussianInputs<T>& in, const Camera<T>& camera, const
   check(d_out.alpha, Shape<2>{H, W}, "d_alpha");
   check(d_out.depth, Shape<2>{H, W}, "d_depth");
   check(d_out.features, Shape<3>{H, W, F}, "d_features");
-  check(grads.means, Shape<2>{n, 3}, "grad means");
-  check(grads.quats, Shape<2>{n, 4}, "grad quats");
-  check(grads.scales, Shape<2>{n, 3}, "grad scales");
-  check(grads.opacities, Shape<1>{n}, "grad opacities");
-  check(grads.sh, in.sh.shape(), "grad sh");
-  check(grads.features, Shape<2>{n, F}, "grad features");
+  auto check_grad = [&](const auto& t, auto shape, const char* what) {
+    require(t.empty() || t.shape() == shape, "render_backward: ", what, " must be ", shape_string(shape), " or empty, got ",
+            shape_string(t.shape()));
+  };
+  check_grad(grads.means, Shape<2>{n, 3}, "grad means");
+  check_grad(grads.quats, Shape<2>{n, 4}, "grad quats");
+  check_grad(grads.scales, Shape<2>{n, 3}, "grad scales");
+  check_grad(grads.opacities, Shape<1>{n}, "grad opacities");
+  check_grad(grads.sh, in.sh.shape(), "grad sh");
+  check_grad(grads.features, Shape<2>{n, F}, "grad features");
   ws.d_out_channels.resize(std::size_t(pixels * C));
   ws.d_alpha.resize(std::size_t(pixels));
   parallel_for(pixels, [&](index_t begin, index_t end, int) {
@@ -717,15 +702,15 @@ void render_backward(const GaussianInputs<T>& in, const Camera<T>& camera, const
       }
     }
   }, pool);
-  if (grads.camera) {
+  if (d_camera) {
     CameraGradParams<T> total;
     for (const auto& part : ws.camera_partials) total.add(part);
     for (int i = 0; i < 3; ++i) {
-      for (int j = 0; j < 3; ++j) grads.camera->world_to_camera[i * 4 + j] += total.R[i * 3 + j];
-      grads.camera->world_to_camera[i * 4 + 3] += total.t[i];
+      for (int j = 0; j < 3; ++j) d_camera->world_to_camera[i * 4 + j] += total.R[i * 3 + j];
+      d_camera->world_to_camera[i * 4 + 3] += total.t[i];
     }
-    grads.camera->fx += total.fx, grads.camera->fy += total.fy;
-    grads.camera->cx += total.cx, grads.camera->cy += total.cy;
+    d_camera->fx += total.fx, d_camera->fy += total.fy;
+    d_camera->cx += total.cx, d_camera->cy += total.cy;
   }
 }
 

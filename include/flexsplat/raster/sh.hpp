@@ -12,8 +12,6 @@ namespace flexsplat {
 inline namespace v0 {
 namespace raster {
 
-inline constexpr int sh_coeff_count(int degree) { return (degree + 1) * (degree + 1); }
-
 // Basis values b[k] for unit directions n, one per lane of V (T: one direction); bands above degree are not written.
 // Sums of products go through simd::lane_mul_add (the same rounding on the scalar and batch paths).
 template <class V>
@@ -122,7 +120,7 @@ FLEXSPLAT_ALWAYS_INLINE void sh_forward_lanes(int degree, int channels, const V*
                   simd::lane_select(toward, dir[2] / len, V(S(1)))};
   V b[16];
   sh_basis_values(degree, n, b);
-  const int k_count = sh_coeff_count(degree);
+  const int k_count = sh_coefficients(degree);
   for (int c = 0; c < channels; ++c) {
     V s = V(S(0));
     for (int k = 0; k < k_count; ++k) s = lane_mul_add(b[k], coeffs[k * channels + c], s);
@@ -142,7 +140,7 @@ void sh_backward(int degree, int channels, const T* coeffs, const T dir[3], cons
   T n[3], b[16], g[16][3];
   const T len = sh_normalize(dir, n);
   sh_basis<T>(degree, n, b, g);
-  const int k_count = sh_coeff_count(degree);
+  const int k_count = sh_coefficients(degree);
   T d_n[3] = {0, 0, 0};
   for (int k = 0; k < k_count; ++k) {
     T dk = 0;
