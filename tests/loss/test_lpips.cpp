@@ -98,6 +98,37 @@ TEST_CASE("lpips is zero for identical images, symmetric, the sum of its layers,
   CHECK(d0 == d0_both);
 }
 
+TEST_CASE("lpips reuse_in1 (a fixed target) gives the same values and gradients as a full pass", "[loss][lpips]") {
+  TinyLpips m;
+  const index_t B = 2, H = 16, W = 21;
+  const auto* p = m.weights.params.data();
+  auto x0 = uniform_images(static_cast<std::size_t>(B * 3 * H * W), 31, 0.0, 1.0);
+  auto x1 = uniform_images(x0.size(), 32, 0.0, 1.0), x2 = uniform_images(x0.size(), 33, 0.0, 1.0);
+  loss::LpipsCache<double> full, reused;
+  double a[2], b[2], la[10], lb[10];
+  const double ones[2] = {1.0, 1.0};
+  loss::lpips_forward(a, la, x2.data(), x1.data(), B, H, W, p, m.weights.layout, full, true);
+  loss::lpips_forward(b, lb, x0.data(), x1.data(), B, H, W, p, m.weights.layout, reused, true);
+  loss::lpips_forward(b, lb, x2.data(), static_cast<const double*>(nullptr), B, H, W, p, m.weights.layout, reused, true,
+                      true);
+  for (int i = 0; i < 2; ++i) CHECK(a[i] == b[i]);
+  for (int i = 0; i < 10; ++i) CHECK(la[i] == lb[i]);
+  std::vector<double> da(x0.size(), 0.0), db(x0.size(), 0.0);
+  loss::lpips_backward(da.data(), static_cast<double*>(nullptr), ones, static_cast<const double*>(nullptr), p,
+                       m.weights.layout, full);
+  loss::lpips_backward(db.data(), static_cast<double*>(nullptr), ones, static_cast<const double*>(nullptr), p,
+                       m.weights.layout, reused);
+  CHECK(da == db);
+  // Another size, or the other input range, cannot reuse the cached target.
+  CHECK_THROWS_WITH(loss::lpips_forward(b, lb, x2.data(), static_cast<const double*>(nullptr), B, H, W, p,
+                                        m.weights.layout, reused, false, true),
+                    Catch::Contains("reuse_in1 needs a previous call"));
+  loss::LpipsCache<double> empty;
+  CHECK_THROWS_WITH(loss::lpips_forward(b, lb, x2.data(), static_cast<const double*>(nullptr), 1, H, W, p,
+                                        m.weights.layout, empty, true, true),
+                    Catch::Contains("reuse_in1 needs a previous call"));
+}
+
 TEST_CASE("lpips rejects images below 16x16 and lists every missing or mis-shaped weight", "[loss][lpips]") {
   TinyLpips m;
   loss::LpipsCache<double> cache;

@@ -206,6 +206,7 @@ template <class T>
 struct LpipsCache {
   index_t batch = 0, height = 0, width = 0;
   bool unit_input = false;
+  bool holds_in1 = false;  // the in1 half of the activations is complete (reuse_in1 may skip it)
   std::array<index_t, lpips_layers> h{}, w{};     // feature-map size of each stage
   std::vector<T> input;                            // [2B, 3, H, W] scaling-layer output: in0 images, then in1
   std::array<std::vector<T>, lpips_convs> act;     // ReLU output of every conv, [2B, C, h, w]
@@ -241,13 +242,23 @@ inline nn::Conv2dShape lpips_conv_shape(const LpipsParamLayout& L, int j, index_
 
 // in0, in1 [B, 3, H, W] in [-1, 1], or in [0, 1] with unit_input (mapped by 2x - 1, the package's normalize=True).
 // Writes lpips [B] and, if not null, per_layer [B, 5] (lpips = their sum). H and W >= 16 (four 2x2 pools).
+// reuse_in1: in1 is the same as in the previous call with this cache (a fixed target compared with several renders),
+// so its trunk is not run again; in1 may then be null.
 template <class T>
 void lpips_forward(T* lpips, T* per_layer, const T* in0, const T* in1, index_t batch, index_t height, index_t width,
-                   const T* params, const LpipsParamLayout& L, LpipsCache<T>& cache, bool unit_input = false) {
+                   const T* params, const LpipsParamLayout& L, LpipsCache<T>& cache, bool unit_input = false,
+                   bool reuse_in1 = false) {
   require(batch >= 1, "lpips: batch ", batch, " must be positive");
   require(height >= 16 && width >= 16, "lpips: images are ", height, "x", width,
           "; the VGG16 trunk needs at least 16x16 (four 2x2 max-pools)");
-  require(lpips && in0 && in1 && params, "lpips_forward: null output, input or parameter pointer");
+  require(lpips && in0 && (in1 || reuse_in1) && params, "lpips_forward: null output, input or parameter pointer");
+  if (reuse_in1)
+    require(cache.holds_in1 && cache.batch == batch && cache.height == height && cache.width == width &&
+                cache.unit_input == unit_input &&
+                cache.act[0].size() == static_cast<std::size_t>(2 * batch * L.conv_out[0] * height * width),
+            "lpips_forward: reuse_in1 needs a previous call with this cache on the same batch, size (", batch, "x", height,
+            "x", width, "), input range and layout");
+  cache.holds_in1 = false;
   const index_t images = 2 * batch, hw = height * width;
   cache.batch = batch, cache.height = height, cache.width = width, cache.unit_input = unit_input;
   index_t h = height, w = width;
@@ -284,7 +295,7 @@ void lpips_forward(T* lpips, T* per_layer, const T* in0, const T* in1, index_t b
   }
 
   // Trunk, one image at a time.
-  detail::lpips_for_each(images, [&](index_t i, int worker) {
+  detail::lpips_for_each(reuse_in1 ? batch : images, [&](index_t i, int worker) {
     auto& wk = cache.work[static_cast<std::size_t>(worker)];
     const T* src = i < batch ? in0 + i * 3 * hw : in1 + (i - batch) * 3 * hw;
     T* x = cache.input.data() + i * 3 * hw;
@@ -358,6 +369,7 @@ void lpips_forward(T* lpips, T* per_layer, const T* in0, const T* in1, index_t b
     }
     lpips[b] = total;
   });
+  cache.holds_in1 = true;
 }
 
 // Adds the gradient of sum_b d_lpips[b] * lpips[b] + sum_{b,k} d_per_layer[b, k] * per_layer[b, k] into d_in0 and

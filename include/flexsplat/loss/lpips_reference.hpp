@@ -96,7 +96,9 @@ inline void check_lpips_bundle(const safetensors::File& file, ReferenceReport& r
     require(file.metadata("version") == "0.1", "lpips bundle '", file.path(), "': version '",
             file.metadata("version"), "' is not supported (only 0.1)");
   const LpipsWeights<double> weights64 = lpips_load_weights<double>(file);
-  const LpipsWeights<float> weights32 = lpips_load_weights<float>(file);
+  LpipsWeights<float> weights32(weights64.layout.config);
+  std::transform(weights64.params.begin(), weights64.params.end(), weights32.params.begin(),
+                 [](double v) { return static_cast<float>(v); });  // as lpips_load<float> rounds them
   LpipsCache<double> cache64;
   LpipsCache<float> cache32;
   static const char* const known[] = {"in0", "in1", "lpips", "per_layer", "grad_in0", "grad_in1", "lpips_from_unit"};
