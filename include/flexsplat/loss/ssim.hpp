@@ -64,9 +64,10 @@ inline void blur(double* out, const double* in, double* tmp, index_t h, index_t 
 
 // Per-plane buffers: the two images, their blurred moments, and the backward's per-pixel partials.
 struct Plane {
-  std::vector<double> x, y, mx, my, exx, eyy, exy, tmp, prod;
+  std::vector<double> x, y, mx, my, exx, eyy, exy, tmp, prod, dmx, dmy, dsq, dxy;
   void resize(index_t n) {
-    for (auto* v : {&x, &y, &mx, &my, &exx, &eyy, &exy, &tmp, &prod}) v->resize(static_cast<std::size_t>(n));
+    for (auto* v : {&x, &y, &mx, &my, &exx, &eyy, &exy, &tmp, &prod, &dmx, &dmy, &dsq, &dxy})
+      v->resize(static_cast<std::size_t>(n));
   }
 };
 
@@ -146,7 +147,7 @@ void ssim_backward(T* d_a, T* d_b, double d_ssim, const T* a, const T* b, const 
   parallel_for(planes, [&](index_t p0, index_t p1, int worker) {
     auto& p = ws.planes[static_cast<std::size_t>(worker)];
     p.resize(hw);
-    std::vector<double> dmx(static_cast<std::size_t>(hw)), dmy(dmx.size()), dsq(dmx.size()), dxy(dmx.size());
+    double *dmx = p.dmx.data(), *dmy = p.dmy.data(), *dsq = p.dsq.data(), *dxy = p.dxy.data();
     for (index_t pl = p0; pl < p1; ++pl) {
       const index_t n = pl / s.channels, ch = pl % s.channels;
       ssim_detail::moments(p, a, b, s, n, ch, k);
@@ -161,10 +162,10 @@ void ssim_backward(T* d_a, T* d_b, double d_ssim, const T* a, const T* b, const 
         dxy[i] = g * 2 * a1 / d;
       }
       // Blur the partials in place (mx, my, exx, exy buffers are free now).
-      ssim_detail::blur(p.mx.data(), dmx.data(), p.tmp.data(), s.height, s.width, k);
-      ssim_detail::blur(p.my.data(), dmy.data(), p.tmp.data(), s.height, s.width, k);
-      ssim_detail::blur(p.exx.data(), dsq.data(), p.tmp.data(), s.height, s.width, k);
-      ssim_detail::blur(p.exy.data(), dxy.data(), p.tmp.data(), s.height, s.width, k);
+      ssim_detail::blur(p.mx.data(), dmx, p.tmp.data(), s.height, s.width, k);
+      ssim_detail::blur(p.my.data(), dmy, p.tmp.data(), s.height, s.width, k);
+      ssim_detail::blur(p.exx.data(), dsq, p.tmp.data(), s.height, s.width, k);
+      ssim_detail::blur(p.exy.data(), dxy, p.tmp.data(), s.height, s.width, k);
       for (index_t yy = 0; yy < s.height; ++yy)
         for (index_t xx = 0; xx < s.width; ++xx) {
           const index_t i = yy * s.width + xx, o = s.index(n, ch, yy, xx);

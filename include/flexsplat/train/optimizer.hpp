@@ -10,7 +10,9 @@
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/simd.hpp"
 #include "flexsplat/train/params.hpp"
 
 namespace flexsplat {
@@ -21,6 +23,17 @@ struct AdamWConfig {
   double beta1 = 0.9, beta2 = 0.999, eps = 1e-8;
   double weight_decay = 0.05;  // VGGT's training config; applies to tensors with ParamInfo::decay only
 };
+
+namespace detail {
+inline constexpr index_t adamw_block = 4096;
+// One element (T) or one SIMD batch of elements, the same operations in the same order on both paths.
+template <class V, class T>
+FLEXSPLAT_ALWAYS_INLINE void adamw_lane(V& p, V& m, V& v, V g, T b1, T b2, T shrink, T step_size, T inv_sqrt_c2, T eps) {
+  m = V(b1) * m + V(T(1) - b1) * g;
+  v = V(b2) * v + V(T(1) - b2) * g * g;
+  p = p * V(shrink) - V(step_size) * m / (simd::lane_sqrt(v) * V(inv_sqrt_c2) + V(eps));
+}
+}  // namespace detail
 
 // One AdamW update with learning rate lr; step is the 1-based number of this update (bias correction). For every
 // tensor, with lr_t = lr * ParamInfo::lr_scale, element-wise: p -= lr_t * wd * p (decay tensors only);
@@ -35,7 +48,7 @@ void adamw_step(ParamStore<T>& store, const AdamWConfig& c, double lr, std::uint
           c.weight_decay, " >= 0");
   const double c1 = 1.0 - std::pow(c.beta1, static_cast<double>(step));
   const double c2 = 1.0 - std::pow(c.beta2, static_cast<double>(step));
-  const T b1 = static_cast<T>(c.beta1), b2 = static_cast<T>(c.beta2), one = T(1);
+  const T b1 = static_cast<T>(c.beta1), b2 = static_cast<T>(c.beta2);
   const T inv_sqrt_c2 = static_cast<T>(1.0 / std::sqrt(c2)), eps = static_cast<T>(c.eps);
   T* p = store.params();
   T* m = store.adam_m();
@@ -46,18 +59,22 @@ void adamw_step(ParamStore<T>& store, const AdamWConfig& c, double lr, std::uint
     const T shrink = static_cast<T>(1.0 - (t.decay ? lr_t * c.weight_decay : 0.0));
     const T step_size = static_cast<T>(lr_t / c1);
     const index_t o = t.offset;
-    parallel_for(t.numel, [&](index_t i0, index_t i1, int) {
-      // The four blocks never alias: restrict lets the compiler vectorise the loop.
-      T* __restrict pp = p + o;
-      T* __restrict mm = m + o;
-      T* __restrict vv = v + o;
-      const T* __restrict gg = g + o;
-      for (index_t i = i0; i < i1; ++i) {
-        const T gi = gg[i];
-        const T mi = b1 * mm[i] + (one - b1) * gi, vi = b2 * vv[i] + (one - b2) * gi * gi;
-        mm[i] = mi;
-        vv[i] = vi;
-        pp[i] = pp[i] * shrink - step_size * mi / (std::sqrt(vi) * inv_sqrt_c2 + eps);
+    // Fixed blocks (a multiple of the SIMD width): whether an element takes the vector or the scalar path depends on
+    // its position in the tensor only, never on the thread count.
+    const index_t blocks = (t.numel + detail::adamw_block - 1) / detail::adamw_block;
+    parallel_for(blocks, [&](index_t k0, index_t k1, int) {
+      using V = simd::batch<T>;
+      constexpr index_t W = static_cast<index_t>(simd::width<T>);
+      for (index_t k = k0; k < k1; ++k) {
+        const index_t end = std::min(t.numel, (k + 1) * detail::adamw_block);
+        index_t i = k * detail::adamw_block;
+        for (; i + W <= end; i += W) {
+          V pi = V::load_unaligned(p + o + i), mi = V::load_unaligned(m + o + i), vi = V::load_unaligned(v + o + i);
+          detail::adamw_lane(pi, mi, vi, V::load_unaligned(g + o + i), b1, b2, shrink, step_size, inv_sqrt_c2, eps);
+          pi.store_unaligned(p + o + i), mi.store_unaligned(m + o + i), vi.store_unaligned(v + o + i);
+        }
+        for (; i < end; ++i)
+          detail::adamw_lane(p[o + i], m[o + i], v[o + i], g[o + i], b1, b2, shrink, step_size, inv_sqrt_c2, eps);
       }
     }, pool);
   }
