@@ -1,8 +1,10 @@
-// A downstream program: includes the umbrella header, writes and reads back a safetensors file.
+// A downstream program: includes the umbrella header, writes and reads back a safetensors file, and runs a GEMM on
+// the backend its configuration chose (FLEXSPLAT_CONSUMER_EXPECT_BLAS: the BLAS must be there).
 #include <flexsplat/flexsplat.hpp>
 
 #include <cstdio>
 #include <filesystem>
+#include <vector>
 
 int main() {
   namespace fs = flexsplat;
@@ -17,6 +19,18 @@ int main() {
   const auto back = file.get<double, 2>("t");
   std::filesystem::remove(path);
   if (back(1, 2) != 5.0 || file.metadata("kind") != "consumer") return 1;
-  std::printf("consumer ok: flexsplat %s\n", fs::version_string);
+#if defined(FLEXSPLAT_CONSUMER_EXPECT_BLAS)
+  const bool expect_blas = true;
+#else
+  const bool expect_blas = false;
+#endif
+  if (fs::have_blas != expect_blas) return 2;
+  // 64^3 multiply-adds: above gemm_blas_min_madds, so a BLAS build really calls cblas_sgemm (linked via the target).
+  const fs::index_t n = 64;
+  std::vector<float> a(n * n, 0.5f), b(n * n, 0.25f), c(n * n, -1.0f);
+  fs::gemm(fs::Trans::no, fs::Trans::yes, n, n, n, 1.0f, a.data(), n, b.data(), n, 0.0f, c.data(), n);
+  for (float v : c)
+    if (v != 8.0f) return 3;
+  std::printf("consumer ok: flexsplat %s, gemm on %s\n", fs::version_string, fs::gemm_backend_name().c_str());
   return 0;
 }
