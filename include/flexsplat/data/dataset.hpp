@@ -241,7 +241,8 @@ inline MakeDataReport make_dataset(const std::filesystem::path& out, const MakeD
   require(!ec, "make-data: cannot create '", out.string(), "': ", ec.message());
   const GeneratorConfig& g = options.generator;
   const nlohmann::json settings = {{"seed", options.seed}, {"views", g.views}, {"size", g.size},
-                                   {"structured", g.structured}, {"supersample", g.supersample}, {"format", 1}};
+                                   {"structured", g.structured}, {"supersample", g.supersample},
+                                   {"segments", g.object.segments}, {"format", 1}};
   const fs::path manifest = out / "make_data.json";
   if (fs::exists(manifest)) {
     std::ifstream in(manifest);

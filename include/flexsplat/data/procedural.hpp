@@ -302,7 +302,7 @@ inline ProceduralObject make_object(std::uint64_t seed, const ObjectConfig& conf
   const double elevation = light.uniform(15, 75) * std::numbers::pi / 180, azimuth = light.uniform(0, 2 * std::numbers::pi);
   object.light_direction = glm::vec3(std::cos(elevation) * std::cos(azimuth), std::cos(elevation) * std::sin(azimuth),
                                      std::sin(elevation));
-  object.ambient = static_cast<float>(light.uniform(0.25, 0.5));
+  object.ambient = static_cast<float>(light.uniform(0.35, 0.6));
   return object;
 }
 
