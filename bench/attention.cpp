@@ -16,6 +16,7 @@
 #include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/nn/attention.hpp"
+#include "sgemm_rate.hpp"
 
 using namespace flexsplat;
 using Clock = std::chrono::steady_clock;
@@ -170,15 +171,8 @@ int main(int argc, char** argv) {
               simd::compiled_arch_name(), simd::enabled() ? "" : " (FLEXSPLAT_SIMD=scalar)",
               simd::describe(simd::cpu_features()).c_str());
   accuracy_check();
-  {
-    // The compute-bound reference bench/geometry uses, for comparison with its "of SGEMM" column.
-    const index_t M = 2048, N = 2048, K = 1024;
-    std::vector<float> a(M * K, 0.5f), b(K * N, 0.25f), c(M * N);
-    const double t = best_seconds([&] {
-      gemm(Trans::no, Trans::yes, M, N, K, 1.0f, a.data(), K, b.data(), K, 0.0f, c.data(), N);
-    }, reps);
-    std::printf("SGEMM 2048x2048x1024 via core/gemm: %.1f GFLOP/s\n", 2.0 * M * N * K / t / 1e9);
-  }
+  // The compute-bound reference bench/geometry uses, for comparison with its "of SGEMM" column.
+  std::printf("%s: %.1f GFLOP/s\n", bench::sgemm_label().c_str(), bench::sgemm_gflops(bench::best_gemm_backend(), reps));
 
   const index_t heads = 16, d = 64, C = heads * d;
   std::printf("%-14s %9s %10s %10s %9s %10s %9s %10s\n", "batch x tokens", "fwd s", "fwd GF/s", "SGEMM GF/s",

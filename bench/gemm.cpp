@@ -108,6 +108,29 @@ int main(int argc, char** argv) {
               ref[0]);
   if (have_blas) std::printf(", blas %.1f GFLOP/s (%.2fx)", ref[1], ref[1] / ref[0]);
   std::printf("\n");
+#if defined(FLEXSPLAT_HAVE_OPENBLAS)
+  {
+    // gemm's choice (single-threaded OpenBLAS calls on the pool's 2 workers) against OpenBLAS's own 2 threads.
+    const index_t M = 2048, N = 2048, K = 1024;
+    const auto A = random_floats(M * K, 3), B = random_floats(N * K, 4);
+    std::vector<float> C(M * N);
+    double t_split = 1e300, t_own = 1e300;
+    for (int r = 0; r < 2 * std::max(rounds, 3); ++r) {
+      t_split = std::min(t_split, seconds_per_call([&] {
+        gemm(GemmBackend::blas, Trans::no, Trans::yes, M, N, K, 1.0f, A.data(), K, B.data(), K, 0.0f, C.data(), N, two);
+      }, 0.0));
+      openblas_set_num_threads(2);
+      t_own = std::min(t_own, seconds_per_call([&] {
+        cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, int(M), int(N), int(K), 1.0f, A.data(), int(K), B.data(),
+                    int(K), 0.0f, C.data(), int(N));
+      }, 0.0));
+      openblas_set_num_threads(1);
+    }
+    const double flops = 2.0 * double(M) * double(N) * double(K);
+    std::printf("same product on OpenBLAS: gemm's split over the pool (2 x 1 thread) %.1f GFLOP/s, OpenBLAS's own 2 "
+                "threads %.1f GFLOP/s\n", flops / t_split * 1e-9, flops / t_own * 1e-9);
+  }
+#endif
 
 #if defined(FLEXSPLAT_HAVE_CBLAS)
   // Small products on one thread: microseconds per call, the BLAS called directly (bypassing gemm_blas_min_madds).

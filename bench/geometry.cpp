@@ -1,5 +1,6 @@
 // VGGT-1B (trunk, camera head, depth head) with random in-process weights: time per stage, achieved GFLOP/s next to
-// the SGEMM rate measured in the same run (before and after each image size), and peak RSS.
+// the machine's SGEMM rate (the BLAS when the build has one) measured in the same run before and after each image
+// size, and peak RSS.
 //   bench/geometry [--frames S] [--size N]... [--depth D]   (default: 4 frames at 252 and 518, full depth)
 #include <sys/resource.h>
 
@@ -15,6 +16,7 @@
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/geometry/random_weights.hpp"
 #include "flexsplat/geometry/vggt.hpp"
+#include "sgemm_rate.hpp"
 
 using namespace flexsplat;
 using namespace flexsplat::geometry;
@@ -54,19 +56,6 @@ static double dpt_flops(const DptHeadConfig& c, index_t ph, index_t pw) {
   const double full = double(g.out_h * g.out_w);
   f += 2 * full * Fh * DptHeadConfig::head_hidden * 9 + 2 * full * DptHeadConfig::head_hidden * double(c.output_dim);
   return f;
-}
-
-static double sgemm_gflops() {
-  const index_t M = 2048, N = 2048, K = 1024;
-  std::vector<float> a(M * K, 0.5f), b(K * N, 0.25f), c(M * N);
-  gemm(Trans::no, Trans::yes, M, N, K, 1.0f, a.data(), K, b.data(), K, 0.0f, c.data(), N);  // warm-up
-  double best = 0;
-  for (int rep = 0; rep < 3; ++rep) {
-    const auto t0 = Clock::now();
-    gemm(Trans::no, Trans::yes, M, N, K, 1.0f, a.data(), K, b.data(), K, 0.0f, c.data(), N);
-    best = std::max(best, 2.0 * M * N * K / seconds_since(t0) / 1e9);
-  }
-  return best;
 }
 
 int main(int argc, char** argv) {
@@ -110,7 +99,7 @@ int main(int argc, char** argv) {
   std::fflush(stdout);
 
   for (index_t size : sizes) {
-    const double sgemm_before = sgemm_gflops();
+    const double sgemm_before = bench::sgemm_gflops(bench::best_gemm_backend(), 3);
     const index_t H = size, W = size, p = cfg.aggregator.patch_size, gh = H / p, gw = W / p, P = gh * gw;
     std::vector<float> images(frames * 3 * H * W);
     for (std::size_t i = 0; i < images.size(); ++i) images[i] = float((i * 2654435761u) % 1000) / 1000.0f;
@@ -127,7 +116,7 @@ int main(int argc, char** argv) {
     const auto t_start = Clock::now();
     const auto out = vggt_forward<float>(images.data(), frames, H, W, run_cfg, weights, ws, options);
     const double t_total = seconds_since(t_start);
-    const double sgemm_after = sgemm_gflops();
+    const double sgemm_after = bench::sgemm_gflops(bench::best_gemm_backend(), 3);
     const double sgemm = std::max(sgemm_before, sgemm_after);
     begin["aggregator"] = end["dino"];
 
@@ -141,8 +130,8 @@ int main(int argc, char** argv) {
     flops["depth_head"] = frames * dpt_flops(cfg.depth, gh, gw);
     flops["unproject"] = 0;
 
-    std::printf("\n%lld x %lldx%lld (%lld patches/frame); SGEMM 2048x2048x1024 via core/gemm: %.1f GFLOP/s before, "
-                "%.1f after\n", (long long)frames, (long long)H, (long long)W, (long long)P, sgemm_before, sgemm_after);
+    std::printf("\n%lld x %lldx%lld (%lld patches/frame); %s: %.1f GFLOP/s before, %.1f after\n", (long long)frames,
+                (long long)H, (long long)W, (long long)P, bench::sgemm_label().c_str(), sgemm_before, sgemm_after);
     double f_total = 0;
     for (const char* stage : {"dino", "aggregator", "camera_head", "depth_head", "unproject"}) {
       const double t = std::chrono::duration<double>(end[stage] - begin[stage]).count();

@@ -1,5 +1,5 @@
 // VGGT-1B camera head and DPT depth head with random weights (generated here, nothing downloaded): time per head,
-// achieved GFLOP/s next to the SGEMM rate measured in the same run, peak RSS.
+// achieved GFLOP/s next to the machine's SGEMM rate (the BLAS when the build has one) measured in the same run, peak RSS.
 // Usage: geometry_heads [frames=4] [size=518 ...]   e.g. `build/bench/geometry_heads 4 518 252`
 #include <sys/resource.h>
 
@@ -14,6 +14,7 @@
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/geometry/camera_head.hpp"
 #include "flexsplat/geometry/dpt_head.hpp"
+#include "sgemm_rate.hpp"
 
 using namespace flexsplat;
 using namespace flexsplat::geometry;
@@ -69,19 +70,6 @@ double dpt_flops_per_frame(const DptHeadConfig& c, index_t ph, index_t pw) {
   return f;
 }
 
-double sgemm_gflops() {
-  const index_t n = 2048;
-  std::vector<float> a(n * n, 0.5f), b(n * n, 0.25f), c(n * n);
-  gemm(Trans::no, Trans::no, n, n, n, 1.0f, a.data(), n, b.data(), n, 0.0f, c.data(), n);  // warm-up
-  double best = 1e30;
-  for (int r = 0; r < 3; ++r) {
-    const auto t0 = std::chrono::steady_clock::now();
-    gemm(Trans::no, Trans::no, n, n, n, 1.0f, a.data(), n, b.data(), n, 0.0f, c.data(), n);
-    best = std::min(best, seconds_since(t0));
-  }
-  return 2.0 * static_cast<double>(n * n * n) / best * 1e-9;
-}
-
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -91,8 +79,8 @@ int main(int argc, char** argv) {
   if (sizes.empty()) sizes = {518, 252};
   const auto cpu = simd::cpu_features();
   std::printf("threads %d, simd arch %s, avx512f %d\n", global_pool().size(), simd::arch::name(), int(cpu.avx512f));
-  const double sgemm = sgemm_gflops();
-  std::printf("SGEMM 2048^3: %.1f GFLOP/s\n", sgemm);
+  const double sgemm = bench::sgemm_gflops();
+  std::printf("%s: %.1f GFLOP/s\n", bench::sgemm_label().c_str(), sgemm);
 
   const CameraHeadConfig cam_cfg;  // VGGT-1B
   const DptHeadConfig dpt_cfg;

@@ -36,8 +36,8 @@ inline constexpr bool have_blas = false;
 #endif
 
 // Products below this many multiply-adds stay on Eigen even with a BLAS: there a CBLAS call's fixed cost loses to
-// Eigen's inlined kernels (bench/gemm's small-shape table: 8^3 Eigen 0.58 us, OpenBLAS 0.62; 16^3 1.52 against 1.17).
-inline constexpr index_t gemm_blas_min_madds = index_t(1) << 12;
+// Eigen's inlined kernels (bench/gemm's small-shape table: Eigen faster at 8^3, OpenBLAS from 12^3 = 1728 on).
+inline constexpr index_t gemm_blas_min_madds = index_t(1) << 10;
 
 // The BLAS when the build has one, Eigen otherwise; FLEXSPLAT_GEMM=eigen|blas overrides it (read once).
 inline GemmBackend default_gemm_backend() {
