@@ -14,7 +14,7 @@ using namespace flexsplat::geometry;
 
 namespace dpt_backward_test {
 
-std::vector<double> normal_values(std::size_t n, unsigned seed, double scale = 1.0) {
+std::vector<double> dpt_normal_values(std::size_t n, unsigned seed, double scale = 1.0) {
   std::mt19937 rng(seed);
   std::normal_distribution<double> normal(0.0, scale);
   std::vector<double> v(n);
@@ -22,7 +22,7 @@ std::vector<double> normal_values(std::size_t n, unsigned seed, double scale = 1
   return v;
 }
 
-DptHeadConfig tiny_config() {
+DptHeadConfig dpt_tiny_config() {
   DptHeadConfig c;
   c.dim_in = 8;
   c.patch_size = 4;
@@ -77,7 +77,7 @@ void check_dpt_gradients(const DptHeadConfig& cfg, index_t S, index_t H, index_t
   // across it disagree with the one-sided derivative; a 1e-9 step agrees), which is the checker's limit, not a bug.
   heads_backward_test::FlatParams flat(specs, 12);
   const index_t ph = H / cfg.patch_size, pw = W / cfg.patch_size, tokens = patch_start + ph * pw;
-  DptRig<double> rig(cfg, flat, normal_values(layers_n * S * tokens * cfg.dim_in, 12), S, H, W, patch_start,
+  DptRig<double> rig(cfg, flat, dpt_normal_values(layers_n * S * tokens * cfg.dim_in, 12), S, H, W, patch_start,
                      layers_n);
   // The gradient checker perturbs flat.values: the rig must read them, so bind it to flat's block directly.
   rig.w = bind_dpt_head_weights<double>(cfg, [&](const std::string& n, const std::vector<index_t>& s) { return flat.get(n, s); });
@@ -115,7 +115,7 @@ using namespace dpt_backward_test;
 TEST_CASE("DPT banded convolution backward matches finite differences", "[dpt_head][backward]") {
   for (index_t k : {1, 3}) {
     const index_t cin = 3, cout = 2, h = 5, w = 4;
-    auto in = normal_values(cin * h * w, 1), weight = normal_values(cout * cin * k * k, 2), bias = normal_values(cout, 3);
+    auto in = dpt_normal_values(cin * h * w, 1), weight = dpt_normal_values(cout * cin * k * k, 2), bias = dpt_normal_values(cout, 3);
     std::vector<double> d_in(in.size()), d_weight(weight.size()), d_bias(bias.size());
     std::vector<double> scratch(cin * k * k * w * 2);  // two rows per band: three bands
     const auto result = testing::check_gradients(
@@ -135,13 +135,13 @@ TEST_CASE("DPT banded convolution backward matches finite differences", "[dpt_he
 
 TEST_CASE("DPT head backward matches finite differences with exp depth and 1 + exp confidence", "[dpt_head][backward]") {
   // 2 x 2 patch grid of 2-pixel patches: pyramid 8x8, 4x4, 2x2, 1x1; fused 16x16; output 4x4.
-  DptHeadConfig cfg = tiny_config();
+  DptHeadConfig cfg = dpt_tiny_config();
   cfg.patch_size = 2;
   check_dpt_gradients(cfg, 2, 4, 4, 2, 3, 8);
 }
 
 TEST_CASE("DPT head backward matches finite differences with inv_log and sigmoid on an odd grid", "[dpt_head][backward]") {
-  DptHeadConfig cfg = tiny_config();
+  DptHeadConfig cfg = dpt_tiny_config();
   cfg.output_dim = 3;
   cfg.activation = DptActivation::inv_log;
   cfg.conf_activation = DptConfActivation::sigmoid;
@@ -151,17 +151,17 @@ TEST_CASE("DPT head backward matches finite differences with inv_log and sigmoid
 }
 
 TEST_CASE("DPT head backward: no gradient for special tokens or unused layers", "[dpt_head][backward]") {
-  const DptHeadConfig cfg = tiny_config();
+  const DptHeadConfig cfg = dpt_tiny_config();
   std::vector<TensorSpec> specs;
   append_dpt_head_specs(specs, cfg, "");
   heads_backward_test::FlatParams flat(specs, 21);
   const index_t S = 2, H = 8, W = 12, start = 3, layers_n = 4;
-  DptRig<double> rig(cfg, flat, normal_values(layers_n * S * (start + 6) * cfg.dim_in, 22), S, H, W, start, layers_n);
+  DptRig<double> rig(cfg, flat, dpt_normal_values(layers_n * S * (start + 6) * cfg.dim_in, 22), S, H, W, start, layers_n);
   std::vector<double> out(rig.out_size()), d_tok(rig.tok.size(), 0.0);
   DptHeadCache<double> cache;
   const auto layers = rig.layers();
   dpt_head_forward_train<double>(rig.outputs(out.data()), cache, cfg, rig.w, layers, S, rig.tokens, start, H, W, rig.ws);
-  const auto d_out = normal_values(out.size(), 23);
+  const auto d_out = dpt_normal_values(out.size(), 23);
   std::vector<double*> d_layers;
   for (index_t i = 0; i < layers_n; ++i) d_layers.push_back(d_tok.data() + i * S * rig.tokens * cfg.dim_in);
   const auto o = rig.outputs(const_cast<double*>(d_out.data()));
@@ -180,14 +180,14 @@ TEST_CASE("DPT head backward: no gradient for special tokens or unused layers", 
 }
 
 TEST_CASE("DPT head training forward equals the inference forward bit for bit", "[dpt_head][backward]") {
-  DptHeadConfig cfg = tiny_config();
+  DptHeadConfig cfg = dpt_tiny_config();
   cfg.features = 16;
   cfg.out_channels = {8, 8, 16, 8};
   std::vector<TensorSpec> specs;
   append_dpt_head_specs(specs, cfg, "");
   heads_backward_test::FlatParams flat(specs, 31);
   const index_t S = 3, H = 21, W = 17, start = 5, layers_n = 3;  // 5 x 4 grid
-  DptRig<float> rig(cfg, flat, normal_values(layers_n * S * (start + 20) * cfg.dim_in, 32), S, H, W, start, layers_n);
+  DptRig<float> rig(cfg, flat, dpt_normal_values(layers_n * S * (start + 20) * cfg.dim_in, 32), S, H, W, start, layers_n);
   const auto layers = rig.layers();
   std::vector<float> a(rig.out_size(), 1.f), b(rig.out_size(), 2.f);
   dpt_head_forward<float>(rig.outputs(a.data()), cfg, rig.w, layers, S, rig.tokens, start, H, W, rig.ws);
@@ -201,11 +201,11 @@ TEST_CASE("DPT head training forward equals the inference forward bit for bit", 
 }
 
 TEST_CASE("DPT head backward rejects an empty or mismatched cache", "[dpt_head][backward]") {
-  const DptHeadConfig cfg = tiny_config();
+  const DptHeadConfig cfg = dpt_tiny_config();
   std::vector<TensorSpec> specs;
   append_dpt_head_specs(specs, cfg, "");
   heads_backward_test::FlatParams flat(specs, 41);
-  DptRig<double> rig(cfg, flat, normal_values(3 * (2 + 6) * cfg.dim_in, 42), 1, 8, 12, 2, 3);
+  DptRig<double> rig(cfg, flat, dpt_normal_values(3 * (2 + 6) * cfg.dim_in, 42), 1, 8, 12, 2, 3);
   const auto layers = rig.layers();
   DptHeadCache<double> cache;
   CHECK_THROWS_WITH(dpt_head_backward<double>({}, DptHeadGrads<double>{}, {}, cache, cfg, rig.w, layers),

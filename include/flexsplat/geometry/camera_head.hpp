@@ -1,11 +1,13 @@
 #pragma once
-// VGGT's CameraHead (vggt/heads/camera_head.py at 44b3afb), forward only. The camera token of the last aggregator
+// VGGT's CameraHead (vggt/heads/camera_head.py at 44b3afb), forward and backward. The camera token of the last aggregator
 // output goes through token_norm; then, for each refinement iteration, the current (detached, pre-activation)
 // encoding - a learned empty encoding on the first pass - is embedded and turned into adaptive-LayerNorm shift,
 // scale and gate; the modulated tokens run through the trunk (transformer blocks attending across frames),
 // trunk_norm and the pose-branch MLP, whose output is added to the encoding. Every iteration's activated encoding
-// (absT_quaR_FoV: translation, quaternion x y z w, fov_h, fov_w) is returned.
+// (absT_quaR_FoV: translation, quaternion x y z w, fov_h, fov_w) is returned. Backward keeps VGGT's stop-gradient on
+// the fed-back encoding.
 #include <algorithm>
+#include <cmath>
 #include <span>
 #include <string>
 #include <vector>
@@ -147,12 +149,77 @@ T pose_activate(T v, PoseActivation a) {
   return v;
 }
 
-// pose_enc [iterations, frames, 9]: the activated encoding after each refinement iteration (the last is the
-// prediction). last_layer is the final aggregator output [frames, tokens, dim]; token 0 of each frame is its camera
-// token.
 template <class T>
-void camera_head_forward(T* pose_enc, const CameraHeadConfig& c, const CameraHeadWeights<T>& w, const T* last_layer,
-                         index_t frames, index_t tokens, std::span<T> workspace) {
+T pose_activate_grad(T v, PoseActivation a) {
+  switch (a) {
+    case PoseActivation::linear: return T(1);
+    case PoseActivation::inv_log: return std::exp(std::abs(v));
+    case PoseActivation::exp: return std::exp(v);
+    case PoseActivation::relu: return v > T(0) ? T(1) : T(0);
+  }
+  return T(1);
+}
+
+// Gradient slots mirroring CameraHeadWeights (null: not wanted).
+template <class T>
+struct CameraHeadGrads {
+  T *token_norm_weight = nullptr, *token_norm_bias = nullptr;
+  std::vector<BlockGrads<T>> trunk;
+  T *trunk_norm_weight = nullptr, *trunk_norm_bias = nullptr;
+  T* empty_pose_tokens = nullptr;
+  T *embed_pose_weight = nullptr, *embed_pose_bias = nullptr;
+  T *modulation_weight = nullptr, *modulation_bias = nullptr;
+  T *branch_fc1_weight = nullptr, *branch_fc1_bias = nullptr;
+  T *branch_fc2_weight = nullptr, *branch_fc2_bias = nullptr;
+};
+
+// Each weight's gradient at the same offset in the flat gradient block `grads_base` as the weight in the flat
+// parameter block `params_base`.
+template <class T>
+CameraHeadGrads<T> camera_head_grads(const CameraHeadWeights<T>& w, const T* params_base, T* grads_base) {
+  auto r = [&](const T* p) { return rebase_pointer(p, params_base, grads_base); };
+  CameraHeadGrads<T> g;
+  g.token_norm_weight = r(w.token_norm_weight);
+  g.token_norm_bias = r(w.token_norm_bias);
+  for (const auto& b : w.trunk) g.trunk.push_back(block_grads(b, params_base, grads_base));
+  g.trunk_norm_weight = r(w.trunk_norm_weight);
+  g.trunk_norm_bias = r(w.trunk_norm_bias);
+  g.empty_pose_tokens = r(w.empty_pose_tokens);
+  g.embed_pose_weight = r(w.embed_pose_weight);
+  g.embed_pose_bias = r(w.embed_pose_bias);
+  g.modulation_weight = r(w.modulation_weight);
+  g.modulation_bias = r(w.modulation_bias);
+  g.branch_fc1_weight = r(w.branch_fc1_weight);
+  g.branch_fc1_bias = r(w.branch_fc1_bias);
+  g.branch_fc2_weight = r(w.branch_fc2_weight);
+  g.branch_fc2_bias = r(w.branch_fc2_bias);
+  return g;
+}
+
+// What camera_head_forward_train keeps for camera_head_backward ([S, C] per frame-row; `it` = iteration).
+template <class T>
+struct CameraHeadCache {
+  index_t frames = 0, iterations = 0, trunk_depth = 0;
+  std::vector<T> cam_in;                   // [S, C] camera tokens of the last aggregator output
+  std::vector<T> tok_mean, tok_rstd;       // [S] token_norm statistics
+  std::vector<T> tok;                      // [S, C] token_norm output
+  std::vector<T> adaln, adaln_mean, adaln_rstd;  // [S, C], [S], [S] the affine-free adaLN normalisation
+  std::vector<T> enc_in;                   // [it, S, 9] encoding fed to embed_pose (empty tokens, then detached raw)
+  std::vector<T> embed_pre;                // [it, S, C] embed_pose output before SiLU
+  std::vector<T> mod;                      // [it, S, 3C] shift | scale | gate
+  std::vector<BlockCache<T>> blocks;       // [it * trunk_depth]
+  std::vector<T> trunk_out, trunk_mean, trunk_rstd;  // [it, S, C] trunk output (trunk_norm's input), [it, S] stats
+  std::vector<T> hidden_pre;               // [it, S, C/2] pose_branch fc1 output before GELU
+  std::vector<T> raw;                      // [it, S, 9] pre-activation encoding after each iteration
+  std::vector<T> grad_ws;                  // camera_head_backward's buffers
+  BlockBackwardScratch<T> block_scratch;
+};
+
+namespace detail {
+template <class T>
+void camera_head_run(T* pose_enc, const CameraHeadConfig& c, const CameraHeadWeights<T>& w, const T* last_layer,
+                     index_t frames, index_t tokens, std::span<T> workspace, CameraHeadCache<T>* k, bool recompute,
+                     const T* feedback) {
   c.validate();
   require(frames >= 1 && tokens >= 1, "camera head: needs at least one frame and one token (got ", frames,
           " frames, ", tokens, " tokens)");
@@ -173,19 +240,42 @@ void camera_head_forward(T* pose_enc, const CameraHeadConfig& c, const CameraHea
   T* raw = hidden + S * Hb;     // [S, 9] pre-activation encoding
   T* delta = raw + S * E;       // [S, 9]
   std::span<T> block_ws(delta + S * E, workspace.size() - static_cast<std::size_t>(delta + S * E - workspace.data()));
+  const index_t I = c.iterations, depth = c.trunk_depth;
+  if (k) {
+    k->frames = S, k->iterations = I, k->trunk_depth = depth;
+    auto fit = [](std::vector<T>& v, index_t n) { v.resize(static_cast<std::size_t>(n)); };
+    fit(k->cam_in, S * C), fit(k->tok_mean, S), fit(k->tok_rstd, S), fit(k->tok, S * C);
+    fit(k->adaln, S * C), fit(k->adaln_mean, S), fit(k->adaln_rstd, S);
+    fit(k->enc_in, I * S * E), fit(k->embed_pre, I * S * C), fit(k->mod, I * S * 3 * C);
+    k->blocks.resize(static_cast<std::size_t>(I * depth));
+    fit(k->trunk_out, I * S * C), fit(k->trunk_mean, I * S), fit(k->trunk_rstd, I * S);
+    fit(k->hidden_pre, I * S * Hb), fit(k->raw, I * S * E);
+  }
 
   for (index_t s = 0; s < S; ++s) std::copy(last_layer + s * tokens * C, last_layer + s * tokens * C + C, spare + s * C);
-  nn::layernorm_forward(tok, spare, w.token_norm_weight, w.token_norm_bias, S, C, static_cast<T>(c.norm_eps));
-  nn::layernorm_forward<T>(adaln, tok, nullptr, nullptr, S, C, static_cast<T>(c.adaln_eps));
+  if (k) std::copy(spare, spare + S * C, k->cam_in.data());
+  nn::layernorm_forward(tok, spare, w.token_norm_weight, w.token_norm_bias, S, C, static_cast<T>(c.norm_eps),
+                        k ? nn::LayerNormCache<T>{k->tok_mean.data(), k->tok_rstd.data()} : nn::LayerNormCache<T>{});
+  nn::layernorm_forward<T>(adaln, tok, nullptr, nullptr, S, C, static_cast<T>(c.adaln_eps),
+                           k ? nn::LayerNormCache<T>{k->adaln_mean.data(), k->adaln_rstd.data()} : nn::LayerNormCache<T>{});
+  if (k) {
+    std::copy(tok, tok + S * C, k->tok.data());
+    std::copy(adaln, adaln + S * C, k->adaln.data());
+  }
 
-  for (index_t it = 0; it < c.iterations; ++it) {
-    // The feedback is the raw accumulated encoding (VGGT detaches it; irrelevant for a forward pass).
+  for (index_t it = 0; it < I; ++it) {
+    // The feedback is the raw accumulated encoding, detached as in VGGT (camera_head_backward sends no gradient
+    // through it); `feedback`, when given, replaces it.
+    const T* prev = it == 0 ? nullptr : feedback ? feedback + (it - 1) * S * E : raw;
     for (index_t s = 0; s < S; ++s)
-      std::copy(it == 0 ? w.empty_pose_tokens : raw + s * E, (it == 0 ? w.empty_pose_tokens : raw + s * E) + E,
+      std::copy(it == 0 ? w.empty_pose_tokens : prev + s * E, (it == 0 ? w.empty_pose_tokens : prev + s * E) + E,
                 delta + s * E);
+    if (k) std::copy(delta, delta + S * E, k->enc_in.data() + it * S * E);
     nn::linear_forward(embed, delta, w.embed_pose_weight, w.embed_pose_bias, S, E, C);
+    if (k) std::copy(embed, embed + S * C, k->embed_pre.data() + it * S * C);
     nn::silu_forward(embed, embed, S * C);
     nn::linear_forward(mod, embed, w.modulation_weight, w.modulation_bias, S, C, 3 * C);
+    if (k) std::copy(mod, mod + S * 3 * C, k->mod.data() + it * S * 3 * C);
     parallel_for(S, [&](index_t s0, index_t s1, int) {
       for (index_t s = s0; s < s1; ++s) {
         const T* shift = mod + s * 3 * C;
@@ -195,20 +285,154 @@ void camera_head_forward(T* pose_enc, const CameraHeadConfig& c, const CameraHea
           x[s * C + i] = gate[i] * (adaln[s * C + i] * (T(1) + scale[i]) + shift[i]) + tok[s * C + i];
       }
     });
-    for (const auto& block : w.trunk)
-      block_forward<T>(x, 1, S, c.block(), block, nullptr, nullptr, block_ws);
-    nn::layernorm_forward(normed, x, w.trunk_norm_weight, w.trunk_norm_bias, S, C, static_cast<T>(c.norm_eps));
+    for (index_t b = 0; b < depth; ++b) {
+      if (k)
+        block_forward_train<T>(x, 1, S, c.block(), w.trunk[b], nullptr, nullptr, k->blocks[it * depth + b], recompute,
+                               block_ws);
+      else
+        block_forward<T>(x, 1, S, c.block(), w.trunk[b], nullptr, nullptr, block_ws);
+    }
+    if (k) std::copy(x, x + S * C, k->trunk_out.data() + it * S * C);
+    nn::layernorm_forward(normed, x, w.trunk_norm_weight, w.trunk_norm_bias, S, C, static_cast<T>(c.norm_eps),
+                          k ? nn::LayerNormCache<T>{k->trunk_mean.data() + it * S, k->trunk_rstd.data() + it * S}
+                            : nn::LayerNormCache<T>{});
     nn::linear_forward(hidden, normed, w.branch_fc1_weight, w.branch_fc1_bias, S, C, Hb);
+    if (k) std::copy(hidden, hidden + S * Hb, k->hidden_pre.data() + it * S * Hb);
     nn::gelu_forward(hidden, hidden, S * Hb);
     nn::linear_forward(delta, hidden, w.branch_fc2_weight, w.branch_fc2_bias, S, Hb, E);
     T* out = pose_enc + it * S * E;
     for (index_t s = 0; s < S; ++s)
       for (index_t e = 0; e < E; ++e) {
-        const T v = it == 0 ? delta[s * E + e] : raw[s * E + e] + delta[s * E + e];
+        const T v = it == 0 ? delta[s * E + e] : prev[s * E + e] + delta[s * E + e];
         raw[s * E + e] = v;
         out[s * E + e] = pose_activate(v, e < 3 ? c.trans_act : e < 7 ? c.quat_act : c.fl_act);
       }
+    if (k) std::copy(raw, raw + S * E, k->raw.data() + it * S * E);
   }
+}
+}  // namespace detail
+
+// pose_enc [iterations, frames, 9]: the activated encoding after each refinement iteration (the last is the
+// prediction). last_layer is the final aggregator output [frames, tokens, dim]; token 0 of each frame is its camera
+// token.
+template <class T>
+void camera_head_forward(T* pose_enc, const CameraHeadConfig& c, const CameraHeadWeights<T>& w, const T* last_layer,
+                         index_t frames, index_t tokens, std::span<T> workspace) {
+  detail::camera_head_run<T>(pose_enc, c, w, last_layer, frames, tokens, workspace, nullptr, false, nullptr);
+}
+
+// camera_head_forward (same outputs bit for bit) that fills `cache` for camera_head_backward. recompute_blocks: the
+// trunk blocks keep only their inputs and rerun their forward in backward. feedback (optional, [iterations - 1,
+// frames, 9]): pre-activation encodings fed to iterations 1.. instead of the head's own (with cache.raw of an earlier
+// run the outputs are unchanged; holding them fixed is how a gradient check sees VGGT's detach).
+template <class T>
+void camera_head_forward_train(T* pose_enc, CameraHeadCache<T>& cache, const CameraHeadConfig& c,
+                               const CameraHeadWeights<T>& w, const T* last_layer, index_t frames, index_t tokens,
+                               std::span<T> workspace, bool recompute_blocks = false, const T* feedback = nullptr) {
+  detail::camera_head_run<T>(pose_enc, c, w, last_layer, frames, tokens, workspace, &cache, recompute_blocks, feedback);
+}
+
+// Backward of camera_head_forward_train. d_pose_enc [iterations, frames, 9] (gradients of every iteration's activated
+// encoding). Adds into `g` (null slots skipped) and into the camera-token rows of d_last_layer [frames, tokens, dim]
+// (may be null; other tokens untouched). As in VGGT (pred_pose_enc.detach()), the encoding fed back into the next
+// iteration carries no gradient: iteration it's output reaches earlier iterations only through shared weights and
+// tokens, never through its input encoding or the accumulated sum.
+template <class T>
+void camera_head_backward(T* d_last_layer, const CameraHeadGrads<T>& g, const T* d_pose_enc, CameraHeadCache<T>& k,
+                          const CameraHeadConfig& c, const CameraHeadWeights<T>& w, index_t tokens) {
+  c.validate();
+  const index_t C = c.dim, S = k.frames, E = pose_encoding_dim, Hb = c.branch_hidden(), I = c.iterations,
+                depth = c.trunk_depth;
+  require(S >= 1 && k.iterations == I && k.trunk_depth == depth && static_cast<index_t>(k.tok.size()) == S * C,
+          "camera head backward: the cache is empty or was filled for another configuration (run "
+          "camera_head_forward_train first)");
+  require(d_pose_enc != nullptr, "camera head backward: d_pose_enc is required");
+  require(d_last_layer == nullptr || tokens >= 1, "camera head backward: ", tokens, " tokens per frame");
+  require(g.trunk.empty() || static_cast<index_t>(g.trunk.size()) == depth, "camera head backward: ", g.trunk.size(),
+          " trunk gradient sets for ", depth, " blocks");
+  k.grad_ws.assign(static_cast<std::size_t>(S * (6 * C + 3 * C + 2 * Hb + 2 * E)), T(0));
+  T* d_tok = k.grad_ws.data();   // [S, C] accumulated over iterations
+  T* d_adaln = d_tok + S * C;     // [S, C] accumulated over iterations
+  T* d_x = d_adaln + S * C;       // [S, C]
+  T* buf = d_x + S * C;           // [S, C] recomputed trunk_norm output, then SiLU output
+  T* d_buf = buf + S * C;         // [S, C]
+  T* d_embed = d_buf + S * C;     // [S, C]
+  T* d_mod = d_embed + S * C;     // [S, 3C]
+  T* hidden = d_mod + S * 3 * C;  // [S, C/2] recomputed GELU output
+  T* d_hidden = hidden + S * Hb;  // [S, C/2]
+  T* d_raw = d_hidden + S * Hb;   // [S, 9]
+  T* d_in = d_raw + S * E;        // [S, 9]
+  const BlockGrads<T> no_block_grads{};
+  const T eps = static_cast<T>(c.norm_eps);
+
+  for (index_t it = I - 1; it >= 0; --it) {
+    const T* raw = k.raw.data() + it * S * E;
+    const T* d_out = d_pose_enc + it * S * E;
+    for (index_t s = 0; s < S; ++s)
+      for (index_t e = 0; e < E; ++e)
+        d_raw[s * E + e] = d_out[s * E + e] *
+                           pose_activate_grad(raw[s * E + e], e < 3 ? c.trans_act : e < 7 ? c.quat_act : c.fl_act);
+    // raw = detach(previous raw) + delta: all of d_raw goes to this iteration's delta.
+    const T* pre = k.hidden_pre.data() + it * S * Hb;
+    nn::gelu_forward(hidden, pre, S * Hb);
+    std::fill(d_hidden, d_hidden + S * Hb, T(0));
+    nn::linear_backward(d_hidden, g.branch_fc2_weight, g.branch_fc2_bias, d_raw, hidden, w.branch_fc2_weight, S, Hb, E);
+    std::fill(hidden, hidden + S * Hb, T(0));  // now d(pre-GELU)
+    nn::gelu_backward(hidden, d_hidden, pre, S * Hb);
+    const T* x_out = k.trunk_out.data() + it * S * C;
+    nn::layernorm_forward(buf, x_out, w.trunk_norm_weight, w.trunk_norm_bias, S, C, eps);
+    std::fill(d_buf, d_buf + S * C, T(0));
+    nn::linear_backward(d_buf, g.branch_fc1_weight, g.branch_fc1_bias, hidden, buf, w.branch_fc1_weight, S, C, Hb);
+    std::fill(d_x, d_x + S * C, T(0));
+    nn::layernorm_backward(d_x, g.trunk_norm_weight, g.trunk_norm_bias, d_buf, x_out, w.trunk_norm_weight, S, C,
+                           nn::LayerNormCache<T>{k.trunk_mean.data() + it * S, k.trunk_rstd.data() + it * S});
+    for (index_t b = depth - 1; b >= 0; --b)
+      block_backward<T>(d_x, g.trunk.empty() ? no_block_grads : g.trunk[b], k.blocks[it * depth + b], c.block(),
+                        w.trunk[b], nullptr, nullptr, k.block_scratch);
+    // x = gate * (adaln * (1 + scale) + shift) + tok.
+    const T* mod = k.mod.data() + it * S * 3 * C;
+    for (index_t s = 0; s < S; ++s) {
+      const T* shift = mod + s * 3 * C;
+      const T* scale = shift + C;
+      const T* gate = scale + C;
+      T* d_shift = d_mod + s * 3 * C;
+      T* d_scale = d_shift + C;
+      T* d_gate = d_scale + C;
+      for (index_t i = 0; i < C; ++i) {
+        const T dx = d_x[s * C + i], a = k.adaln[s * C + i];
+        d_tok[s * C + i] += dx;
+        d_adaln[s * C + i] += dx * gate[i] * (T(1) + scale[i]);
+        d_shift[i] = dx * gate[i];
+        d_scale[i] = dx * gate[i] * a;
+        d_gate[i] = dx * (a * (T(1) + scale[i]) + shift[i]);
+      }
+    }
+    const T* embed_pre = k.embed_pre.data() + it * S * C;
+    nn::silu_forward(buf, embed_pre, S * C);
+    std::fill(d_embed, d_embed + S * C, T(0));
+    nn::linear_backward(d_embed, g.modulation_weight, g.modulation_bias, d_mod, buf, w.modulation_weight, S, C, 3 * C);
+    std::fill(d_buf, d_buf + S * C, T(0));
+    nn::silu_backward(d_buf, d_embed, embed_pre, S * C);
+    // Iteration 0 embeds the learned empty encoding (broadcast over frames); later ones a detached input.
+    const bool to_empty = it == 0 && g.empty_pose_tokens;
+    if (to_empty) std::fill(d_in, d_in + S * E, T(0));
+    nn::linear_backward(to_empty ? d_in : static_cast<T*>(nullptr), g.embed_pose_weight, g.embed_pose_bias, d_buf,
+                        k.enc_in.data() + it * S * E, w.embed_pose_weight, S, E, C);
+    if (to_empty)
+      for (index_t s = 0; s < S; ++s)
+        for (index_t e = 0; e < E; ++e) g.empty_pose_tokens[e] += d_in[s * E + e];
+  }
+
+  // adaln = LN(tok) without affine, tok = token_norm(camera token).
+  nn::layernorm_backward<T>(d_tok, nullptr, nullptr, d_adaln, k.tok.data(), nullptr, S, C,
+                            nn::LayerNormCache<T>{k.adaln_mean.data(), k.adaln_rstd.data()});
+  std::fill(d_x, d_x + S * C, T(0));
+  nn::layernorm_backward(d_last_layer ? d_x : static_cast<T*>(nullptr), g.token_norm_weight, g.token_norm_bias, d_tok,
+                         k.cam_in.data(), w.token_norm_weight, S, C,
+                         nn::LayerNormCache<T>{k.tok_mean.data(), k.tok_rstd.data()});
+  if (d_last_layer)
+    for (index_t s = 0; s < S; ++s)
+      for (index_t i = 0; i < C; ++i) d_last_layer[s * tokens * C + i] += d_x[s * C + i];
 }
 
 }  // namespace geometry

@@ -559,12 +559,8 @@ struct DptHeadGrads {
 
 namespace detail {
 template <class T>
-T* rebase_grad(const T* p, const T* params_base, T* grads_base) {
-  return p ? grads_base + (p - params_base) : nullptr;
-}
-template <class T>
 ConvGrads<T> rebase_conv_grads(const ConvWeights<T>& c, const T* params_base, T* grads_base) {
-  return {rebase_grad(c.weight, params_base, grads_base), rebase_grad(c.bias, params_base, grads_base)};
+  return {rebase_pointer(c.weight, params_base, grads_base), rebase_pointer(c.bias, params_base, grads_base)};
 }
 }  // namespace detail
 
@@ -574,12 +570,12 @@ template <class T>
 DptHeadGrads<T> dpt_head_grads(const DptHeadWeights<T>& w, const T* params_base, T* grads_base) {
   auto conv = [&](const ConvWeights<T>& c) { return detail::rebase_conv_grads(c, params_base, grads_base); };
   DptHeadGrads<T> g;
-  g.norm_weight = detail::rebase_grad(w.norm_weight, params_base, grads_base);
-  g.norm_bias = detail::rebase_grad(w.norm_bias, params_base, grads_base);
+  g.norm_weight = rebase_pointer(w.norm_weight, params_base, grads_base);
+  g.norm_bias = rebase_pointer(w.norm_bias, params_base, grads_base);
   for (int i = 0; i < 4; ++i) {
     g.projects[i] = conv(w.projects[i]);
     g.resize[i] = conv(w.resize[i]);
-    g.layer_rn[i] = detail::rebase_grad(w.layer_rn[i], params_base, grads_base);
+    g.layer_rn[i] = rebase_pointer(w.layer_rn[i], params_base, grads_base);
     const auto& fb = w.refinenet[i];
     auto& gb = g.refinenet[i];
     gb.unit1 = {conv(fb.unit1.conv1), conv(fb.unit1.conv2)};
