@@ -61,6 +61,27 @@ TEST_CASE("mse: gradient check with a weighted mask (both inputs)", "[loss][mse]
   }
 }
 
+TEST_CASE("l1: masked mean of absolute differences, gradient check", "[loss][l1][gradcheck]") {
+  const loss::ImageShape s{2, 3, 3, 4, loss::Layout::nhwc};
+  auto a = uniform(s.numel(), 10), b = uniform(s.numel(), 11), mask = uniform(s.pixels(), 12);
+  double direct = 0, msum = 0;
+  for (index_t n = 0; n < 2; ++n)
+    for (index_t y = 0; y < 3; ++y)
+      for (index_t x = 0; x < 4; ++x) {
+        const double m = mask[(n * 3 + y) * 4 + x];
+        msum += m;
+        for (index_t c = 0; c < 3; ++c) direct += m * std::abs(a[s.index(n, c, y, x)] - b[s.index(n, c, y, x)]);
+      }
+  CHECK(loss::l1_forward(a.data(), b.data(), mask.data(), s) == Approx(direct / (3 * msum)).epsilon(1e-14));
+  std::vector<double> da(a.size()), db(b.size());
+  const auto r = testing::check_gradients(
+      {{"pred", a, da}, {"target", b, db}}, 1,
+      [&](std::span<double> out) { out[0] = loss::l1_forward(a.data(), b.data(), mask.data(), s); },
+      [&](std::span<const double> d) { loss::l1_backward(da.data(), db.data(), d[0], a.data(), b.data(), mask.data(), s); });
+  INFO(r.summary());
+  CHECK(r.ok());
+}
+
 TEST_CASE("depth L1: confidence-weighted, confidence held constant, both depths differentiated", "[loss][depth][gradcheck]") {
   const index_t n = 40;
   auto r = uniform(n, 6, 1, 3), v = uniform(n, 7, 1, 3), u = uniform(n, 8, 1, 4), m = uniform(n, 9);

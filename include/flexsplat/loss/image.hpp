@@ -1,7 +1,8 @@
 #pragma once
-// Image losses of the FlexSplat objective with forward and backward: masked MSE (the lambda_E and lambda_D terms),
-// the confidence-weighted L1 between rendered and predicted depth, and PSNR (a metric, no backward). Backward adds
-// d_loss * dL/dx into the gradient buffers (+=); any gradient pointer may be null. Accumulation is in double.
+// Image losses with forward and backward: masked MSE (the FlexSplat objective's lambda_E and lambda_D terms), masked
+// L1 (per-scene fitting as 3DGS), the confidence-weighted L1 between rendered and predicted depth, and PSNR (a metric,
+// no backward). Backward adds d_loss * dL/dx into the gradient buffers (+=); any gradient pointer may be null.
+// Accumulation is in double.
 #include <cmath>
 #include <limits>
 
@@ -85,6 +86,48 @@ void mse_backward(T* d_pred, T* d_target, double d_loss, const T* pred, const T*
         for (index_t c = 0; c < s.channels; ++c) {
           const index_t i = s.index(n, c, y, x);
           const double g = scale * m * (static_cast<double>(pred[i]) - static_cast<double>(target[i]));
+          if (d_pred) d_pred[i] += static_cast<T>(g);
+          if (d_target) d_target[i] -= static_cast<T>(g);
+        }
+      }
+}
+
+// Mean of |pred - target| over pixels and channels with the same mask convention as mse_forward (3DGS's L1 term).
+template <class T>
+double l1_forward(const T* pred, const T* target, const T* mask, const ImageShape& s) {
+  s.validate("l1");
+  require(pred && target, "l1: null image");
+  const double weight = detail::mask_sum(mask, s.pixels(), "l1");
+  if (weight == 0) return 0.0;
+  double sum = 0;
+  for (index_t n = 0; n < s.batch; ++n)
+    for (index_t y = 0; y < s.height; ++y)
+      for (index_t x = 0; x < s.width; ++x) {
+        const double m = mask ? static_cast<double>(mask[(n * s.height + y) * s.width + x]) : 1.0;
+        for (index_t c = 0; c < s.channels; ++c) {
+          const index_t i = s.index(n, c, y, x);
+          sum += m * std::abs(static_cast<double>(pred[i]) - static_cast<double>(target[i]));
+        }
+      }
+  return sum / (weight * static_cast<double>(s.channels));
+}
+
+// Adds into d_pred and d_target (either may be null); sign(0) = 0.
+template <class T>
+void l1_backward(T* d_pred, T* d_target, double d_loss, const T* pred, const T* target, const T* mask,
+                 const ImageShape& s) {
+  s.validate("l1");
+  const double weight = detail::mask_sum(mask, s.pixels(), "l1");
+  if (weight == 0) return;
+  const double scale = d_loss / (weight * static_cast<double>(s.channels));
+  for (index_t n = 0; n < s.batch; ++n)
+    for (index_t y = 0; y < s.height; ++y)
+      for (index_t x = 0; x < s.width; ++x) {
+        const double m = mask ? static_cast<double>(mask[(n * s.height + y) * s.width + x]) : 1.0;
+        for (index_t c = 0; c < s.channels; ++c) {
+          const index_t i = s.index(n, c, y, x);
+          const double d = static_cast<double>(pred[i]) - static_cast<double>(target[i]);
+          const double g = scale * m * ((d > 0) - (d < 0));
           if (d_pred) d_pred[i] += static_cast<T>(g);
           if (d_target) d_target[i] -= static_cast<T>(g);
         }
