@@ -3,12 +3,15 @@
 // the per-call time of small products on one thread (where gemm_blas_min_madds comes from).
 // Usage: build/bench/gemm [max_size] [rounds]   (sizes 256, 512, ... up to max_size, default 2048; rounds default 3)
 // Backends and thread counts run interleaved, `rounds` times each, and the best time is kept: the machine is shared.
+#include <sys/resource.h>
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <random>
+#include <thread>
 #include <vector>
 
 #include "flexsplat/core/gemm.hpp"
@@ -129,6 +132,22 @@ int main(int argc, char** argv) {
     const double flops = 2.0 * double(M) * double(N) * double(K);
     std::printf("same product on OpenBLAS: gemm's split over the pool (2 x 1 thread) %.1f GFLOP/s, OpenBLAS's own 2 "
                 "threads %.1f GFLOP/s\n", flops / t_split * 1e-9, flops / t_own * 1e-9);
+    // What OpenBLAS's threads cost after a call returns: CPU time of this process while its caller sleeps 0.3 s.
+    auto cpu_seconds = [] {
+      rusage u{};
+      getrusage(RUSAGE_SELF, &u);
+      return double(u.ru_utime.tv_sec + u.ru_stime.tv_sec) + double(u.ru_utime.tv_usec + u.ru_stime.tv_usec) * 1e-6;
+    };
+    for (int threads : {2, 1}) {
+      openblas_set_num_threads(threads);
+      cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, 512, 512, 512, 1.0f, A.data(), 512, B.data(), 512, 0.0f,
+                  C.data(), 512);
+      const double c0 = cpu_seconds();
+      std::this_thread::sleep_for(std::chrono::milliseconds(300));
+      std::printf("CPU seconds the process used during a 0.3 s sleep after a 512^3 OpenBLAS call on %d thread%s: %.3f\n",
+                  threads, threads > 1 ? "s" : "", cpu_seconds() - c0);
+    }
+    openblas_set_num_threads(1);
   }
 #endif
 
