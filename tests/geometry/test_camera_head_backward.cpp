@@ -164,6 +164,17 @@ TEST_CASE("camera head training forward equals the inference forward bit for bit
   CHECK(std::memcmp(a.data(), b.data(), n * sizeof(float)) == 0);
   CHECK(std::memcmp(a.data(), c.data(), n * sizeof(float)) == 0);
   CHECK(std::memcmp(a.data(), d.data(), n * sizeof(float)) == 0);
+  for (bool re : {false, true}) {
+    const auto& k = re ? cache_re : cache;
+    std::size_t held = k.cam_in.size() + k.tok_mean.size() + k.tok_rstd.size() + k.tok.size() + k.adaln.size() +
+                       k.adaln_mean.size() + k.adaln_rstd.size() + k.enc_in.size() + k.embed_pre.size() + k.mod.size() +
+                       k.trunk_out.size() + k.trunk_mean.size() + k.trunk_rstd.size() + k.hidden_pre.size() + k.raw.size();
+    for (const auto& b : k.blocks)
+      held += b.x_in.size() + b.ln1_mean.size() + b.ln1_rstd.size() + b.qkv.size() + b.attended.size() + b.lse.size() +
+              b.proj_out.size() + b.x_mid.size() + b.ln2_mean.size() + b.ln2_rstd.size() + b.hidden.size() +
+              b.mlp_out.size();
+    CHECK(static_cast<index_t>(held) == camera_head_cache_elements(cfg, S, re));
+  }
   // Recomputed blocks give the same gradients bit for bit.
   const auto d_enc_d = camera_normal_values(n, 73);
   const std::vector<float> d_enc(d_enc_d.begin(), d_enc_d.end());

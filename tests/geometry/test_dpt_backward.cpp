@@ -3,6 +3,7 @@
 // the special tokens, and the training forward equal to the inference forward bit for bit.
 #include <catch2/catch.hpp>
 
+#include <cstring>
 #include <random>
 
 #include "flexsplat/geometry/dpt_head.hpp"
@@ -198,6 +199,12 @@ TEST_CASE("DPT head training forward equals the inference forward bit for bit", 
   const index_t Fh = cfg.head_features();
   const auto o = rig.outputs(b.data());
   CHECK(std::equal(cache.up.begin(), cache.up.end(), o.features, o.features + S * Fh * rig.full));
+  std::size_t held = cache.ln_mean.size() + cache.ln_rstd.size() + cache.fused.size() + cache.up.size() +
+                     cache.hidden.size() + cache.logits.size();
+  for (int i = 0; i < 4; ++i)
+    held += cache.proj[i].size() + cache.level[i].size() + cache.unit1_r[i].size() + cache.unit1_u[i].size() +
+            cache.unit2_r[i].size() + cache.unit2_u[i].size() + cache.block_out[i].size();
+  CHECK(static_cast<index_t>(held) == dpt_head_cache_elements(cfg, rig.ph, rig.pw, S));
 }
 
 TEST_CASE("DPT head backward rejects an empty or mismatched cache", "[dpt_head][backward]") {

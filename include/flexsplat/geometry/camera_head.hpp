@@ -215,6 +215,14 @@ struct CameraHeadCache {
   BlockBackwardScratch<T> block_scratch;
 };
 
+// Elements a CameraHeadCache holds after camera_head_forward_train on `frames` frames (grad_ws and the block
+// backward scratch, sized on the first backward, are not included).
+inline index_t camera_head_cache_elements(const CameraHeadConfig& c, index_t frames, bool recompute_blocks) {
+  const index_t C = c.dim, S = frames, E = pose_encoding_dim;
+  return S * (3 * C + 4) + c.iterations * S * (2 * E + 5 * C + 2 + c.branch_hidden()) +
+         c.iterations * c.trunk_depth * block_cache_elements(c.block(), S, recompute_blocks);
+}
+
 namespace detail {
 template <class T>
 void camera_head_run(T* pose_enc, const CameraHeadConfig& c, const CameraHeadWeights<T>& w, const T* last_layer,

@@ -1,5 +1,5 @@
 #pragma once
-// VGGT's DPT head as used for depth (vggt/heads/dpt_head.py at 44b3afb, feature_only = False), forward only.
+// VGGT's DPT head as used for depth (vggt/heads/dpt_head.py at 44b3afb, feature_only = False), forward and backward.
 // Per frame: four aggregator block outputs -> LayerNorm -> 1x1 "projects" (+ uv sin/cos embedding) -> resize layers
 // (4x and 2x transposed convs, identity, stride-2 conv) -> 3x3 "layer_rn" convs -> four fusion blocks (refinenet4 ..
 // refinenet1) -> output_conv1 -> bilinear (align_corners) upsampling to patch_h*patch x patch_w*patch (+ embedding)
@@ -604,6 +604,18 @@ struct DptHeadCache {
   std::vector<T> logits;                    // [frames, output_dim, OH, OW] before the activations
   std::vector<T> grad_ws;                   // dpt_head_backward's buffers
 };
+
+// Elements a DptHeadCache holds after dpt_head_forward_train on `frames` frames of a patch_h x patch_w grid (the
+// activations kept for backward; grad_ws, sized on the first backward, is not included).
+inline index_t dpt_head_cache_elements(const DptHeadConfig& cfg, index_t patch_h, index_t patch_w, index_t frames) {
+  const DptGeometry g(patch_h, patch_w, cfg.patch_size);
+  const index_t P = patch_h * patch_w, F = cfg.features, full = g.out_h * g.out_w;
+  const auto& oc = cfg.out_channels;
+  index_t n = 8 * P + (oc[0] + oc[1] + oc[3]) * P;
+  for (int i = 0; i < 4; ++i) n += oc[i] * g.level_size(i) + (i == 3 ? 3 : 5) * F * g.level_size(i);
+  n += F * g.fused_h * g.fused_w + (cfg.head_features() + DptHeadConfig::head_hidden + cfg.output_dim) * full;
+  return frames * n;
+}
 
 namespace detail {
 template <class T>
