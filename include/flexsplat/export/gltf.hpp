@@ -459,6 +459,22 @@ inline GaussianSet<float> decode_glb(const unsigned char* data, std::size_t size
           " (truncated or padded)");
   tinygltf::Model model;
   tinygltf::TinyGLTF io;
+  // A .glb is self-contained: images (unused here) stay undecoded bytes rather than going through stb, and a uri
+  // naming a file is refused rather than opened.
+  io.SetImageLoader([](tinygltf::Image*, const int, std::string*, std::string*, int, int, const unsigned char*, int,
+                       void*) { return true; },
+                    nullptr);
+  tinygltf::FsCallbacks no_files{};
+  no_files.FileExists = [](const std::string&, void*) { return false; };
+  no_files.ExpandFilePath = [](const std::string& path, void*) { return path; };
+  no_files.ReadWholeFile = [](std::vector<unsigned char>*, std::string* err, const std::string& path, void*) {
+    if (err) *err += "external file '" + path + "' is not read from a .glb\n";
+    return false;
+  };
+  no_files.WriteWholeFile = [](std::string*, const std::string&, const std::vector<unsigned char>&, void*) {
+    return false;
+  };
+  io.SetFsCallbacks(no_files);
   std::string err, warn;
   const bool ok = io.LoadBinaryFromMemory(&model, &err, &warn, data, static_cast<unsigned int>(size), "");
   require(ok, source, ": invalid glb: ", err.empty() ? warn : err);

@@ -217,10 +217,15 @@ inline GaussianSet<float> decode_ply(const unsigned char* data, std::size_t size
   }
 
   const std::size_t n = static_cast<std::size_t>(vertex_count);
-  std::vector<double> raw(n * columns.size());
-  if (format == "binary_little_endian") {
+  // The count is checked against the body before allocating for it: an ASCII value takes at least two characters.
+  if (format == "binary_little_endian")
     require(row > 0 && n <= (size - body) / row, source, ": PLY declares ", n, " vertices of ", row,
             " bytes but the body holds ", size - body, " bytes (truncated or wrong count)");
+  else
+    require(n <= (size - body + 1) / (2 * props.size()), source, ": ASCII PLY declares ", n, " vertices of ",
+            props.size(), " values but the body holds only ", size - body, " bytes (truncated or wrong count)");
+  std::vector<double> raw(n * columns.size());
+  if (format == "binary_little_endian") {
     for (std::size_t i = 0; i < n; ++i)
       for (std::size_t c = 0; c < columns.size(); ++c)
         raw[i * columns.size() + c] = load_le(columns[c]->type, data + body + i * row + columns[c]->offset);

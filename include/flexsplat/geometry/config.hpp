@@ -1,6 +1,8 @@
 #pragma once
 // Hyper-parameters of the VGGT geometry trunk (DINOv2 patch embedder + alternating frame/global aggregator).
 // Defaults are VGGT-1B; a reference bundle's `config` metadata JSON can be read into it.
+#include <cmath>
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -87,11 +89,37 @@ struct AggregatorConfig {
   }
 };
 
+// Every number a VGGT config JSON may hold, checked before any is converted: nlohmann's get<index_t> of 1e300 is
+// undefined behaviour, and sizes beyond 2^20 (or ratios beyond 2^10) would overflow the products taken from them.
+inline void check_vggt_config_numbers(const nlohmann::json& j) {
+  if (!j.is_object()) return;
+  constexpr std::int64_t max_size = std::int64_t(1) << 20;
+  auto check_integer = [&](const std::string& key, const nlohmann::json& v) {
+    const bool ok = v.is_number_unsigned() ? v.get<std::uint64_t>() <= std::uint64_t(max_size)
+                    : v.is_number_integer() ? std::abs(v.get<std::int64_t>()) <= max_size
+                                            : false;
+    require(ok, "VGGT config: '", key, "' = ", v.dump(), " is not an integer in [-", max_size, ", ", max_size, "]");
+  };
+  for (const char* key : {"img_size", "patch_size", "embed_dim", "depth", "num_heads", "num_register_tokens",
+                          "aa_block_size", "dino_depth", "dino_heads", "trunk_depth", "cam_heads", "features"})
+    if (j.contains(key)) check_integer(key, j.at(key));
+  for (const char* key : {"out_channels", "intermediate_layer_idx"})
+    if (j.contains(key) && j.at(key).is_array())
+      for (const auto& v : j.at(key)) check_integer(key, v);
+  for (const char* key : {"mlp_ratio", "dino_mlp_ratio", "rope_freq", "init_values"})
+    if (j.contains(key)) {
+      const auto& v = j.at(key);
+      require(v.is_number() && std::abs(v.get<double>()) <= 1024.0, "VGGT config: '", key, "' = ", v.dump(),
+              " is not a number in [-1024, 1024]");
+    }
+}
+
 // Reads the trunk part of a bundle's config JSON (keys as in the reference README: img_size, patch_size, embed_dim,
 // depth, num_heads, dino_depth, dino_heads; optional mlp_ratio, num_register_tokens, qk_norm, rope_freq,
 // init_values, aa_block_size, aa_order). Absent keys keep VGGT-1B's values.
 inline AggregatorConfig aggregator_config_from_json(const nlohmann::json& j) {
   AggregatorConfig c;
+  check_vggt_config_numbers(j);
   try {
     require(j.is_object(), "config is not a JSON object");
     auto get_int = [&](const char* key, index_t& v) {

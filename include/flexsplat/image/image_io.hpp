@@ -37,6 +37,9 @@ struct ImageInfo {
   int bit_depth = 8;  // 16 only for 16-bit PNG
 };
 
+// Images with more pixels than this are refused before decoding: a 100-byte file can declare 16384 x 16384.
+inline constexpr std::int64_t max_image_pixels = std::int64_t(1) << 26;
+
 namespace detail {
 
 template <class... Parts>
@@ -59,7 +62,71 @@ inline std::vector<unsigned char> read_file_bytes(const std::filesystem::path& p
   return bytes;
 }
 
+// stb 2.27 (Debian 12) writes past a JPEG Huffman table whose 16 code counts sum above 256, before it checks the
+// segment: such tables are refused here. Marker segments are walked as stb reads them (entropy-coded data is
+// scanned for the next marker byte by byte).
+inline void check_jpeg_huffman_tables(const std::filesystem::path& path, const unsigned char* p, std::size_t n) {
+  auto byte = [&](std::size_t i) -> std::size_t { return i < n ? p[i] : 0; };  // stb reads 0 past the end
+  std::size_t pos = 2;
+  while (pos + 4 <= n) {
+    const std::size_t marker = p[pos + 1];
+    if (p[pos] != 0xFF || marker == 0xFF || marker == 0x00 || marker == 0x01 || (marker >= 0xD0 && marker <= 0xD7)) {
+      ++pos;
+      continue;
+    }
+    if (marker == 0xD9) return;
+    const std::size_t length = (std::size_t(p[pos + 2]) << 8) | p[pos + 3];
+    if (marker == 0xC4) {
+      std::size_t q = pos + 4;
+      for (long left = static_cast<long>(length) - 2; left > 0;) {
+        std::size_t codes = 0;
+        for (std::size_t i = 1; i <= 16; ++i) codes += byte(q + i);
+        if (codes > 256)
+          image_error(path, "JPEG Huffman table at byte ", q, " declares ", codes, " codes (at most 256)");
+        q += 17 + codes;
+        left -= static_cast<long>(17 + codes);
+      }
+    }
+    pos += 2 + length;
+  }
+}
+
+// Refused before stb runs: anything but PNG and JPEG (stb would also decode GIF, PSD, BMP, TGA, HDR, PIC and PNM),
+// PNG chunks longer than the rest of the file (stb grows its IDAT buffer to a chunk's declared length before
+// reading it), the JPEG tables above, and declared sizes beyond max_image_pixels.
+inline void check_declared_size(const std::filesystem::path& path, const std::vector<unsigned char>& bytes) {
+  const unsigned char* p = bytes.data();
+  const std::size_t n = bytes.size();
+  static const unsigned char png_magic[8] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
+  const bool jpeg = n >= 3 && p[0] == 0xFF && p[1] == 0xD8 && p[2] == 0xFF;
+  if (n >= 8 && std::memcmp(p, png_magic, 8) == 0) {
+    for (std::size_t pos = 8; pos + 8 <= n;) {
+      const std::uint64_t len = (std::uint64_t(p[pos]) << 24) | (std::uint64_t(p[pos + 1]) << 16) |
+                                (std::uint64_t(p[pos + 2]) << 8) | std::uint64_t(p[pos + 3]);
+      if (len + 12 > n - pos)
+        image_error(path, "PNG chunk at byte ", pos, " declares ", len, " bytes, past the end of the file (", n,
+                    " bytes)");
+      if (std::memcmp(p + pos + 4, "IEND", 4) == 0) break;
+      pos += 12 + len;
+    }
+  } else if (jpeg) {
+    check_jpeg_huffman_tables(path, p, n);
+  } else {
+    image_error(path, "cannot decode: not a readable PNG/JPEG image (no PNG signature or JPEG SOI marker)");
+  }
+  int w = 0, h = 0, c = 0;
+  if (!stbi_info_from_memory(p, static_cast<int>(n), &w, &h, &c)) return;  // stb names the problem when decoding
+  const std::int64_t pixels = static_cast<std::int64_t>(w) * h;
+  if (pixels > max_image_pixels)
+    image_error(path, "declares ", w, " x ", h, " pixels, more than the limit of ", max_image_pixels);
+  // Every 8x8 block of a JPEG costs at least one bit (its DC code): a file with under 1 byte per 1024 pixels is
+  // mostly missing, and stb would spend seconds decoding the missing blocks from padding.
+  if (jpeg && pixels > 1024 * static_cast<std::int64_t>(n))
+    image_error(path, "JPEG declares ", w, " x ", h, " pixels but holds only ", n, " bytes (truncated?)");
+}
+
 inline ImageInfo probe_bytes(const std::filesystem::path& path, const std::vector<unsigned char>& bytes) {
+  check_declared_size(path, bytes);
   ImageInfo info;
   const int len = static_cast<int>(bytes.size());
   if (!stbi_info_from_memory(bytes.data(), len, &info.width, &info.height, &info.channels))
@@ -76,6 +143,7 @@ inline void check_channels(const std::filesystem::path& path, int channels) {
 template <class S>
 Tensor<S, 3> decode(const std::filesystem::path& path, const std::vector<unsigned char>& bytes, int channels) {
   check_channels(path, channels);
+  check_declared_size(path, bytes);
   int w = 0, h = 0, stored = 0;
   S* pixels = nullptr;
   if constexpr (std::is_same_v<S, std::uint8_t>)

@@ -131,6 +131,20 @@ public:
     return f;
   }
 
+  // The same validation on an in-memory copy of a file's bytes; `source` names it in errors.
+  static File from_bytes(const void* data, std::size_t size, const std::string& source) {
+    File f;
+    f.path_ = source;
+    f.size_ = size;
+    if (size > 0) {
+      std::shared_ptr<std::uint8_t[]> copy(new std::uint8_t[size]);
+      std::memcpy(copy.get(), data, size);
+      f.map_ = std::shared_ptr<void>(copy, copy.get());
+    }
+    f.parse();
+    return f;
+  }
+
   const std::string& path() const noexcept { return path_; }
   const std::map<std::string, std::string>& metadata() const noexcept { return metadata_; }
   std::string metadata(const std::string& key) const {

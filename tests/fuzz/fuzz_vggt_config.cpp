@@ -1,0 +1,16 @@
+// libFuzzer harness: geometry::vggt_config_from_json (trunk, camera head and DPT head keys) on arbitrary bytes.
+#include <cstddef>
+#include <cstdint>
+#include <string>
+
+#include "flexsplat/geometry/config.hpp"
+
+extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+  using namespace flexsplat;
+  const std::string text(reinterpret_cast<const char*>(data), size);
+  try {
+    (void)geometry::vggt_config_from_json(text);
+  } catch (const Error&) {
+  }
+  return 0;
+}
