@@ -36,7 +36,8 @@ inline constexpr bool have_blas = false;
 #endif
 
 // Products below this many multiply-adds stay on Eigen even with a BLAS: there a CBLAS call's fixed cost loses to
-// Eigen's inlined kernels (bench/gemm's small-shape table: Eigen faster at 8^3, OpenBLAS from 12^3 = 1728 on).
+// Eigen's inlined kernels (bench/gemm's small-shape table: Eigen 2-4x faster at 4^3, even at 8^3 = 512, OpenBLAS
+// faster from 12^3 = 1728 on).
 inline constexpr index_t gemm_blas_min_madds = index_t(1) << 10;
 
 // The BLAS when the build has one, Eigen otherwise; FLEXSPLAT_GEMM=eigen|blas overrides it (read once).
