@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <type_traits>
 #include <vector>
 
 #include <glm/glm.hpp>
@@ -185,9 +186,15 @@ inline void render_mesh(const Mesh& mesh, const Camera& cam, const RenderOptions
   const std::size_t pixels = static_cast<std::size_t>(W) * static_cast<std::size_t>(H);
   ws.zbuffer.assign(pixels * S, std::numeric_limits<float>::infinity());
   ws.ids.assign(pixels * S, -1);
-  out.rgba = Tensor<float, 3>(Shape<3>{H, W, 4});
-  out.depth = Tensor<float, 2>(Shape<2>{H, W});
-  if (options.normals) out.normals = Tensor<float, 3>(Shape<3>{H, W, 3});
+  // Reuse the caller's buffers when the size matches: fresh multi-megabyte allocations cost more in page faults
+  // than the rendering itself.
+  auto reset = [](auto& tensor, const auto& shape) {
+    if (tensor.shape() == shape) tensor.fill(0.0f);
+    else tensor = std::remove_reference_t<decltype(tensor)>(shape);
+  };
+  reset(out.rgba, Shape<3>{H, W, 4});
+  reset(out.depth, Shape<2>{H, W});
+  if (options.normals) reset(out.normals, Shape<3>{H, W, 3});
   const float inv_samples = 1.0f / static_cast<float>(s * s);
 
   parallel_for(H, [&](index_t row_begin, index_t row_end, int) {
@@ -196,8 +203,19 @@ inline void render_mesh(const Mesh& mesh, const Camera& cam, const RenderOptions
       const auto& tri = ws.triangles[ti];
       const int y0 = std::max<int>(tri.y0, static_cast<int>(row_begin));
       const int y1 = std::min<int>(tri.y1, static_cast<int>(row_end) - 1);
-      for (int py = y0; py <= y1; ++py)
-        for (int px = tri.x0; px <= tri.x1; ++px) {
+      for (int py = y0; py <= y1; ++py) {
+        // Conservative column span of the triangle in this pixel row (one pixel of margin against rounding): the
+        // exact per-sample tests below decide coverage, the span only skips pixels no edge test could accept.
+        double lo = tri.x0, hi = tri.x1;
+        for (const auto& e : tri.edges) {
+          const double a = -e.sign * e.dy, b = e.sign * e.dx, c = e.sign * (e.dy * e.bx - e.dx * e.by);
+          const double rest = (b > 0 ? b * (py + 1) : b * py) + c;  // max over the row of b * y + c
+          if (a > 0) lo = std::max(lo, std::floor(-rest / a) - 2);
+          else if (a < 0) hi = std::min(hi, std::floor(rest / -a) + 1);
+          else if (rest < 0) hi = lo - 1;
+        }
+        if (!(lo <= hi)) continue;
+        for (int px = static_cast<int>(lo); px <= static_cast<int>(hi); ++px) {
           const std::size_t base = (static_cast<std::size_t>(py) * W + px) * S;
           for (int k = 0; k < S; ++k) {
             const double sx = px + ws.sample_offsets[k].x, sy = py + ws.sample_offsets[k].y;
@@ -215,6 +233,7 @@ inline void render_mesh(const Mesh& mesh, const Camera& cam, const RenderOptions
             }
           }
         }
+      }
     }
     // Resolve: shade each covered sample, average; depth and normal from the centre sample.
     for (index_t py = row_begin; py < row_end; ++py)
