@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <filesystem>
+#include <limits>
 #include <random>
 #include <string>
 #include <vector>
@@ -129,13 +130,19 @@ TEST_CASE("lpips reuse_in1 (a fixed target) gives the same values and gradients 
                     Catch::Contains("reuse_in1 needs a previous call"));
 }
 
-TEST_CASE("lpips rejects images below 16x16 and lists every missing or mis-shaped weight", "[loss][lpips]") {
+TEST_CASE("lpips rejects images below 16x16 and non-finite pixels, and lists every missing or mis-shaped weight", "[loss][lpips]") {
   TinyLpips m;
   loss::LpipsCache<double> cache;
   std::vector<double> img(3 * 15 * 40), out(1);
   CHECK_THROWS_WITH(loss::lpips_forward(out.data(), static_cast<double*>(nullptr), img.data(), img.data(), 1, 15, 40,
                                         m.weights.params.data(), m.weights.layout, cache),
                     Catch::Contains("15x40"));
+  img.assign(3 * 16 * 16, 0.25);
+  img[2 * 256 + 16 * 5 + 7] = std::numeric_limits<double>::quiet_NaN();
+  const std::vector<double> ok(img.size(), 0.5);
+  CHECK_THROWS_WITH(loss::lpips_forward(out.data(), static_cast<double*>(nullptr), ok.data(), img.data(), 1, 16, 16,
+                                        m.weights.params.data(), m.weights.layout, cache),
+                    Catch::Contains("in1 image 0 channel 2 pixel (7, 5) is nan"));
   // A file with a narrow slice1 but the wrong lin0 width, and no slice5.28 at all.
   const auto path = std::filesystem::temp_directory_path() / "flexsplat_test_lpips_bad.safetensors";
   safetensors::Writer writer;

@@ -259,6 +259,9 @@ void lpips_forward(T* lpips, T* per_layer, const T* in0, const T* in1, index_t b
             "lpips_forward: reuse_in1 needs a previous call with this cache on the same batch, size (", batch, "x", height,
             "x", width, "), input range and layout");
   cache.holds_in1 = false;
+  for (index_t c = 0; c < 3; ++c)
+    require(std::isfinite(static_cast<double>(params[L.scale + c])) && params[L.scale + c] != T(0),
+            "lpips: scaling_layer.scale[", c, "] is ", static_cast<double>(params[L.scale + c]));
   const index_t images = 2 * batch, hw = height * width;
   cache.batch = batch, cache.height = height, cache.width = width, cache.unit_input = unit_input;
   index_t h = height, w = width;
@@ -303,6 +306,9 @@ void lpips_forward(T* lpips, T* per_layer, const T* in0, const T* in1, index_t b
       const T shift = params[L.shift + c], inv_scale = T(1) / params[L.scale + c];
       for (index_t p = 0; p < hw; ++p) {
         const T v = unit_input ? T(2) * src[c * hw + p] - T(1) : src[c * hw + p];
+        if (!std::isfinite(v))
+          fail("lpips_forward: in", i < batch ? 0 : 1, " image ", i < batch ? i : i - batch, " channel ", c, " pixel (",
+               p % width, ", ", p / width, ") is ", static_cast<double>(src[c * hw + p]));
         x[c * hw + p] = (v - shift) * inv_scale;
       }
     }
