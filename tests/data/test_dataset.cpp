@@ -149,11 +149,14 @@ TEST_CASE("make_dataset writes folders the reader loads back, and resumes", "[da
     CHECK(depth_err <= 0.5 * kDepthPngScale + 1e-6);
     CHECK(rgba_err <= 0.5 / 255 + 1e-6);
   }
-  // Rerun: both complete objects are skipped; one more is added.
+  // Rerun: both complete objects are skipped; one more is added; an interrupted object's leftovers are removed.
+  fs::create_directories(dir.path / ".tmp_obj_000002_12345/images");
   opt.count = 3;
   const MakeDataReport second = make_dataset(dir.path, opt);
   CHECK(second.skipped == 2);
   CHECK(second.written == 1);
+  CHECK_FALSE(fs::exists(dir.path / ".tmp_obj_000002_12345"));
+  CHECK(load_objects({dir.path}).size() == 3);
   opt.generator.size = 64;
   CHECK_THROWS_WITH(make_dataset(dir.path, opt), Catch::Contains("make_data.json") && Catch::Contains("different settings"));
 }

@@ -253,6 +253,9 @@ inline MakeDataReport make_dataset(const std::filesystem::path& out, const MakeD
   } else {
     detail::write_text_atomic(manifest, settings.dump(1) + "\n");
   }
+  // Leftovers of interrupted runs: their objects are regenerated below.
+  for (const auto& entry : fs::directory_iterator(out))
+    if (entry.is_directory() && entry.path().filename().string().rfind(".tmp_obj_", 0) == 0) fs::remove_all(entry.path(), ec);
   MakeDataReport report;
   for (int i = 0; i < options.count; ++i) {
     const fs::path dir = out / object_folder_name(static_cast<std::uint64_t>(i));
