@@ -9,6 +9,7 @@
 #include "flexsplat/export/cameras_json.hpp"
 #include "flexsplat/export/gltf.hpp"
 #include "flexsplat/export/render_set.hpp"
+#include "flexsplat/image/image_io.hpp"
 
 using namespace flexsplat;
 
@@ -49,7 +50,7 @@ int main(int argc, char** argv) {
     raster::RenderWorkspace<float> ws;
     raster::RenderOutputs<float> out;
     gaussians::render_set(set, camera, options, ws, out);
-    gaussians::write_png(dir / "reference.png", out.image);
+    image::write_png(dir / "reference.png", out.image);
     std::printf("%s: %lld Gaussians, camera %dx%d; reference.png written\n", (dir / "scene.glb").string().c_str(),
                 static_cast<long long>(n), camera.width, camera.height);
     return 0;

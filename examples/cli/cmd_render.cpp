@@ -5,6 +5,7 @@
 #include "flexsplat/export/cameras_json.hpp"
 #include "flexsplat/export/file.hpp"
 #include "flexsplat/export/render_set.hpp"
+#include "flexsplat/image/image_io.hpp"
 #include "registry.hpp"
 
 namespace flexsplat::cli {
@@ -53,7 +54,16 @@ int render(Args args) {
       path = base.parent_path() / (base.stem().string() + suffix + base.extension().string());
     }
     gaussians::render_set(set, cameras[i], options, workspace, out);
-    gaussians::write_png(path, out.image, rgba ? &out.alpha : nullptr);
+    if (rgba) {
+      Tensor<float, 3> with_alpha({out.image.shape(0), out.image.shape(1), 4});
+      for (index_t p = 0; p < out.alpha.size(); ++p) {
+        for (int c = 0; c < 3; ++c) with_alpha.data()[4 * p + c] = out.image.data()[3 * p + c];
+        with_alpha.data()[4 * p + 3] = out.alpha.data()[p];
+      }
+      image::write_png(path, with_alpha);
+    } else {
+      image::write_png(path, out.image);
+    }
     std::printf("%s: %dx%d from camera '%s'\n", path.string().c_str(), cameras[i].width, cameras[i].height,
                 cameras[i].name.c_str());
   }

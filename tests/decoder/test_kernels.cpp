@@ -7,6 +7,7 @@
 #include "decoder_test_util.hpp"
 #include "flexsplat/decoder/deform_core.hpp"
 #include "flexsplat/decoder/kernels.hpp"
+#include "flexsplat/decoder/morton.hpp"
 #include "flexsplat/nn/attention.hpp"
 
 using namespace flexsplat;
@@ -22,35 +23,6 @@ double rel_diff(const std::vector<T>& a, const std::vector<T>& b, double floor =
     ref = std::max(ref, std::abs(static_cast<double>(b[i])));
   }
   return err / ref;
-}
-
-// Values spanning the GELU regimes (deep negative, around zero, large positive), not a multiple of any batch width.
-template <class T>
-std::vector<T> gelu_inputs() {
-  auto v = cast_vector<T>(random_uniform(1001, 91, -9.0, 9.0));
-  v[0] = T(0), v[1] = T(-30), v[2] = T(30), v[3] = T(1e-6);
-  return v;
-}
-
-template <class T>
-void check_gelu_paths(double tol) {
-  const auto x = gelu_inputs<T>();
-  std::vector<T> simd_out(x.size()), scalar_out(x.size());
-  k::gelu_forward_impl<T, true>(simd_out.data(), x.data(), static_cast<index_t>(x.size()));
-  k::gelu_forward_impl<T, false>(scalar_out.data(), x.data(), static_cast<index_t>(x.size()));
-  for (std::size_t i = 0; i < x.size(); ++i)
-    REQUIRE(static_cast<double>(simd_out[i]) == Approx(static_cast<double>(scalar_out[i])).epsilon(tol).margin(tol));
-  const auto g = cast_vector<T>(random_normal(x.size(), 92));
-  std::vector<T> simd_d(x.size(), T(0.5)), scalar_d(x.size(), T(0.5));  // backward adds
-  k::gelu_backward_impl<T, true>(simd_d.data(), g.data(), x.data(), static_cast<index_t>(x.size()));
-  k::gelu_backward_impl<T, false>(scalar_d.data(), g.data(), x.data(), static_cast<index_t>(x.size()));
-  for (std::size_t i = 0; i < x.size(); ++i)
-    REQUIRE(static_cast<double>(simd_d[i]) == Approx(static_cast<double>(scalar_d[i])).epsilon(tol).margin(tol));
-  // The scalar path is the definition: 0.5 x (1 + erf(x / sqrt 2)).
-  for (std::size_t i = 0; i < x.size(); ++i) {
-    const double xd = static_cast<double>(x[i]);
-    REQUIRE(static_cast<double>(scalar_out[i]) == Approx(0.5 * xd * (1 + std::erf(xd / std::sqrt(2.0)))).epsilon(tol).margin(tol));
-  }
 }
 
 struct WindowCase {
@@ -75,11 +47,6 @@ void run_window(const WindowCase& c, std::vector<T>& out, std::vector<T>& lse, s
                                               scratch);
 }
 }  // namespace
-
-TEST_CASE("GELU: SIMD and scalar paths agree (float and double)", "[decoder][kernels][simd]") {
-  check_gelu_paths<float>(2e-6);
-  check_gelu_paths<double>(1e-13);
-}
 
 TEST_CASE("softmax with log-sum-exp: SIMD and scalar paths agree and sum to one", "[decoder][kernels][simd]") {
   for (index_t n : {1, 3, 16, 17, 100}) {
@@ -191,20 +158,22 @@ TEST_CASE("deform_core: SIMD and scalar paths agree and the visiting order chang
   CHECK(rel_diff(o1, cast_vector<float>(od2)) < 1e-5);
 }
 
-TEST_CASE("radix sort equals a stable sort by key", "[decoder][kernels]") {
+TEST_CASE("radix sort equals a stable sort by key, for Morton items", "[decoder][kernels]") {
   const index_t n = 5000;
   std::mt19937 rng(7);
-  std::vector<std::uint32_t> keys(n), tmp(n);
-  for (auto& key : keys) {
+  std::vector<decoder::MortonKey> items(n), scratch(n);
+  for (index_t i = 0; i < n; ++i) {
     const std::uint32_t r = rng();
-    key = (r % 3 ? r >> 2 & 0x3ffu : r >> 2 & 0x3fffffffu);  // mostly small keys: many ties
+    items[i] = {r % 3 ? r >> 2 & 0x3ffu : r >> 2 & 0x3fffffffu, std::uint32_t(i)};  // mostly small keys: many ties
   }
-  std::vector<index_t> expect(n), order(n), order_tmp(n);
-  std::iota(expect.begin(), expect.end(), index_t{0});
-  std::stable_sort(expect.begin(), expect.end(), [&](index_t a, index_t b) { return keys[a] < keys[b]; });
-  auto clobbered = keys;
-  k::radix_sort_30(order.data(), clobbered.data(), n, tmp.data(), order_tmp.data());
-  CHECK(order == expect);
+  auto expect = items;
+  std::stable_sort(expect.begin(), expect.end(), [](const auto& a, const auto& b) { return a.code < b.code; });
+  const decoder::MortonKey* sorted =
+      radix_sort(items.data(), n, scratch.data(), items.data(), [](const decoder::MortonKey& k) { return k.code; });
+  for (index_t i = 0; i < n; ++i) {
+    REQUIRE(sorted[i].code == expect[i].code);
+    REQUIRE(sorted[i].index == expect[i].index);
+  }
 }
 
 TEST_CASE("window attention rejects bad shapes and short scratch", "[decoder][kernels]") {

@@ -1,10 +1,60 @@
 #include <catch2/catch.hpp>
 
+#include <cmath>
+#include <random>
+#include <vector>
+
 #include "flexsplat/nn/activations.hpp"
 #include "flexsplat/testing/gradcheck.hpp"
 #include "nn_test_util.hpp"
 
 using namespace flexsplat;
+
+namespace {
+template <class T>
+std::vector<T> uniform_vector(std::size_t n, unsigned seed, double lo, double hi) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> uniform(lo, hi);
+  std::vector<T> v(n);
+  for (auto& x : v) x = T(uniform(rng));
+  return v;
+}
+
+// Values spanning the GELU regimes (deep negative, around zero, large positive), not a multiple of any batch width.
+template <class T>
+std::vector<T> gelu_inputs() {
+  auto v = uniform_vector<T>(1001, 91, -9.0, 9.0);
+  v[0] = T(0), v[1] = T(-30), v[2] = T(30), v[3] = T(1e-6);
+  return v;
+}
+
+template <class T>
+void check_gelu_paths(double tol) {
+  const auto x = gelu_inputs<T>();
+  std::vector<T> simd_out(x.size()), scalar_out(x.size());
+  nn::gelu_forward_impl<T, true>(simd_out.data(), x.data(), static_cast<index_t>(x.size()));
+  nn::gelu_forward_impl<T, false>(scalar_out.data(), x.data(), static_cast<index_t>(x.size()));
+  for (std::size_t i = 0; i < x.size(); ++i)
+    REQUIRE(static_cast<double>(simd_out[i]) == Approx(static_cast<double>(scalar_out[i])).epsilon(tol).margin(tol));
+  const auto g = uniform_vector<T>(x.size(), 92, -3.0, 3.0);
+  std::vector<T> simd_d(x.size(), T(0.5)), scalar_d(x.size(), T(0.5));  // backward adds
+  nn::gelu_backward_impl<T, true>(simd_d.data(), g.data(), x.data(), static_cast<index_t>(x.size()));
+  nn::gelu_backward_impl<T, false>(scalar_d.data(), g.data(), x.data(), static_cast<index_t>(x.size()));
+  for (std::size_t i = 0; i < x.size(); ++i)
+    REQUIRE(static_cast<double>(simd_d[i]) == Approx(static_cast<double>(scalar_d[i])).epsilon(tol).margin(tol));
+  // The scalar path is the definition: 0.5 x (1 + erf(x / sqrt 2)).
+  for (std::size_t i = 0; i < x.size(); ++i) {
+    const double xd = static_cast<double>(x[i]);
+    REQUIRE(static_cast<double>(scalar_out[i]) == Approx(0.5 * xd * (1 + std::erf(xd / std::sqrt(2.0)))).epsilon(tol).margin(tol));
+  }
+}
+
+}  // namespace
+
+TEST_CASE("GELU: SIMD and scalar paths agree (float and double)", "[nn][activations][simd]") {
+  check_gelu_paths<float>(2e-6);
+  check_gelu_paths<double>(1e-13);
+}
 
 TEST_CASE("gelu and silu backward pass the float64 gradient check", "[nn][activations]") {
   auto x = random_vector(40, 7, 2.0);

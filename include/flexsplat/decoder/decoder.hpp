@@ -113,16 +113,6 @@ struct DecoderProfile {
                                                      "heads+gaussians"};
   double wall[part_count] = {}, cpu[part_count] = {};
   void clear() { *this = DecoderProfile{}; }
-  double total_wall() const {
-    double t = 0;
-    for (double w : wall) t += w;
-    return t;
-  }
-  double total_cpu() const {
-    double t = 0;
-    for (double c : cpu) t += c;
-    return t;
-  }
 };
 
 namespace detail {
@@ -266,10 +256,6 @@ template <class T>
 void add_inplace(T* out, const T* a, index_t n) {
   add(out, out, a, n);
 }
-template <class T>
-void gelu_parallel_forward(T* out, const T* in, index_t n) {
-  kernels::gelu_forward(out, in, n);
-}
 }  // namespace detail
 
 // Runs the decoder for n_queries Gaussians on fused features [V, value_dim, h, w] and the views' geometry.
@@ -325,7 +311,7 @@ void decoder_forward(DecoderWorkspace<T>& ws, index_t n_queries, const T* params
     {
       detail::ProfileScope t(prof, DecoderProfile::ffn);
       nn::linear_forward(k.hidden_pre.data(), k.x2.data(), params + o.ffn_w1, params + o.ffn_b1, n, C, c.ffn);
-      kernels::gelu_forward(k.hidden.data(), k.hidden_pre.data(), n * c.ffn);
+      nn::gelu_forward(k.hidden.data(), k.hidden_pre.data(), n * c.ffn);
       nn::linear_forward(k.r3.data(), k.hidden.data(), params + o.ffn_w2, params + o.ffn_b2, n, c.ffn, C);
     }
     {
@@ -389,7 +375,7 @@ void decoder_backward(T* d_params, T* d_features, const ViewGeometryGrad<T>& d_g
     nn::linear_backward(s.d_hidden.data(), d_params + o.ffn_w2, d_params + o.ffn_b2, s.d_r.data(), k.hidden.data(),
                         params + o.ffn_w2, n, c.ffn, C);
     zero(s.d_hidden_pre);
-    kernels::gelu_backward(s.d_hidden_pre.data(), s.d_hidden.data(), k.hidden_pre.data(), n * c.ffn);
+    nn::gelu_backward(s.d_hidden_pre.data(), s.d_hidden.data(), k.hidden_pre.data(), n * c.ffn);
     nn::linear_backward(s.d_tmp.data(), d_params + o.ffn_w1, d_params + o.ffn_b1, s.d_hidden_pre.data(), k.x2.data(),
                         params + o.ffn_w1, n, C, c.ffn);
     // x2 = LN2(x1 + SA(x1))

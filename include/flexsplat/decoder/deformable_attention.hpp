@@ -90,8 +90,8 @@ struct MVDeformCache {
   std::vector<T> locations;      // [N, heads, V, points, 2]
   std::vector<T> weights;        // [N, heads, V, points]
   std::vector<T> sampled;        // [N, dim]
-  std::vector<index_t> order, order_tmp;          // [N] queries along a Morton curve of their centres (cache locality)
-  std::vector<std::uint32_t> codes, codes_tmp;    // [N] sort keys
+  std::vector<index_t> order;                    // [N] queries along a Morton curve of their centres (cache locality)
+  std::vector<MortonKey> morton_keys, morton_scratch;  // [N] sort items
   DeformCoreLayout core;
   void resize(index_t n_queries, index_t n_views, index_t feat_h, index_t feat_w, const MVDeformConfig& c) {
     n = n_queries;
@@ -107,7 +107,7 @@ struct MVDeformCache {
     locations.resize(z * 2 * slots);
     weights.resize(z * slots);
     sampled.resize(z * static_cast<std::size_t>(c.dim));
-    order.resize(z), order_tmp.resize(z), codes.resize(z), codes_tmp.resize(z);
+    order.resize(z), morton_keys.resize(z), morton_scratch.resize(z);
     core.height.reserve(static_cast<std::size_t>(c.max_views));
     core.width.reserve(static_cast<std::size_t>(c.max_views));
     core.start.reserve(static_cast<std::size_t>(c.max_views));
@@ -115,7 +115,7 @@ struct MVDeformCache {
   std::size_t capacity_bytes() const {
     return (value.capacity() + offsets.capacity() + logits.capacity() + reference.capacity() + locations.capacity() +
             weights.capacity() + sampled.capacity()) * sizeof(T) + visible.capacity() + any_visible.capacity() +
-           (order.capacity() + order_tmp.capacity()) * sizeof(index_t) + (codes.capacity() + codes_tmp.capacity()) * 4 +
+           order.capacity() * sizeof(index_t) + (morton_keys.capacity() + morton_scratch.capacity()) * sizeof(MortonKey) +
            (core.height.capacity() + core.width.capacity() + core.start.capacity()) * sizeof(index_t);
   }
 };
@@ -222,7 +222,7 @@ void mv_deform_forward(T* out, MVDeformCache<T>& cache, const T* x, const T* cen
     }
   });
   set_deform_core_layout(cache.core, 1, n, H, c.dim / H, Pn, V, f.h, f.w);
-  morton_order(cache.order.data(), centres, n, cache.codes.data(), cache.codes_tmp.data(), cache.order_tmp.data());
+  morton_order(cache.order.data(), centres, n, cache.morton_keys.data(), cache.morton_scratch.data());
   deform_core_forward(cache.sampled.data(), cache.value.data(), cache.locations.data(), cache.weights.data(), cache.core,
                       global_pool(), cache.order.data());
   nn::linear_forward(out, cache.sampled.data(), params + P.out_w, params + P.out_b, n, c.dim, c.dim);

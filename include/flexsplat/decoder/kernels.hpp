@@ -1,9 +1,9 @@
 #pragma once
 // Hot kernels of the decoder, each with a scalar path (the reference) and a simd::batch path, chosen at run time by
 // simd::enabled(); the *_impl<T, Simd> templates are public so tests can run both paths in one process:
-//   GELU forward/backward, in-place softmax of a row returning its log-sum-exp, windowed self-attention (every
+//   in-place softmax of a row returning its log-sum-exp, windowed self-attention (every
 //   consecutive window of queries attends within itself; whole-window softmax, no online rescaling) forward/backward
-//   as small GEMMs per (window, head) on caller scratch, and a stable LSD radix sort of 30-bit keys.
+//   as small GEMMs per (window, head) on caller scratch.
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -21,72 +21,6 @@ namespace flexsplat {
 inline namespace v0 {
 namespace decoder {
 namespace kernels {
-
-// ---- GELU (exact erf form) ----
-
-template <class T, bool Simd>
-void gelu_forward_impl(T* out, const T* in, index_t n) {
-  constexpr T inv_sqrt2 = T(0.70710678118654752440);
-  index_t i = 0;
-  if constexpr (Simd) {
-    using B = simd::batch<T>;
-    constexpr index_t w = static_cast<index_t>(B::size);
-    const B half(T(0.5)), one(T(1)), k(inv_sqrt2);
-    for (; i + w <= n; i += w) {
-      const B x = B::load_unaligned(in + i);
-      (half * x * (one + xsimd::erf(x * k))).store_unaligned(out + i);
-    }
-  }
-  for (; i < n; ++i) out[i] = T(0.5) * in[i] * (T(1) + std::erf(in[i] * inv_sqrt2));
-}
-
-// d_in += d_out * (Phi(x) + x phi(x)).
-template <class T, bool Simd>
-void gelu_backward_impl(T* d_in, const T* d_out, const T* in, index_t n) {
-  constexpr T inv_sqrt2 = T(0.70710678118654752440);
-  constexpr T inv_sqrt_2pi = T(0.39894228040143267794);
-  index_t i = 0;
-  if constexpr (Simd) {
-    using B = simd::batch<T>;
-    constexpr index_t w = static_cast<index_t>(B::size);
-    const B half(T(0.5)), one(T(1)), k(inv_sqrt2), c(inv_sqrt_2pi), minus_half(T(-0.5));
-    for (; i + w <= n; i += w) {
-      const B x = B::load_unaligned(in + i);
-      const B cdf = half * (one + xsimd::erf(x * k));
-      const B pdf = c * xsimd::exp(minus_half * x * x);
-      xsimd::fma(B::load_unaligned(d_out + i), xsimd::fma(x, pdf, cdf), B::load_unaligned(d_in + i)).store_unaligned(d_in + i);
-    }
-  }
-  for (; i < n; ++i) {
-    const T x = in[i];
-    const T cdf = T(0.5) * (T(1) + std::erf(x * inv_sqrt2));
-    const T pdf = inv_sqrt_2pi * std::exp(T(-0.5) * x * x);
-    d_in[i] += d_out[i] * (cdf + x * pdf);
-  }
-}
-
-inline constexpr index_t elementwise_chunk = 4096;
-
-// Parallel over chunks of elementwise_chunk; out may alias in.
-template <class T>
-void gelu_forward(T* out, const T* in, index_t n, ThreadPool& pool = global_pool()) {
-  const bool vec = simd::enabled();
-  parallel_for((n + elementwise_chunk - 1) / elementwise_chunk, [&](index_t b0, index_t b1, int) {
-    const index_t i0 = b0 * elementwise_chunk, i1 = std::min(n, b1 * elementwise_chunk);
-    if (vec) gelu_forward_impl<T, true>(out + i0, in + i0, i1 - i0);
-    else gelu_forward_impl<T, false>(out + i0, in + i0, i1 - i0);
-  }, pool);
-}
-
-template <class T>
-void gelu_backward(T* d_in, const T* d_out, const T* in, index_t n, ThreadPool& pool = global_pool()) {
-  const bool vec = simd::enabled();
-  parallel_for((n + elementwise_chunk - 1) / elementwise_chunk, [&](index_t b0, index_t b1, int) {
-    const index_t i0 = b0 * elementwise_chunk, i1 = std::min(n, b1 * elementwise_chunk);
-    if (vec) gelu_backward_impl<T, true>(d_in + i0, d_out + i0, in + i0, i1 - i0);
-    else gelu_backward_impl<T, false>(d_in + i0, d_out + i0, in + i0, i1 - i0);
-  }, pool);
-}
 
 // ---- row softmax with log-sum-exp ----
 
@@ -262,33 +196,6 @@ void window_attention_backward(T* d_qkv, const T* d_out, const T* out, const T* 
                                ThreadPool& pool = global_pool()) {
   if (simd::enabled()) window_attention_backward_impl<T, true>(d_qkv, d_out, out, lse, qkv, s, scale, scratch, pool);
   else window_attention_backward_impl<T, false>(d_qkv, d_out, out, lse, qkv, s, scale, scratch, pool);
-}
-
-// ---- stable radix sort ----
-
-// order[0..n) <- indices sorted by key (30-bit keys, ties keep index order); keys_tmp [n], order_tmp [n] scratch.
-// keys is clobbered.
-inline void radix_sort_30(index_t* order, std::uint32_t* keys, index_t n, std::uint32_t* keys_tmp, index_t* order_tmp) {
-  for (index_t i = 0; i < n; ++i) order[i] = i;
-  index_t count[1024];
-  for (int pass = 0; pass < 3; ++pass) {
-    const int shift = 10 * pass;
-    std::fill(count, count + 1024, index_t{0});
-    for (index_t i = 0; i < n; ++i) ++count[(keys[i] >> shift) & 1023u];
-    index_t at = 0;
-    for (index_t& c : count) {
-      const index_t k = c;
-      c = at;
-      at += k;
-    }
-    for (index_t i = 0; i < n; ++i) {
-      const index_t dst = count[(keys[i] >> shift) & 1023u]++;
-      keys_tmp[dst] = keys[i];
-      order_tmp[dst] = order[i];
-    }
-    std::copy(keys_tmp, keys_tmp + n, keys);
-    std::copy(order_tmp, order_tmp + n, order);
-  }
 }
 
 }  // namespace kernels

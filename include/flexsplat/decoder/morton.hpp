@@ -5,20 +5,29 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <vector>
 
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/core/radix_sort.hpp"
 #include "flexsplat/core/tensor.hpp"
-#include "flexsplat/decoder/kernels.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
 namespace decoder {
 
+// A point's 30-bit Morton code and its index: the items the radix sort moves.
+struct MortonKey {
+  std::uint32_t code;
+  std::uint32_t index;
+};
+
 // Morton order of points quantised to a 2^10 grid over their bounding box; ties keep the index order.
-// order, codes, codes_tmp, order_tmp: [n] caller buffers.
+// order, keys, scratch: [n] caller buffers.
 template <class T>
-void morton_order(index_t* order, const T* centres, index_t n, std::uint32_t* codes, std::uint32_t* codes_tmp,
-                  index_t* order_tmp) {
+void morton_order(index_t* order, const T* centres, index_t n, MortonKey* keys, MortonKey* scratch) {
+  if (!(n >= 0 && n <= index_t(std::numeric_limits<std::uint32_t>::max())))
+    fail("morton_order: ", n, " points is outside [0, 2^32 - 1]");
   double lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
   for (index_t i = 0; i < n; ++i)
     for (int j = 0; j < 3; ++j) {
@@ -38,18 +47,18 @@ void morton_order(index_t* order, const T* centres, index_t n, std::uint32_t* co
     }
     for (int bit = 9; bit >= 0; --bit)
       for (int j = 0; j < 3; ++j) c = (c << 1) | ((cell[j] >> bit) & 1u);
-    codes[i] = c;
+    keys[i] = {c, static_cast<std::uint32_t>(i)};
   }
-  kernels::radix_sort_30(order, codes, n, codes_tmp, order_tmp);
+  const MortonKey* sorted = radix_sort(keys, n, scratch, keys, [](const MortonKey& k) { return k.code; });
+  for (index_t i = 0; i < n; ++i) order[i] = sorted[i].index;
 }
 
 // Convenience form with its own (allocated) buffers.
 template <class T>
 void morton_order(std::vector<index_t>& order, const T* centres, index_t n) {
   order.resize(static_cast<std::size_t>(n));
-  std::vector<std::uint32_t> codes(static_cast<std::size_t>(n)), tmp(static_cast<std::size_t>(n));
-  std::vector<index_t> order_tmp(static_cast<std::size_t>(n));
-  morton_order(order.data(), centres, n, codes.data(), tmp.data(), order_tmp.data());
+  std::vector<MortonKey> keys(static_cast<std::size_t>(n)), scratch(static_cast<std::size_t>(n));
+  morton_order(order.data(), centres, n, keys.data(), scratch.data());
 }
 
 }  // namespace decoder

@@ -51,8 +51,7 @@ template <class T>
 struct SelfAttentionCache {
   index_t n = 0;
   std::vector<index_t> order;           // local: position in the Morton order -> query index
-  std::vector<std::uint32_t> codes, codes_tmp;  // local: Morton keys and radix-sort scratch
-  std::vector<index_t> order_tmp;
+  std::vector<MortonKey> morton_keys, morton_scratch;  // local: radix-sort items
   std::vector<T> x_sorted;              // local: [N, dim] input rows in attention order
   std::vector<T> qkv;                   // [N, 3 dim], in attention order
   std::vector<T> attended;              // [N, dim], in attention order
@@ -68,7 +67,7 @@ struct SelfAttentionCache {
     attended.resize(z * d);
     lse.resize(z * static_cast<std::size_t>(c.heads));
     if (c.local) {
-      order.resize(z), codes.resize(z), codes_tmp.resize(z), order_tmp.resize(z);
+      order.resize(z), morton_keys.resize(z), morton_scratch.resize(z);
       x_sorted.resize(z * d);
       attended_query_order.resize(z * d);
       const kernels::WindowAttentionShape s{n_queries, c.window, c.heads, c.dim / c.heads};
@@ -78,8 +77,7 @@ struct SelfAttentionCache {
     }
   }
   std::size_t capacity_bytes() const {
-    return order.capacity() * sizeof(index_t) + (codes.capacity() + codes_tmp.capacity()) * 4 +
-           order_tmp.capacity() * sizeof(index_t) +
+    return order.capacity() * sizeof(index_t) + (morton_keys.capacity() + morton_scratch.capacity()) * sizeof(MortonKey) +
            (x_sorted.capacity() + qkv.capacity() + attended.capacity() + attended_query_order.capacity() + lse.capacity() +
             scratch.capacity()) * sizeof(T);
   }
@@ -131,7 +129,7 @@ void self_attention_forward(T* out, SelfAttentionCache<T>& cache, const T* x, co
     nn::linear_forward(out, cache.attended.data(), params + P.out_w, params + P.out_b, n, c.dim, c.dim);
     return;
   }
-  morton_order(cache.order.data(), centres, n, cache.codes.data(), cache.codes_tmp.data(), cache.order_tmp.data());
+  morton_order(cache.order.data(), centres, n, cache.morton_keys.data(), cache.morton_scratch.data());
   parallel_for(n, [&](index_t i0, index_t i1, int) {
     for (index_t i = i0; i < i1; ++i) std::copy_n(x + cache.order[i] * c.dim, c.dim, cache.x_sorted.data() + i * c.dim);
   });

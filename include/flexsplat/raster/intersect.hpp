@@ -16,6 +16,7 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/radix_sort.hpp"
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/core/simd_dispatch.hpp"
 #include "flexsplat/core/tensor.hpp"
@@ -267,38 +268,10 @@ struct TileItem {
   std::int32_t gaussian, emission, column;
 };
 
-// Stable LSD radix sort (8-bit digits) by depth key of count items through a and b (each count long; b may be the
-// items' own memory, which only the first pass reads); returns the buffer that holds the result (items if no pass
-// was needed). Ties keep their input order.
+// Front-to-back order of one tile's items (core/radix_sort.hpp): a and b as radix_sort's buffers.
 template <class U>
 TileItem<U>* sort_items_by_depth(TileItem<U>* items, std::int64_t count, TileItem<U>* a, TileItem<U>* b) {
-  constexpr int max_digits = int(sizeof(U));
-  // Digits above the highest bit in which two keys differ are the same in every key: no histogram, no pass (the
-  // depths of one tile share their top byte, and counting it would be one long chain of increments).
-  U differ = 0;
-  for (std::int64_t i = 0; i < count; ++i) differ |= items[i].key ^ items[0].key;
-  const int digits = (int(std::bit_width(differ)) + 7) / 8;
-  std::uint32_t counts[max_digits][256];
-  for (int d = 0; d < digits; ++d) std::fill_n(counts[d], 256, 0u);
-  for (std::int64_t i = 0; i < count; ++i)
-    for (int d = 0; d < digits; ++d) ++counts[d][(items[i].key >> (8 * d)) & 0xff];
-  TileItem<U>* from = items;
-  TileItem<U>* to = a;
-  for (int d = 0; d < digits; ++d) {
-    std::uint32_t* c = counts[d];
-    if (*std::max_element(c, c + 256) == std::uint32_t(count)) continue;  // a digit shared by every key
-    std::uint32_t sum = 0;
-    for (int v = 0; v < 256; ++v) {
-      const std::uint32_t k = c[v];
-      c[v] = sum;
-      sum += k;
-    }
-    const int shift = 8 * d;
-    for (std::int64_t i = 0; i < count; ++i) to[c[(from[i].key >> shift) & 0xff]++] = from[i];
-    from = to;
-    to = to == a ? b : a;
-  }
-  return from;
+  return radix_sort(items, count, a, b, [](const TileItem<U>& item) { return item.key; });
 }
 
 // Tiles one Gaussian reaches: its tile rectangle and the column span of its first rows (later rows are recomputed).
