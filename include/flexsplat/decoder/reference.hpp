@@ -65,6 +65,15 @@ void check_deform_core_bundle(const safetensors::File& file, ReferenceReport& re
     cmp("d_sampling_locations", d_loc.span());
     cmp("d_attention_weights", d_w.span());
   }
+  const auto cases = deform_core_cases(file);
+  std::vector<std::string> names;
+  for (const auto& t : file.tensors()) names.push_back(t.name);
+  report.fail_unknown(names, [&](const std::string& name) {
+    for (const std::string& c : cases)
+      for (const char* input : {"value", "spatial_shapes", "sampling_locations", "attention_weights", "d_output"})
+        if (name == c + input) return true;
+    return false;
+  }, "deform_core");
 }
 
 }  // namespace decoder

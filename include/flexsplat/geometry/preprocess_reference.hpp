@@ -88,17 +88,9 @@ inline void check_preprocess_reference(const safetensors::File& bundle, Referenc
       compare_preprocess_tensor(all, vggt_preprocess_images(images, mode), bundle, report);
     }
   }
-  // Every tensor of the bundle must have been checked: a name we do not understand is a failure, not a skip.
-  for (const auto& t : bundle.tensors()) {
-    bool known = false;
-    for (const auto& r : report.rows) known = known || r.name == t.name;
-    if (!known) {
-      TensorComparison row;
-      row.name = t.name;
-      row.note = "tensor not understood by the preprocess checker (expected <crop|pad>.single<i> or <crop|pad>.all)";
-      report.rows.push_back(row);
-    }
-  }
+  std::vector<std::string> names;
+  for (const auto& t : bundle.tensors()) names.push_back(t.name);
+  report.fail_unknown(names, [](const std::string&) { return false; }, "preprocess (<crop|pad>.single<i>, <crop|pad>.all)");
   if (!any) bundle.error("no <crop|pad>.single<i> / <crop|pad>.all tensors to check");
 }
 

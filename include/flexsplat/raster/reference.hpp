@@ -98,6 +98,15 @@ inline void check_raster_bundle(const safetensors::File& file, ReferenceReport& 
   const auto cases = raster_bundle_cases(file);
   require(!cases.empty(), "raster bundle '", file.path(), "' has no case<k>.params tensor");
   for (const auto& prefix : cases) check_raster_case<float>(file, prefix, report);
+  std::vector<std::string> names;
+  for (const auto& t : file.tensors()) names.push_back(t.name);
+  report.fail_unknown(names, [&](const std::string& name) {
+    for (const auto& prefix : cases)
+      for (const char* input : {"params", "means", "quats", "scales", "opacities", "sh", "viewmat", "K", "background",
+                                "d_image", "d_alpha", "d_depth"})
+        if (name == prefix + input) return true;
+    return false;
+  }, "raster");
 }
 
 }  // namespace raster
