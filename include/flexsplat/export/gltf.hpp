@@ -581,10 +581,18 @@ inline GaussianSet<float> decode_glb(const unsigned char* data, std::size_t size
     if (gc.type != "perspective") continue;
     gaussians::Camera cam;
     cam.name = model.nodes[i].name;
-    const tinygltf::Value& intr = gc.extras.Get("flexsplat_opencv_intrinsics");
+    // tinygltf's Value::Get asserts that it is called on an object; a number cast to int must fit.
+    static const tinygltf::Value no_value;
+    const tinygltf::Value& intr = gc.extras.IsObject() ? gc.extras.Get("flexsplat_opencv_intrinsics") : no_value;
+    auto pixel_count = [&](const char* key) {
+      const double v = intr.Get(key).GetNumberAsDouble();
+      require(v >= 1 && v <= double(1 << 24), source, ": camera ", ci, " intrinsics '", key, "' = ", v,
+              " is not a pixel count in [1, 2^24]");
+      return static_cast<int>(v);
+    };
     if (intr.IsObject() && intr.Get("K").IsArray() && intr.Get("K").ArrayLen() == 9) {
-      cam.width = intr.Get("width").GetNumberAsInt();
-      cam.height = intr.Get("height").GetNumberAsInt();
+      cam.width = pixel_count("width");
+      cam.height = pixel_count("height");
       for (int k = 0; k < 9; ++k) cam.K[k] = intr.Get("K").Get(k).GetNumberAsDouble();
     } else {
       // Without pixel intrinsics: a 1024-pixel-high image with the principal point at the centre.
