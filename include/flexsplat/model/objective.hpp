@@ -8,6 +8,7 @@
 // rasterizer's camera adjoints, depth through both the decoder's eq. 2 and the depth term, depth features through
 // the fusion). Each view is rendered, scored and differentiated before the next, so one render workspace serves all.
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <span>
 #include <vector>
@@ -84,6 +85,31 @@ struct LossParts {
   double psnr_last = 0;  // mean PSNR of the last decoder layer's renders (a metric)
 };
 
+// Wall time per phase in milliseconds, accumulated (benchmarks and the training log read it).
+struct PhaseTimes {
+  double geometry_forward = 0, geometry_backward = 0, decoder_forward = 0, decoder_backward = 0;
+  double raster_forward = 0, raster_backward = 0, losses = 0, update = 0;
+  double total() const {
+    return geometry_forward + geometry_backward + decoder_forward + decoder_backward + raster_forward +
+           raster_backward + losses + update;
+  }
+};
+
+// Adds the time since construction (or the last lap) to a PhaseTimes field.
+class PhaseClock {
+public:
+  explicit PhaseClock(PhaseTimes* times) : times_(times), last_(std::chrono::steady_clock::now()) {}
+  void lap(double PhaseTimes::*field) {
+    const auto now = std::chrono::steady_clock::now();
+    if (times_) times_->*field += std::chrono::duration<double, std::milli>(now - last_).count();
+    last_ = now;
+  }
+
+private:
+  PhaseTimes* times_;
+  std::chrono::steady_clock::time_point last_;
+};
+
 template <class T>
 struct ObjectiveWorkspace {
   decoder::ModelWorkspace<T> model;
@@ -116,13 +142,15 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
                                index_t n_queries, const T* images, const GeometryResult<T>& g,
                                GeometryResult<T>* d_geometry, std::span<const RenderView<T>> views,
                                const ObjectiveWeights& weights, const raster::RenderOptions& render_options,
-                               const loss::LpipsWeights<T>* lpips = nullptr) {
+                               const loss::LpipsWeights<T>* lpips = nullptr, PhaseTimes* times = nullptr) {
   weights.validate();
+  PhaseClock clock(times);
   require(!views.empty(), "objective: no views to render");
   require(weights.lpips == 0 || lpips, "objective: lambda_P is ", weights.lpips, " but no LPIPS weights were given");
   const index_t V = g.views, h = g.h, w = g.w;
   const decoder::ViewGeometry<T> vg = g.view_geometry();
   decoder::model_forward(ws.model, n_queries, params, c, images, h, w, g.features.data(), g.feature_h, g.feature_w, vg);
+  clock.lap(&PhaseTimes::decoder_forward);
   const auto& sets = ws.model.gaussians();
   const index_t first = weights.initial_layer ? 0 : 1, layers = static_cast<index_t>(sets.size()) - first;
   require(layers >= 1, "objective: the decoder returned no layer to render");
@@ -160,7 +188,9 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
     const loss::ImageShape shape{1, 3, H, W, loss::Layout::nhwc};
     for (index_t l = 0; l < layers; ++l) {
       const auto& set = sets[static_cast<std::size_t>(first + l)];
+      clock.lap(&PhaseTimes::losses);
       raster::render_forward(set, cam, ro, ws.render, ws.out);
+      clock.lap(&PhaseTimes::raster_forward);
       const T* img = ws.out.image.data();
       ws.d_image.assign(static_cast<std::size_t>(3 * pixels), T(0));
       ws.d_depth.assign(static_cast<std::size_t>(pixels), T(0));
@@ -214,8 +244,10 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
       if (any_depth) d_out.depth = TensorView<const T, 2>(ws.d_depth.data(), Shape<2>{H, W});
       raster::CameraGrad<T> d_cam;
       const bool camera_grad = predicted && d_geometry;
+      clock.lap(&PhaseTimes::losses);
       raster::render_backward(set, cam, ro, ws.render, d_out, ws.d_gaussians[static_cast<std::size_t>(first + l)],
                               camera_grad ? &d_cam : nullptr);
+      clock.lap(&PhaseTimes::raster_backward);
       if (camera_grad)
         render_camera_backward(d_geometry->K.data() + 9 * view.input_view,
                                d_geometry->extrinsics.data() + 12 * view.input_view, d_cam);
@@ -226,8 +258,10 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
 
   decoder::ViewGeometryGrad<T> d_vg;
   if (d_geometry) d_vg = {d_geometry->K.data(), d_geometry->extrinsics.data(), d_geometry->depth.data()};
+  clock.lap(&PhaseTimes::losses);
   decoder::model_backward(d_params, d_geometry ? d_geometry->features.data() : static_cast<T*>(nullptr), d_vg,
                           ws.d_gaussians, ws.d_rgb.data(), ws.model, params, c, images, g.features.data(), vg);
+  clock.lap(&PhaseTimes::decoder_backward);
   return parts;
 }
 

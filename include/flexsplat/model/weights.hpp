@@ -51,7 +51,9 @@ public:
   }
 
   // Fresh initial values from one seed: geometry as geometry::random_parameter_values (LayerNorm 1, biases 0,
-  // LayerScale 0.01, uniform matrices of variance 1/fan_in), appearance as decoder::model_init.
+  // LayerScale 0.01, uniform matrices of variance 1/fan_in), appearance as decoder::model_init. The camera head's last
+  // layer starts near a prior camera (identity rotation, zero translation, 45 degree field of view, reached after all
+  // refinement iterations): random outputs would put the FoV through its ReLU at 0, a camera with no focal length.
   void init(std::uint64_t seed) {
     const auto& seg = store_.segment(geometry_segment);
     std::uint64_t stream = seed;
@@ -62,8 +64,14 @@ public:
       geometry::random_parameter_values(store_.params() + t.offset, spec, random ? stream++ : stream,
                                         config_.geometry.aggregator.init_values);
     }
+    const double iterations = static_cast<double>(config_.geometry.camera.iterations);
+    const double prior[geometry::pose_encoding_dim] = {0, 0, 0, 0, 0, 0, 1, camera_prior_fov, camera_prior_fov};
+    auto bias = store_.param("camera_head.pose_branch.fc2.bias");
+    for (std::size_t i = 0; i < bias.size(); ++i) bias[i] = static_cast<T>(prior[i] / iterations);
+    for (T& v : store_.param("camera_head.pose_branch.fc2.weight")) v *= T(0.01);
     decoder::model_init(appearance(), config_.appearance, seed ^ 0x5851f42d4c957f2dull);
   }
+  static constexpr double camera_prior_fov = 0.7853981633974483;  // 45 degrees, the renders' field of view
 
   // A flexsplat model or training-state file written by save(); the configuration must match.
   train::CheckpointInfo load(const std::filesystem::path& path, bool with_optimizer_state = true) {

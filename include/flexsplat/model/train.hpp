@@ -1,0 +1,267 @@
+#pragma once
+// One training step of the whole FlexSplat model: a batch of scenes, each turned into the model's frame (first input
+// camera = identity, unit mean point distance, as VGGT normalises its data), forward through geometry and appearance,
+// the stage's losses, backward into one gradient per scene, the per-scene gradients summed in global scene order
+// across ranks (train/distributed.hpp), averaged, clipped, and one AdamW update.
+//
+// Stages: geometry pre-training (VGGT's supervised camera and depth losses; the appearance side is not run), joint
+// training (the FlexSplat objective, plus optionally the supervised geometry terms), both with every parameter
+// trained unless the geometry is frozen.
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <span>
+#include <vector>
+
+#include "flexsplat/data/dataset.hpp"
+#include "flexsplat/geometry/pose_encoding.hpp"
+#include "flexsplat/loss/geometry.hpp"
+#include "flexsplat/model/frames.hpp"
+#include "flexsplat/model/geometry_stage.hpp"
+#include "flexsplat/model/objective.hpp"
+#include "flexsplat/model/weights.hpp"
+#include "flexsplat/train/distributed.hpp"
+#include "flexsplat/train/optimizer.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace model {
+
+// One scene at the model's resolution, in the model's frame.
+template <class T>
+struct TrainExample {
+  index_t views = 0, targets = 0, h = 0, w = 0;
+  std::vector<T> images;         // [V, 3, h, w] inputs in [0, 1], composited over the background
+  std::vector<T> inputs_hwc;     // [V, h, w, 3] the same, as render targets
+  std::vector<T> masks;          // [V, h, w] object alpha
+  std::vector<T> gt_extrinsics;  // [V, 3, 4]
+  std::vector<T> gt_K;           // [V, 3, 3] pixel centres at +0.5
+  std::vector<T> gt_depth;       // [V, h, w] camera z / scale, 0 for background
+  std::vector<T> gt_pose_enc;    // [V, 9] VGGT's encoding of the ground-truth cameras
+  std::vector<T> target_images;  // [M, h, w, 3]
+  std::vector<std::array<T, 9>> target_K;
+  std::vector<std::array<T, 12>> target_w2c;
+  std::array<T, 3> background{1, 1, 1};
+};
+
+namespace detail {
+inline void camera_arrays(const data::Camera& c, double* K, double* w2c) {
+  for (int r = 0; r < 3; ++r) {
+    for (int col = 0; col < 3; ++col) {
+      K[3 * r + col] = c.K[col][r];
+      w2c[4 * r + col] = c.R[col][r];
+    }
+    w2c[4 * r + 3] = c.t[r];
+  }
+}
+}  // namespace detail
+
+// A data::SceneSample (inputs and targets of one scene, square views of the model's size) in the model's frame.
+template <class T>
+TrainExample<T> make_train_example(const data::SceneSample& s, const FlexSplatConfig& c) {
+  const index_t V = s.inputs.rgb.shape(0), M = s.targets.rgb.empty() ? 0 : s.targets.rgb.shape(0);
+  require(V >= 1, "training example '", s.name, "': no input views");
+  const index_t h = s.inputs.rgb.shape(1), w = s.inputs.rgb.shape(2);
+  require(h == c.image_h && w == c.image_w, "training example '", s.name, "': views are ", w, " x ", h,
+          ", the model takes ", c.image_w, " x ", c.image_h, " (set the batch crop to the model size)");
+  require(V <= c.appearance.decoder.max_views, "training example '", s.name, "': ", V,
+          " input views, the decoder has parameter slots for ", c.appearance.decoder.max_views);
+  TrainExample<T> e;
+  e.views = V, e.targets = M, e.h = h, e.w = w;
+  const index_t px = h * w;
+  std::vector<double> K(static_cast<std::size_t>(9 * V)), E(static_cast<std::size_t>(12 * V)),
+      depth(static_cast<std::size_t>(V * px));
+  for (index_t v = 0; v < V; ++v) detail::camera_arrays(s.inputs.cameras[static_cast<std::size_t>(v)], &K[9 * v], &E[12 * v]);
+  for (index_t i = 0; i < V * px; ++i) depth[static_cast<std::size_t>(i)] = s.inputs.depth.data()[i];
+  const FirstCameraFrame frame = first_camera_frame(E.data(), K.data(), depth.data(), V, h, w);
+
+  e.images.resize(static_cast<std::size_t>(V * 3 * px));
+  e.inputs_hwc.assign(s.inputs.rgb.data(), s.inputs.rgb.data() + V * px * 3);
+  e.masks.assign(s.inputs.alpha.data(), s.inputs.alpha.data() + V * px);
+  for (index_t v = 0; v < V; ++v)
+    for (index_t p = 0; p < px; ++p)
+      for (int ch = 0; ch < 3; ++ch) e.images[static_cast<std::size_t>((v * 3 + ch) * px + p)] = s.inputs.rgb.data()[(v * px + p) * 3 + ch];
+  e.gt_K.assign(K.begin(), K.end());
+  for (index_t v = 0; v < V; ++v) frame.camera(&E[12 * v]);
+  e.gt_extrinsics.assign(E.begin(), E.end());
+  e.gt_depth.resize(depth.size());
+  for (std::size_t i = 0; i < depth.size(); ++i) e.gt_depth[i] = static_cast<T>(depth[i] / frame.scale);
+  // VGGT encodes intrinsics with pixel u at the integer coordinate u.
+  std::vector<T> K_vggt(e.gt_K);
+  for (index_t v = 0; v < V; ++v) K_vggt[9 * v + 2] -= T(0.5), K_vggt[9 * v + 5] -= T(0.5);
+  e.gt_pose_enc.resize(static_cast<std::size_t>(9 * V));
+  geometry::extri_intri_to_pose_encoding(e.gt_pose_enc.data(), e.gt_extrinsics.data(), K_vggt.data(), V, h, w);
+
+  e.target_images.assign(s.targets.rgb.data(), s.targets.rgb.data() + M * px * 3);
+  for (index_t m = 0; m < M; ++m) {
+    double k[9], w2c[12];
+    detail::camera_arrays(s.targets.cameras[static_cast<std::size_t>(m)], k, w2c);
+    frame.camera(w2c);
+    std::array<T, 9> kk;
+    std::array<T, 12> ee;
+    for (int i = 0; i < 9; ++i) kk[static_cast<std::size_t>(i)] = static_cast<T>(k[i]);
+    for (int i = 0; i < 12; ++i) ee[static_cast<std::size_t>(i)] = static_cast<T>(w2c[i]);
+    e.target_K.push_back(kk);
+    e.target_w2c.push_back(ee);
+  }
+  for (int ch = 0; ch < 3; ++ch) e.background[static_cast<std::size_t>(ch)] = static_cast<T>(s.background[ch]);
+  return e;
+}
+
+struct StepConfig {
+  bool appearance = true;            // run the FlexSplat objective (off: geometry pre-training only)
+  bool train_geometry = true;        // off: geometry frozen (no geometry backward)
+  double camera_weight = 0.0;        // VGGT's supervised camera loss on the pose encodings
+  double depth_weight = 0.0;         // VGGT's supervised depth loss
+  ObjectiveWeights objective;
+  loss::CameraLossConfig camera_loss;
+  loss::DepthLossConfig depth_loss;
+  bool render_inputs = true;         // input views (predicted cameras) are rendered targets too
+  index_t gaussians = 0;             // 0: the configuration's budget for the view count
+  double max_grad_norm = 1.0;        // <= 0: no clipping
+  train::AdamWConfig adamw;
+};
+
+struct StepReport {
+  double loss = 0, camera = 0, depth = 0, rgb_head = 0, render = 0, render_depth = 0, lpips = 0, psnr = 0;
+  double grad_norm = 0;
+  index_t scenes = 0;
+};
+
+template <class T>
+struct SceneWorkspace {
+  GeometryStage<T> geometry;
+  GeometryResult<T> d_geometry;
+  std::vector<T> d_pose_enc;
+  ObjectiveWorkspace<T> objective;
+  std::vector<RenderView<T>> views;
+  std::vector<std::uint8_t> depth_mask;
+};
+
+// Adds one scene's loss gradient into `grads` (the store's layout) and returns its loss parts (unweighted sums as
+// they enter the total).
+template <class T>
+StepReport scene_gradient(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* grads, const TrainExample<T>& e,
+                          const StepConfig& sc, const loss::LpipsWeights<T>* lpips = nullptr,
+                          PhaseTimes* times = nullptr) {
+  const FlexSplatConfig& c = w.config();
+  const index_t V = e.views, px = e.h * e.w;
+  StepReport r;
+  PhaseClock clock(times);
+  geometry_stage_forward(ws.geometry, w, e.images.data(), V, sc.train_geometry);
+  clock.lap(&PhaseTimes::geometry_forward);
+  const GeometryResult<T>& g = ws.geometry.result;
+  ws.d_geometry.zero_like(g);
+  const index_t iters = ws.geometry.iterations;
+  ws.d_pose_enc.assign(static_cast<std::size_t>(iters * V * 9), T(0));
+
+  if (sc.camera_weight > 0) {
+    std::vector<const T*> stages;
+    std::vector<T*> d_stages;
+    for (index_t i = 0; i < iters; ++i) {
+      stages.push_back(ws.geometry.pose_enc.data() + i * V * 9);
+      d_stages.push_back(ws.d_pose_enc.data() + i * V * 9);
+    }
+    r.camera = sc.camera_weight * loss::camera_loss_forward(stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss).total;
+    loss::camera_loss_backward(d_stages, sc.camera_weight, stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss);
+  }
+  if (sc.depth_weight > 0) {
+    ws.depth_mask.resize(static_cast<std::size_t>(V * px));
+    for (index_t i = 0; i < V * px; ++i) ws.depth_mask[static_cast<std::size_t>(i)] = e.gt_depth[static_cast<std::size_t>(i)] > T(0);
+    r.depth = sc.depth_weight * loss::depth_loss_forward(g.depth.data(), g.confidence.data(), e.gt_depth.data(),
+                                                        ws.depth_mask.data(), V, e.h, e.w, sc.depth_loss).total;
+    loss::depth_loss_backward(ws.d_geometry.depth.data(), ws.d_geometry.confidence.data(), sc.depth_weight,
+                              g.depth.data(), g.confidence.data(), e.gt_depth.data(), ws.depth_mask.data(), V, e.h,
+                              e.w, sc.depth_loss);
+  }
+  if (sc.appearance) {
+    ws.views.clear();
+    if (sc.render_inputs)
+      for (index_t v = 0; v < V; ++v) {
+        RenderView<T> rv;
+        rv.width = static_cast<int>(e.w), rv.height = static_cast<int>(e.h), rv.input_view = v;
+        rv.target = e.inputs_hwc.data() + v * px * 3;
+        rv.mask = e.masks.data() + v * px;
+        ws.views.push_back(rv);
+      }
+    for (index_t m = 0; m < e.targets; ++m) {
+      RenderView<T> rv;
+      rv.K = e.target_K[static_cast<std::size_t>(m)];
+      rv.world_to_camera = e.target_w2c[static_cast<std::size_t>(m)];
+      rv.width = static_cast<int>(e.w), rv.height = static_cast<int>(e.h);
+      rv.target = e.target_images.data() + m * px * 3;
+      ws.views.push_back(rv);
+    }
+    raster::RenderOptions ro;
+    ro.background = {static_cast<double>(e.background[0]), static_cast<double>(e.background[1]),
+                     static_cast<double>(e.background[2])};
+    const index_t n = sc.gaussians > 0 ? sc.gaussians : c.gaussians_for(V);
+    T* d_app = grads + w.store().segment(appearance_segment).offset;
+    const LossParts p = appearance_objective<T>(ws.objective, w.appearance(), d_app, c.appearance, n, e.images.data(), g,
+                                                sc.train_geometry ? &ws.d_geometry : nullptr, ws.views, sc.objective,
+                                                ro, lpips, times);
+    clock = PhaseClock(times);
+    r.rgb_head = p.rgb_head, r.render = p.render, r.render_depth = p.depth, r.lpips = p.lpips, r.psnr = p.psnr_last;
+  }
+  clock.lap(&PhaseTimes::losses);
+  if (sc.train_geometry) {
+    geometry_stage_backward(ws.geometry, w, grads, ws.d_geometry, ws.d_pose_enc.data());
+    clock.lap(&PhaseTimes::geometry_backward);
+  }
+  r.loss = r.camera + r.depth + r.rgb_head + r.render + r.render_depth + r.lpips;
+  r.scenes = 1;
+  return r;
+}
+
+template <class T>
+struct StepWorkspace {
+  SceneWorkspace<T> scene;
+  std::vector<std::vector<T, AlignedAllocator<T>>> scene_grads;  // one gradient per local scene
+};
+
+// One update from a global batch: `local` are this rank's scenes, in global order (train::share_of). lr from the
+// schedule; step counts updates done before this one. Returns the global batch's mean losses.
+template <class T>
+StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<const TrainExample<T>> local,
+                      index_t global_batch, const StepConfig& sc, double lr, std::uint64_t step,
+                      train::Communicator& comm, const loss::LpipsWeights<T>* lpips = nullptr,
+                      PhaseTimes* times = nullptr) {
+  require(!local.empty(), "train_step: rank ", comm.rank(), " has no scenes");
+  auto& store = w.store();
+  const index_t n = store.size();
+  ws.scene_grads.resize(local.size());
+  std::vector<double> values(local.size() * 9);
+  for (std::size_t s = 0; s < local.size(); ++s) {
+    auto& g = ws.scene_grads[s];
+    g.assign(static_cast<std::size_t>(n), T(0));
+    const StepReport r = scene_gradient(ws.scene, w, g.data(), local[s], sc, lpips, times);
+    const double v[9] = {r.loss, r.camera, r.depth, r.rgb_head, r.render, r.render_depth, r.lpips, r.psnr, 1.0};
+    std::copy(v, v + 9, values.begin() + static_cast<std::ptrdiff_t>(9 * s));
+  }
+  PhaseClock clock(times);
+  std::vector<const T*> ptrs;
+  for (auto& g : ws.scene_grads) ptrs.push_back(g.data());
+  train::ordered_sum<T>(comm, store.grads(), n, ptrs);
+  std::vector<const double*> vptrs;
+  for (std::size_t s = 0; s < local.size(); ++s) vptrs.push_back(values.data() + 9 * s);
+  double totals[9];
+  train::ordered_sum<double>(comm, totals, 9, vptrs);
+  require(static_cast<index_t>(totals[8]) == global_batch, "train_step: the ranks hold ", totals[8],
+          " scenes, the global batch is ", global_batch);
+  const T inv = static_cast<T>(1.0 / static_cast<double>(global_batch));
+  T* grads = store.grads();
+  for (index_t i = 0; i < n; ++i) grads[i] *= inv;
+  StepReport r;
+  const double ib = 1.0 / static_cast<double>(global_batch);
+  r.loss = totals[0] * ib, r.camera = totals[1] * ib, r.depth = totals[2] * ib, r.rgb_head = totals[3] * ib;
+  r.render = totals[4] * ib, r.render_depth = totals[5] * ib, r.lpips = totals[6] * ib, r.psnr = totals[7] * ib;
+  r.scenes = global_batch;
+  r.grad_norm = sc.max_grad_norm > 0 ? train::clip_grad_norm(store, sc.max_grad_norm) : train::grad_norm(store);
+  train::adamw_step(store, sc.adamw, lr, step + 1);
+  clock.lap(&PhaseTimes::update);
+  return r;
+}
+
+}  // namespace model
+}  // namespace v0
+}  // namespace flexsplat
