@@ -199,7 +199,8 @@ void load_vggt_geometry(const std::filesystem::path& path, ParamStore<T>& store,
   for (std::size_t i = seg.first; i < seg.first + seg.count; ++i) {
     const auto& t = store.tensors()[i];
     specs.push_back({t.name, t.shape});
-    modules.insert(t.name.substr(0, t.name.find('.') + 1));
+    const std::size_t dot = t.name.find('.');
+    modules.insert(dot == std::string::npos ? t.name + "." : t.name.substr(0, dot + 1));
   }
   geometry::ParamSource<T> src(safetensors::File::open(path), file_prefix);
   geometry::check_parameters(src, specs, std::vector<std::string>(modules.begin(), modules.end()),
