@@ -136,8 +136,10 @@ TEST_CASE("VGGT end to end: images -> cameras, depth, confidence, world points, 
   VggtWorkspace<double> ws;
   VggtCache<double> cache;
   VggtBackwardScratch<double> scratch;
+  VggtOptions features;
+  features.keep_depth_features = true;
   // VGGT detaches the camera head's fed-back encoding: hold it at the unperturbed run's values.
-  auto first = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws);
+  auto first = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws, {}, features);
   const std::vector<double> feedback(cache.camera.raw.begin(),
                                      cache.camera.raw.begin() + (c.camera.iterations - 1) * S * pose_encoding_dim);
   VggtTrainOptions<double> train;
@@ -145,10 +147,10 @@ TEST_CASE("VGGT end to end: images -> cameras, depth, confidence, world points, 
   const std::size_t n_out = output_size(first);
   auto forward = [&](std::span<double> out) {
     VggtCache<double> k;
-    flatten(vggt_forward_train<double>(images.data(), S, H, W, c, m.w, k, ws, train), out.data());
+    flatten(vggt_forward_train<double>(images.data(), S, H, W, c, m.w, k, ws, train, features), out.data());
   };
   auto backward = [&](std::span<const double> d_out) {
-    const auto o = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws, train);
+    const auto o = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws, train, features);
     vggt_backward<double>(d_images.data(), m.g, unflatten_grads(o, d_out.data()), o, cache, c, m.w, scratch);
   };
   auto params = m.grad_params();
@@ -179,7 +181,7 @@ TEST_CASE("VGGT training forward equals inference, recompute gives bit-identical
     VggtBackwardScratch<float> scratch;
     VggtTrainOptions<float> train;
     train.recompute = recompute;
-    const auto o = vggt_forward_train<float>(images.data(), S, H, W, c, m.w, cache, ws, train);
+    const auto o = vggt_forward_train<float>(images.data(), S, H, W, c, m.w, cache, ws, train, inference);
     std::vector<float> a(output_size(o)), b(output_size(ref));
     flatten(o, a.data());
     flatten(ref, b.data());

@@ -205,7 +205,7 @@ VggtOutputs<T> vggt_forward_impl(const T* images, index_t frames, index_t image_
   DptHeadOutputs<T> dpt_out;
   dpt_out.preds = out.depth.data();
   dpt_out.conf = out.depth_conf.data();
-  if (cache || options.keep_depth_features) {
+  if (options.keep_depth_features) {
     out.depth_features.resize(Shape<4>{frames, c.depth.head_features(), image_h, image_w});
     dpt_out.features = out.depth_features.data();
   }
@@ -234,7 +234,7 @@ VggtOutputs<T> vggt_forward(const T* images, index_t frames, index_t image_h, in
   return detail::vggt_forward_impl<T>(images, frames, image_h, image_w, c, w, ws, options, nullptr, {});
 }
 
-// vggt_forward (same outputs bit for bit, plus depth_features) that fills `cache` for vggt_backward.
+// vggt_forward (same outputs bit for bit) that fills `cache` for vggt_backward.
 template <class T>
 VggtOutputs<T> vggt_forward_train(const T* images, index_t frames, index_t image_h, index_t image_w, const VggtConfig& c,
                                   const VggtWeights<T>& w, VggtCache<T>& cache, VggtWorkspace<T>& ws,
