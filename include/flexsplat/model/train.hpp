@@ -229,19 +229,26 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   require(!local.empty(), "train_step: rank ", comm.rank(), " has no scenes");
   auto& store = w.store();
   const index_t n = store.size();
-  ws.scene_grads.resize(local.size());
+  // One scene on one rank: its gradient is the sum, so it goes straight into the store (no second gradient-sized
+  // buffer; the same values as the copy ordered_sum would make).
+  const bool direct = comm.size() == 1 && local.size() == 1;
+  ws.scene_grads.resize(direct ? 0 : local.size());
+  if (direct) store.zero_grads();
   std::vector<double> values(local.size() * 9);
   for (std::size_t s = 0; s < local.size(); ++s) {
-    auto& g = ws.scene_grads[s];
-    g.assign(static_cast<std::size_t>(n), T(0));
-    const StepReport r = scene_gradient(ws.scene, w, g.data(), local[s], sc, lpips, times);
+    T* g = direct ? store.grads() : nullptr;
+    if (!direct) {
+      ws.scene_grads[s].assign(static_cast<std::size_t>(n), T(0));
+      g = ws.scene_grads[s].data();
+    }
+    const StepReport r = scene_gradient(ws.scene, w, g, local[s], sc, lpips, times);
     const double v[9] = {r.loss, r.camera, r.depth, r.rgb_head, r.render, r.render_depth, r.lpips, r.psnr, 1.0};
     std::copy(v, v + 9, values.begin() + static_cast<std::ptrdiff_t>(9 * s));
   }
   PhaseClock clock(times);
   std::vector<const T*> ptrs;
   for (auto& g : ws.scene_grads) ptrs.push_back(g.data());
-  train::ordered_sum<T>(comm, store.grads(), n, ptrs);
+  if (!direct) train::ordered_sum<T>(comm, store.grads(), n, ptrs);
   std::vector<const double*> vptrs;
   for (std::size_t s = 0; s < local.size(); ++s) vptrs.push_back(values.data() + 9 * s);
   double totals[9];
