@@ -1,0 +1,471 @@
+// train: FlexSplat training runs from a JSON configuration, resumable exactly, data parallel over MPI when built with it.
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <memory>
+#include <random>
+#include <set>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "flexsplat/data/dataset.hpp"
+#include "flexsplat/loss/lpips.hpp"
+#include "flexsplat/model/config.hpp"
+#include "flexsplat/model/train.hpp"
+#include "flexsplat/model/weights.hpp"
+#include "flexsplat/train/checkpoint.hpp"
+#include "flexsplat/train/distributed.hpp"
+#include "flexsplat/train/optimizer.hpp"
+#include "registry.hpp"
+
+namespace flexsplat::cli {
+namespace {
+
+namespace fs = std::filesystem;
+using nlohmann::json;
+
+struct TrainStage {
+  std::string name;
+  std::uint64_t steps = 1;
+  double lr = 1e-3;
+  std::uint64_t warmup = 0;
+  model::StepConfig step;
+};
+
+struct TrainRunConfig {
+  model::FlexSplatConfig model;
+  std::uint64_t seed = 0;
+  index_t batch = 4;
+  int inputs_min = 2, inputs_max = 4, targets = 2;
+  index_t gaussians = 0;  // 0: tied to the view count (the model's budget)
+  double max_grad_norm = 1.0;
+  std::string lpips_weights;
+  std::vector<TrainStage> stages;
+  std::uint64_t checkpoint_every = 100, log_every = 10;
+
+  std::uint64_t total_steps() const {
+    std::uint64_t n = 0;
+    for (const auto& s : stages) n += s.steps;
+    return n;
+  }
+  // The stage running global step `step` and the step at which it started.
+  std::size_t stage_at(std::uint64_t step, std::uint64_t& start) const {
+    start = 0;
+    for (std::size_t i = 0; i < stages.size(); ++i) {
+      if (step < start + stages[i].steps || i + 1 == stages.size()) return i;
+      start += stages[i].steps;
+    }
+    return 0;
+  }
+};
+
+// Reads one JSON object's keys with a path for error messages; unknown keys are errors.
+class Keys {
+public:
+  Keys(const json& j, std::string where) : j_(j), where_(std::move(where)) {
+    require(j.is_object(), "train config: ", where_.empty() ? "the file" : "'" + where_ + "'", " must be a JSON object");
+  }
+  std::string path(const std::string& key) const { return where_.empty() ? key : where_ + "." + key; }
+  const json* find(const std::string& key) {
+    seen_.insert(key);
+    const auto it = j_.find(key);
+    return it == j_.end() ? nullptr : &*it;
+  }
+  double number(const std::string& key, double fallback, double lo, double hi) {
+    const json* v = find(key);
+    if (!v) return fallback;
+    require(v->is_number() && std::isfinite(v->get<double>()) && v->get<double>() >= lo && v->get<double>() <= hi,
+            "train config: '", path(key), "' is ", v->dump(), ", expected a number in [", lo, ", ", hi, "]");
+    return v->get<double>();
+  }
+  std::uint64_t integer(const std::string& key, std::uint64_t fallback, std::uint64_t lo, std::uint64_t hi) {
+    const json* v = find(key);
+    if (!v) return fallback;
+    require(v->is_number_unsigned() && v->get<std::uint64_t>() >= lo && v->get<std::uint64_t>() <= hi, "train config: '",
+            path(key), "' is ", v->dump(), ", expected an integer in [", lo, ", ", hi, "]");
+    return v->get<std::uint64_t>();
+  }
+  bool boolean(const std::string& key, bool fallback) {
+    const json* v = find(key);
+    if (!v) return fallback;
+    require(v->is_boolean(), "train config: '", path(key), "' is ", v->dump(), ", expected true or false");
+    return v->get<bool>();
+  }
+  std::string string(const std::string& key, const std::string& fallback) {
+    const json* v = find(key);
+    if (!v) return fallback;
+    require(v->is_string(), "train config: '", path(key), "' is ", v->dump(), ", expected a string");
+    return v->get<std::string>();
+  }
+  void finish() const {
+    for (const auto& [key, value] : j_.items())
+      require(seen_.count(key), "train config: unknown key '", path(key), "'");
+  }
+
+private:
+  const json& j_;
+  std::string where_;
+  std::set<std::string> seen_;
+};
+
+TrainStage parse_stage(const json& j, const std::string& where) {
+  Keys k(j, where);
+  TrainStage s;
+  s.name = k.string("name", where);
+  s.steps = k.integer("steps", 100, 1, 1000000000);
+  s.lr = k.number("lr", 1e-3, 0, 10);
+  s.warmup = k.integer("warmup", 0, 0, s.steps);
+  s.step.appearance = k.boolean("appearance", true);
+  s.step.train_geometry = k.boolean("train_geometry", true);
+  s.step.camera_weight = k.number("camera_weight", 0.0, 0, 1e6);
+  s.step.depth_weight = k.number("depth_weight", 0.0, 0, 1e6);
+  if (const json* o = k.find("objective")) {
+    Keys ok(*o, k.path("objective"));
+    auto& w = s.step.objective;
+    w.rgb_head = ok.number("rgb_head", w.rgb_head, 0, 1e6);
+    w.render = ok.number("render", w.render, 0, 1e6);
+    w.depth = ok.number("depth", w.depth, 0, 1e6);
+    w.lpips = ok.number("lpips", w.lpips, 0, 1e6);
+    ok.finish();
+  }
+  k.finish();
+  require(s.step.appearance || s.step.camera_weight > 0 || s.step.depth_weight > 0, "train config: '", where,
+          "' has no loss (appearance is false and camera_weight and depth_weight are 0)");
+  require(s.step.train_geometry || s.step.appearance, "train config: '", where,
+          "' trains nothing (train_geometry and appearance are both false)");
+  return s;
+}
+
+TrainRunConfig parse_train_config(const json& j) {
+  Keys k(j, "");
+  TrainRunConfig c;
+  if (const json* m = k.find("model")) {
+    if (m->is_string() && *m == "tiny") c.model = model::flexsplat_tiny_config();
+    else if (m->is_string() && *m == "paper") c.model = model::flexsplat_paper_config();
+    else {
+      require(m->is_object(), "train config: 'model' is ", m->dump(), ", expected \"tiny\", \"paper\" or a FlexSplat config object");
+      c.model = model::flexsplat_config_from_json(m->dump());
+    }
+  } else {
+    c.model = model::flexsplat_tiny_config();
+  }
+  require(c.model.image_h == c.model.image_w, "train config: 'model' is ", c.model.image_w, " x ", c.model.image_h,
+          "; training data is square, so image_h must equal image_w");
+  c.seed = k.integer("seed", 0, 0, UINT64_MAX);
+  c.batch = static_cast<index_t>(k.integer("batch", 4, 1, 1000000));
+  const index_t max_views = c.model.appearance.decoder.max_views;
+  if (const json* in = k.find("inputs")) {
+    require(in->is_array() && in->size() == 2 && (*in)[0].is_number_unsigned() && (*in)[1].is_number_unsigned(),
+            "train config: 'inputs' is ", in->dump(), ", expected [min, max] view counts");
+    c.inputs_min = static_cast<int>(std::min<std::uint64_t>((*in)[0].get<std::uint64_t>(), 1 << 20));
+    c.inputs_max = static_cast<int>(std::min<std::uint64_t>((*in)[1].get<std::uint64_t>(), 1 << 20));
+  } else {
+    c.inputs_min = static_cast<int>(std::min<index_t>(2, max_views)), c.inputs_max = static_cast<int>(max_views);
+  }
+  require(c.inputs_min >= 1 && c.inputs_min <= c.inputs_max && c.inputs_max <= max_views, "train config: 'inputs' is [",
+          c.inputs_min, ", ", c.inputs_max, "], expected 1 <= min <= max <= ", max_views,
+          " (the decoder's max_views)");
+  c.targets = static_cast<int>(k.integer("targets", 2, 0, 64));
+  c.gaussians = static_cast<index_t>(k.integer("gaussians", 0, 0, 100000000));
+  c.max_grad_norm = k.number("max_grad_norm", 1.0, 0, 1e12);
+  c.lpips_weights = k.string("lpips_weights", "");
+  c.checkpoint_every = k.integer("checkpoint_every", 100, 1, UINT64_MAX);
+  c.log_every = k.integer("log_every", 10, 1, UINT64_MAX);
+  if (const json* st = k.find("stages")) {
+    require(st->is_array() && !st->empty(), "train config: 'stages' is ", st->dump().substr(0, 80),
+            ", expected a non-empty array of stage objects");
+    for (std::size_t i = 0; i < st->size(); ++i) c.stages.push_back(parse_stage((*st)[i], concat("stages[", i, "]")));
+  } else {
+    c.stages.push_back(parse_stage(json::object(), "stages[0]"));
+  }
+  k.finish();
+  for (auto& s : c.stages) {
+    s.step.gaussians = c.gaussians;
+    s.step.max_grad_norm = c.max_grad_norm;
+    if (s.step.objective.lpips > 0)
+      require(!c.lpips_weights.empty(), "train config: stage '", s.name,
+              "' has objective.lpips > 0 but 'lpips_weights' (an LPIPS safetensors file) is not set");
+  }
+  if (!c.lpips_weights.empty())
+    require(fs::is_regular_file(c.lpips_weights), "train config: 'lpips_weights' file '", c.lpips_weights, "' does not exist");
+  return c;
+}
+
+// A per-(seed, step, scene) view count: a pure function, so resumed and multi-rank runs draw the same counts.
+int scene_view_count(const TrainRunConfig& c, std::uint64_t step, index_t scene) {
+  std::uint64_t x = c.seed ^ (step * 0x9E3779B97F4A7C15ull) ^ (static_cast<std::uint64_t>(scene) * 0xD1B54A32D192ED03ull);
+  x ^= x >> 31, x *= 0xBF58476D1CE4E5B9ull, x ^= x >> 27, x *= 0x94D049BB133111EBull, x ^= x >> 31;
+  return c.inputs_min + static_cast<int>(x % static_cast<std::uint64_t>(c.inputs_max - c.inputs_min + 1));
+}
+
+struct TrainData {
+  bool procedural = true;
+  data::GeneratorConfig generator;
+  std::vector<data::ObjectRecord> objects;
+};
+
+model::TrainExample<float> make_scene(const TrainData& d, const TrainRunConfig& c, std::uint64_t step, index_t scene) {
+  data::BatchOptions o;
+  o.inputs = scene_view_count(c, step, scene);
+  o.targets = c.targets;
+  const std::uint64_t index = step * static_cast<std::uint64_t>(c.batch) + static_cast<std::uint64_t>(scene);
+  std::vector<data::SceneSample> s;
+  if (d.procedural) {
+    s = data::generate_batch(d.generator, 1, c.seed, index, o);
+  } else {
+    o.crop = static_cast<int>(c.model.image_h);
+    s = data::sample_batch(d.objects, 1, c.seed, index, o);
+  }
+  return model::make_train_example<float>(s[0], c.model);
+}
+
+std::string read_text(const fs::path& p) {
+  std::ifstream f(p, std::ios::binary);
+  require(f.good(), "train: cannot read '", p.string(), "'");
+  std::ostringstream s;
+  s << f.rdbuf();
+  return s.str();
+}
+
+void write_text_atomic(const fs::path& p, const std::string& text) {
+  const fs::path tmp = p.string() + ".tmp";
+  {
+    std::ofstream f(tmp, std::ios::binary | std::ios::trunc);
+    f << text;
+    f.flush();
+    require(f.good(), "train: cannot write '", tmp.string(), "'");
+  }
+  fs::rename(tmp, p);
+}
+
+#if defined(FLEXSPLAT_WITH_MPI)
+// Every rank starts from rank 0's parameters, optimizer moments and step (only rank 0 needs the run folder).
+void share_start(train::ParamStore<float>& store, std::uint64_t& step) {
+  for (float* block : {store.params(), store.adam_m(), store.adam_v()})
+    for (index_t at = 0; at < store.size(); at += INT_MAX / 2) {
+      const int n = static_cast<int>(std::min<index_t>(INT_MAX / 2, store.size() - at));
+      require(MPI_Bcast(block + at, n, MPI_FLOAT, 0, MPI_COMM_WORLD) == MPI_SUCCESS, "train: MPI broadcast failed");
+    }
+  unsigned long long s = step;
+  require(MPI_Bcast(&s, 1, MPI_UNSIGNED_LONG_LONG, 0, MPI_COMM_WORLD) == MPI_SUCCESS, "train: MPI broadcast failed");
+  step = s;
+}
+#endif
+
+int train_command(Args args) {
+  std::string config_path, out, init, steps_text, seconds_text;
+  std::vector<std::string> data_args;
+  for (auto it = args.begin(); it != args.end(); ++it)
+    if (*it == "--data") {
+      auto end = std::next(it);
+      while (end != args.end() && end->rfind("--", 0) != 0) data_args.push_back(*end++);
+      args.erase(it, end);
+      break;
+    }
+  const bool quiet = take_flag(args, "--quiet");
+  require(take_option(args, "--config", config_path), "train needs --config CFG.json");
+  require(take_option(args, "--out", out), "train needs --out RUN_DIR");
+  take_option(args, "--init", init);
+  const bool has_steps = take_option(args, "--steps", steps_text);
+  const bool has_seconds = take_option(args, "--seconds", seconds_text);
+  require(args.empty(), "train: unexpected argument '", args.empty() ? "" : args[0], "'");
+  require(!data_args.empty(), "train needs --data procedural or --data DIR...");
+
+  // Everything is checked before any compute.
+  json raw;
+  try {
+    raw = json::parse(read_text(config_path));
+  } catch (const json::exception& e) {
+    fail("train config '", config_path, "' is not valid JSON: ", e.what());
+  }
+  const TrainRunConfig cfg = parse_train_config(raw);
+  const std::uint64_t total = cfg.total_steps();
+  std::uint64_t stop_at = total;
+  if (has_steps) {
+    std::size_t used = 0;
+    unsigned long long v = 0;
+    try {
+      v = std::stoull(steps_text, &used);
+    } catch (const std::exception&) {
+      used = 0;
+    }
+    require(used == steps_text.size() && !steps_text.empty() && steps_text[0] != '-' && v >= 1, "--steps '", steps_text,
+            "': expected an integer >= 1");
+    stop_at = std::min<std::uint64_t>(v, total);
+  }
+  double budget = 0;
+  if (has_seconds) {
+    std::size_t used = 0;
+    try {
+      budget = std::stod(seconds_text, &used);
+    } catch (const std::exception&) {
+      used = 0;
+    }
+    require(used == seconds_text.size() && std::isfinite(budget) && budget > 0, "--seconds '", seconds_text,
+            "': expected a number > 0");
+  }
+  TrainData data;
+  if (data_args.size() == 1 && data_args[0] == "procedural") {
+    data.generator.size = static_cast<int>(cfg.model.image_h);
+    data::check_generator(data.generator);
+  } else {
+    data.procedural = false;
+    data.objects = data::load_objects(std::vector<fs::path>(data_args.begin(), data_args.end()));
+    for (const auto& o : data.objects)
+      require(static_cast<int>(o.frames.size()) >= cfg.inputs_max + cfg.targets, "train: object '", o.name, "' has ",
+              o.frames.size(), " views, the config needs up to ", cfg.inputs_max, " inputs + ", cfg.targets, " targets");
+  }
+  std::unique_ptr<loss::LpipsWeights<float>> lpips;
+  if (!cfg.lpips_weights.empty())
+    lpips = std::make_unique<loss::LpipsWeights<float>>(
+        loss::lpips_load_weights<float>(safetensors::File::open(cfg.lpips_weights)));
+
+#if defined(FLEXSPLAT_WITH_MPI)
+  train::MpiCommunicator comm;
+#else
+  train::SoloCommunicator comm;
+#endif
+  const bool root = comm.rank() == 0;
+  const train::Share share = train::share_of(cfg.batch, comm.rank(), comm.size());
+  const fs::path run(out), state_path = run / "state.safetensors", log_path = run / "log.jsonl";
+  const json model_json = model::to_json(cfg.model);
+
+  auto w = model::FlexSplatWeights<float>::create(cfg.model, true);
+  w->init(cfg.seed);
+  std::uint64_t step = 0;
+  if (root) {
+    fs::create_directories(run);
+    if (fs::exists(run / "config.json")) {
+      json previous;
+      try {
+        previous = json::parse(read_text(run / "config.json"));
+      } catch (const json::exception& e) {
+        fail("train: '", (run / "config.json").string(), "' is not valid JSON: ", e.what());
+      }
+      require(previous == raw, "train: '", run.string(), "' holds a run with a different config (", (run / "config.json").string(),
+              "); use a new --out or the same config");
+    }
+    if (fs::exists(state_path)) {
+      const train::CheckpointInfo info = w->load(state_path, true);
+      require(info.format == "training_state" && info.optimizer_state, "train: '", state_path.string(),
+              "' is not a training state");
+      step = info.state.step;
+    } else if (!init.empty()) {
+      w->load_geometry(init);
+    }
+    write_text_atomic(run / "config.json", raw.dump(2) + "\n");
+    // Log lines past the checkpoint belong to steps that will be redone.
+    std::string kept;
+    if (fs::exists(log_path)) {
+      std::istringstream lines(read_text(log_path));
+      for (std::string line; std::getline(lines, line);) {
+        try {
+          if (json::parse(line).at("step").get<std::uint64_t>() <= step) kept += line + "\n";
+        } catch (const json::exception&) {
+        }
+      }
+    }
+    write_text_atomic(log_path, kept);
+  }
+#if defined(FLEXSPLAT_WITH_MPI)
+  share_start(w->store(), step);
+#endif
+  const std::uint64_t first_step = step;
+  if (root && !quiet)
+    std::fprintf(stderr, "train: %s, %llu parameters, %d rank(s), steps %llu -> %llu of %llu\n", run.string().c_str(),
+                 static_cast<unsigned long long>(w->store().size()), comm.size(), static_cast<unsigned long long>(step),
+                 static_cast<unsigned long long>(stop_at), static_cast<unsigned long long>(total));
+
+  std::ofstream log;
+  if (root) log.open(log_path, std::ios::app);
+  model::StepWorkspace<float> ws;
+  const auto start = std::chrono::steady_clock::now();
+  auto elapsed = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(); };
+  double last_log_time = 0;
+  std::uint64_t last_log_step = step;
+  int last_width = 0;
+  auto save_state = [&](std::uint64_t done) {
+    if (!root) return;
+    train::save_training_state(state_path, w->store(), model_json,
+                               train::TrainingState{done, train::rng_state_string(std::mt19937_64(cfg.seed))});
+  };
+  while (step < stop_at) {
+    std::uint64_t stage_start = 0;
+    const std::size_t si = cfg.stage_at(step, stage_start);
+    const TrainStage& stage = cfg.stages[si];
+    train::CosineSchedule schedule{stage.lr, 0.0, stage.warmup, stage.steps};
+    const double lr = schedule.lr(step - stage_start);
+    std::vector<model::TrainExample<float>> local;
+    for (index_t b = share.first; b < share.first + share.count; ++b) local.push_back(make_scene(data, cfg, step, b));
+    const model::StepReport r = model::train_step<float>(ws, *w, local, cfg.batch, stage.step, lr, step, comm, lpips.get());
+    require(std::isfinite(r.loss), "train: the loss is ", r.loss, " at step ", step, " (stage '", stage.name,
+            "'); lower the learning rate");
+    const std::uint64_t done = ++step;
+    // The last rank's clock decides, so every rank stops after the same step.
+    double out_of_time = has_seconds && elapsed() >= budget ? 1.0 : 0.0;
+    comm.broadcast_from_last(&out_of_time, 1);
+    if (out_of_time > 0) stop_at = done;
+    if (!root) continue;
+    const double now = elapsed();
+    const double speed = static_cast<double>((done - last_log_step) * static_cast<std::uint64_t>(cfg.batch)) /
+                         std::max(now - last_log_time, 1e-9);
+    if (done % cfg.log_every == 0 || done == stop_at) {
+      const json line = {{"step", done}, {"stage", stage.name}, {"lr", lr}, {"loss", r.loss}, {"camera", r.camera},
+                         {"depth", r.depth}, {"rgb_head", r.rgb_head}, {"render", r.render},
+                         {"render_depth", r.render_depth}, {"lpips", r.lpips}, {"psnr", r.psnr},
+                         {"grad_norm", r.grad_norm}, {"seconds", now}, {"scenes_per_s", speed}};
+      log << line.dump() << "\n";
+      log.flush();
+      last_log_time = now, last_log_step = done;
+    }
+    if (done % cfg.checkpoint_every == 0 || done == stop_at) save_state(done);
+    if (!quiet) {
+      const int bar = 30,
+                filled = static_cast<int>(static_cast<double>(bar) * static_cast<double>(done) / static_cast<double>(total));
+      std::string text = "\r[" + std::string(static_cast<std::size_t>(filled), '#') +
+                         std::string(static_cast<std::size_t>(bar - filled), ' ') + "] ";
+      char tail[160];
+      const double rate = static_cast<double>((done - first_step) * static_cast<std::uint64_t>(cfg.batch)) / std::max(now, 1e-9);
+      std::snprintf(tail, sizeof tail, "step %llu/%llu %s loss %.4f psnr %.2f %.2f scenes/s %.1f s",
+                    static_cast<unsigned long long>(done), static_cast<unsigned long long>(total), stage.name.c_str(),
+                    r.loss, r.psnr, rate, now);
+      text += tail;
+      if (static_cast<int>(text.size()) < last_width) text += std::string(static_cast<std::size_t>(last_width) - text.size(), ' ');
+      last_width = static_cast<int>(text.size());
+      std::fputs(text.c_str(), stderr);
+      std::fflush(stderr);
+    }
+  }
+  if (root) {
+    if (!quiet && last_width > 0) std::fputc('\n', stderr);
+    if (step == first_step) save_state(step);
+    w->save(run / "model.safetensors", step);
+    const double secs = elapsed();
+    std::printf("%s: step %llu of %llu, %.1f s, %.3f scenes/s on %d rank(s)%s\n", run.string().c_str(),
+                static_cast<unsigned long long>(step), static_cast<unsigned long long>(total), secs,
+                static_cast<double>((step - first_step) * static_cast<std::uint64_t>(cfg.batch)) / std::max(secs, 1e-9),
+                comm.size(), step < total ? " (budget reached; rerun the same command to continue)" : "");
+  }
+  return 0;
+}
+
+const RegisterCommand registered_cmd_train(
+    "train", {"train a FlexSplat model from a JSON config (resumable exactly; data parallel under mpirun)",
+              "--config CFG.json --data procedural|DIR... --out RUN_DIR [--init VGGT.safetensors] [--steps N] "
+              "[--seconds S] [--quiet]\n"
+              "  CFG.json keys (all optional): model (\"tiny\" | \"paper\" | FlexSplat config object), seed, batch (global),\n"
+              "  inputs [min, max] views per scene, targets, gaussians (0: tied to the view count), max_grad_norm,\n"
+              "  lpips_weights, checkpoint_every, log_every, stages [{name, steps, lr, warmup, appearance, train_geometry,\n"
+              "  camera_weight, depth_weight, objective {rgb_head, render, depth, lpips}}]; unknown keys are errors\n"
+              "  RUN_DIR: config.json, log.jsonl, state.safetensors (resume point), model.safetensors (at the end)\n"
+              "  rerunning the same command resumes from state.safetensors; --steps N stops after global step N,\n"
+              "  --seconds S after S seconds, both with a checkpoint; --init loads VGGT geometry weights on a fresh run",
+              train_command});
+
+}  // namespace
+}  // namespace flexsplat::cli
