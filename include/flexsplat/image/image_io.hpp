@@ -100,6 +100,7 @@ inline void check_declared_size(const std::filesystem::path& path, const std::ve
   static const unsigned char png_magic[8] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
   const bool jpeg = n >= 3 && p[0] == 0xFF && p[1] == 0xD8 && p[2] == 0xFF;
   if (n >= 8 && std::memcmp(p, png_magic, 8) == 0) {
+    bool image_data = false;
     for (std::size_t pos = 8; pos + 8 <= n;) {
       const std::uint64_t len = (std::uint64_t(p[pos]) << 24) | (std::uint64_t(p[pos + 1]) << 16) |
                                 (std::uint64_t(p[pos + 2]) << 8) | std::uint64_t(p[pos + 3]);
@@ -107,6 +108,11 @@ inline void check_declared_size(const std::filesystem::path& path, const std::ve
         image_error(path, "PNG chunk at byte ", pos, " declares ", len, " bytes, past the end of the file (", n,
                     " bytes)");
       if (std::memcmp(p + pos + 4, "IEND", 4) == 0) break;
+      // stb would memcpy into its still-null IDAT buffer (undefined behaviour even for 0 bytes).
+      if (std::memcmp(p + pos + 4, "IDAT", 4) == 0) {
+        if (len == 0 && !image_data) image_error(path, "PNG starts its image data with an empty IDAT chunk");
+        image_data = true;
+      }
       pos += 12 + len;
     }
   } else if (jpeg) {
