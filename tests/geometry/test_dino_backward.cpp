@@ -101,7 +101,7 @@ TEST_CASE("DINO backward matches central differences (patch conv, tokens, resize
   auto params = d.grad_params();
   params.push_back({"images", images, d_images});
   testing::GradCheckOptions options;
-  options.max_checks_per_param = 16;  // 33 tensors: the blocks are checked in full by the block tests
+  options.max_checks_per_param = 8;  // 33 tensors: the blocks are checked in full by the block tests
   auto result = testing::check_gradients(params, static_cast<std::size_t>(S * P * c.embed_dim), forward, backward, options);
   INFO(result.summary());
   CHECK(result.ok());

@@ -156,7 +156,7 @@ TEST_CASE("VGGT end to end: images -> cameras, depth, confidence, world points, 
   auto params = m.grad_params();
   params.push_back({"images", images, d_images});
   testing::GradCheckOptions options;
-  options.max_checks_per_param = 3;  // ~100 tensors; each op has its own full check
+  options.max_checks_per_param = 2;  // ~100 tensors, each reached; every op has its own full check
   auto result = testing::check_gradients(params, n_out, forward, backward, options);
   INFO(result.summary());
   CHECK(result.ok());
