@@ -65,6 +65,7 @@ TEST_CASE("aggregator config parses the bundle JSON and rejects inconsistent val
   CHECK(def.dino.depth == 24);
   CHECK_THROWS_WITH(aggregator_config_from_json(std::string(R"({"embed_dim": 60, "num_heads": 7})")),
                     Catch::Contains("num_heads 7"));
-  CHECK_THROWS_WITH(aggregator_config_from_json(std::string(R"({"depth": "x"})")), Catch::Contains("config JSON"));
+  CHECK_THROWS_WITH(aggregator_config_from_json(std::string(R"({"depth": "x"})")),
+                    Catch::Contains("'depth' = \"x\" is not an integer"));
   CHECK_THROWS_WITH(aggregator_config_from_json(std::string("{not json")), Catch::Contains("not valid JSON"));
 }
