@@ -14,6 +14,7 @@
 
 #include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/simd.hpp"
+#include "flexsplat/geometry/flops.hpp"
 #include "flexsplat/geometry/random_weights.hpp"
 #include "flexsplat/geometry/vggt.hpp"
 #include "sgemm_rate.hpp"
@@ -28,34 +29,6 @@ static double peak_rss_gb() {
   rusage u{};
   getrusage(RUSAGE_SELF, &u);
   return static_cast<double>(u.ru_maxrss) * 1024.0 / 1e9;  // ru_maxrss is in KiB on Linux
-}
-
-// 2 x multiply-adds of one block over `batch` sequences of `tokens` rows (linear layers + QK^T + PV).
-static double block_flops(const BlockConfig& c, double batch, double tokens) {
-  const double rows = batch * tokens, C = double(c.dim), H = double(c.mlp_hidden());
-  return 2.0 * rows * (3 * C * C + C * C + 2 * C * H) + 4.0 * batch * tokens * tokens * C;
-}
-
-// Convolution FLOPs of the DPT head for one frame (bilinear resizes and activations not counted).
-static double dpt_flops(const DptHeadConfig& c, index_t ph, index_t pw) {
-  const DptGeometry g(ph, pw, c.patch_size);
-  const double P = double(ph * pw), F = double(c.features), Fh = double(c.head_features());
-  const auto& oc = c.out_channels;
-  double f = 0;
-  for (int i = 0; i < 4; ++i) f += 2 * P * double(c.dim_in) * double(oc[i]);
-  f += 2 * P * double(oc[0]) * double(oc[0]) * 16 + 2 * P * double(oc[1]) * double(oc[1]) * 4;
-  f += 2 * double(g.level_size(3)) * double(oc[3]) * double(oc[3]) * 9;
-  for (int i = 0; i < 4; ++i) f += 2 * double(g.level_size(i)) * double(oc[i]) * F * 9;
-  const double conv3 = 2 * F * F * 9, conv1 = 2 * F * F;
-  for (int i = 0; i < 4; ++i) {
-    const double units = i == 3 ? 1 : 2;  // refinenet4 has no skip unit
-    const double up = i == 0 ? double(g.fused_h * g.fused_w) : double(g.level_size(i - 1));
-    f += units * 2 * conv3 * double(g.level_size(i)) + conv1 * up;
-  }
-  f += 2 * double(g.fused_h * g.fused_w) * F * Fh * 9;
-  const double full = double(g.out_h * g.out_w);
-  f += 2 * full * Fh * DptHeadConfig::head_hidden * 9 + 2 * full * DptHeadConfig::head_hidden * double(c.output_dim);
-  return f;
 }
 
 int main(int argc, char** argv) {
@@ -120,15 +93,10 @@ int main(int argc, char** argv) {
     const double sgemm = std::max(sgemm_before, sgemm_after);
     begin["aggregator"] = end["dino"];
 
-    const auto& a = cfg.aggregator;
-    std::map<std::string, double> flops;
-    flops["dino"] = 2.0 * frames * P * 3 * p * p * a.embed_dim +
-                    a.dino.depth * block_flops(a.dino.block(), frames, 1 + a.dino.num_register_tokens + P);
-    const double agg_tokens = a.patch_start_idx() + P;
-    flops["aggregator"] = a.depth * (block_flops(a.block(), frames, agg_tokens) + block_flops(a.block(), 1, frames * agg_tokens));
-    flops["camera_head"] = cfg.camera.iterations * cfg.camera.trunk_depth * block_flops(cfg.camera.block(), 1, frames);
-    flops["depth_head"] = frames * dpt_flops(cfg.depth, gh, gw);
-    flops["unproject"] = 0;
+    const auto vf = vggt_forward_flops(cfg, frames, H, W);
+    std::map<std::string, double> flops{{"dino", vf.dino}, {"aggregator", vf.aggregator},
+                                        {"camera_head", vf.camera_head}, {"depth_head", vf.depth_head},
+                                        {"unproject", 0.0}};
 
     std::printf("\n%lld x %lldx%lld (%lld patches/frame); %s: %.1f GFLOP/s before, %.1f after\n", (long long)frames,
                 (long long)H, (long long)W, (long long)P, bench::sgemm_label().c_str(), sgemm_before, sgemm_after);

@@ -2,8 +2,10 @@
 // backward through everything, AdamW): time per phase, and the GEMM-heavy phases' GFLOP/s next to the machine's SGEMM
 // rate measured in the same run.
 //   bench/train_step [--config tiny|paper] [--views V] [--targets M] [--size N] [--gaussians N] [--steps K]
-//                    [--recompute]
+//                    [--recompute] [--depth D]
 // tiny: the test configuration (28x28); paper: VGGT-1B layout with random weights, the paper's decoder, 20K Gaussians.
+// --depth D keeps D of the 24 DINO blocks and D aggregator block pairs (full widths), for machines whose memory does
+// not hold the full model's training state (params, grads and Adam moments: 16 bytes per parameter).
 #include <sys/resource.h>
 
 #include <chrono>
@@ -37,7 +39,7 @@ static double decoder_flops(const decoder::DecoderConfig& d, double n, double vi
 
 int main(int argc, char** argv) {
   std::string config = "tiny";
-  index_t views = 4, targets = 2, size = 0, gaussians = 0, steps = 3;
+  index_t views = 4, targets = 2, size = 0, gaussians = 0, steps = 3, depth = 0;
   bool recompute = false;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -48,9 +50,10 @@ int main(int argc, char** argv) {
     else if (a == "--gaussians" && i + 1 < argc) gaussians = std::atol(argv[++i]);
     else if (a == "--steps" && i + 1 < argc) steps = std::atol(argv[++i]);
     else if (a == "--recompute") recompute = true;
+    else if (a == "--depth" && i + 1 < argc) depth = std::atol(argv[++i]);
     else {
       std::fprintf(stderr, "usage: %s [--config tiny|paper] [--views V] [--targets M] [--size N] [--gaussians N] "
-                           "[--steps K] [--recompute]\n", argv[0]);
+                           "[--steps K] [--recompute] [--depth D]\n", argv[0]);
       return 2;
     }
   }
@@ -61,6 +64,15 @@ int main(int argc, char** argv) {
     if (config == "paper") c.image_h = c.image_w = 252, c.gaussians = 20000;
     if (size > 0) c.image_h = c.image_w = size;
     if (gaussians > 0) c.gaussians = gaussians;
+    double full_params = 0;
+    for (const auto& spec : geometry::vggt_parameter_specs(c.geometry)) full_params += double(geometry::spec_numel(spec));
+    if (depth > 0) {
+      auto& a = c.geometry.aggregator;
+      a.depth = a.dino.depth = depth;
+      for (auto& i : c.geometry.depth.intermediate_layer_idx) i = std::min(i, depth - 1);
+      std::printf("reduced depth %lld: the full geometry has %.0f M parameters, %.1f GB of training state\n",
+                  (long long)depth, full_params / 1e6, full_params * 16 / 1e9);
+    }
     c.appearance.decoder.max_views = std::max(c.appearance.decoder.max_views, views);
     c.geometry.pose_decode.policy = geometry::DegeneratePosePolicy::clamp;  // random weights may give a bad camera
     c.validate();
