@@ -53,6 +53,10 @@ TEST_CASE("appearance objective passes the float64 gradient check into parameter
   TinyObjective t;
   model::ObjectiveWeights weights;
   weights.depth = 0.3;
+  weights.lpips = 0.5;
+  loss::LpipsWeights<double> lpips(loss::LpipsConfig{{3, 4, 4, 5, 5}});
+  std::mt19937_64 rng(41);
+  loss::lpips_init_random(std::span<double>(lpips.params), lpips.layout, rng);
   model::ObjectiveWorkspace<double> ws;
   raster::RenderOptions ro;
   ro.background = {1, 1, 1};
@@ -61,7 +65,7 @@ TEST_CASE("appearance objective passes the float64 gradient check into parameter
   dg.zero_like(t.g);
   auto run = [&](double* d_params, model::GeometryResult<double>* d_geometry) {
     return model::appearance_objective<double>(ws, t.params.data(), d_params, t.cfg, t.n, t.images.data(), t.g,
-                                               d_geometry, t.views, weights, ro);
+                                               d_geometry, t.views, weights, ro, &lpips);
   };
   auto result = testing::check_gradients(
       {{"params", t.params, dp},

@@ -209,8 +209,9 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
         detail::hwc_to_chw(ws.render_chw.data(), img, H, W);
         detail::hwc_to_chw(ws.target_chw.data(), view.target, H, W);
         T value = 0;
+        // Every layer of a view meets the same target: its trunk runs once per view.
         loss::lpips_forward(&value, static_cast<T*>(nullptr), ws.render_chw.data(), ws.target_chw.data(), 1, H, W,
-                            lpips->params.data(), lpips->layout, ws.lpips, true);
+                            lpips->params.data(), lpips->layout, ws.lpips, true, l > 0);
         parts.lpips += scale * static_cast<double>(value);
         const T d_value = static_cast<T>(scale);
         loss::lpips_backward(ws.d_render_chw.data(), static_cast<T*>(nullptr), &d_value, static_cast<const T*>(nullptr),
