@@ -284,22 +284,6 @@ void scaled_residual_backward(T* d_y, T* d_scale, const T* d_x, const T* y, cons
       for (index_t i = 0; i < dim; ++i) d_scale[i] += d_x[r * dim + i] * y[r * dim + i];
 }
 
-template <class T>
-void gelu_parallel(T* out, const T* in, index_t n) {
-  parallel_for((n + 4095) / 4096, [&](index_t c0, index_t c1, int) {
-    const index_t b = c0 * 4096, e = std::min(n, c1 * 4096);
-    nn::gelu_forward(out + b, in + b, e - b);
-  });
-}
-
-template <class T>
-void gelu_backward_parallel(T* d_in, const T* d_out, const T* in, index_t n) {
-  parallel_for((n + 4095) / 4096, [&](index_t c0, index_t c1, int) {
-    const index_t b = c0 * 4096, e = std::min(n, c1 * 4096);
-    nn::gelu_backward(d_in + b, d_out + b, in + b, e - b);
-  });
-}
-
 // Sets columns [col, col + width) of rows x row_stride to zero.
 template <class T>
 void zero_columns(T* x, index_t rows, index_t row_stride, index_t col, index_t width) {
@@ -388,7 +372,7 @@ void block_forward_impl(T* x, index_t batch, index_t tokens, const BlockConfig& 
     nn::layernorm_forward(normed, x + r0 * C, w.norm2_weight, w.norm2_bias, n, C, static_cast<T>(c.norm_eps), ln2);
     T* pre = cache ? cache->hidden.data() + r0 * H : hidden;
     nn::linear_forward(pre, normed, w.fc1_weight, w.fc1_bias, n, C, H);
-    gelu_parallel(hidden, pre, n * H);
+    nn::gelu_forward(hidden, pre, n * H);
     T* mlp = cache ? cache->mlp_out.data() + r0 * C : qkv;
     nn::linear_forward(mlp, hidden, w.fc2_weight, w.fc2_bias, n, H, C);
     add_scaled_residual(x + r0 * C, mlp, w.ls2, n, C);
@@ -476,11 +460,11 @@ void block_backward(T* d_x, const BlockGrads<T>& g, BlockCache<T>& cache, const 
       const T* pre = a->hidden.data() + r0 * H;
       const T* x_mid = a->x_mid.data() + r0 * C;
       scaled_residual_backward(d_mlp, g.ls2, dx, a->mlp_out.data() + r0 * C, w.ls2, n, C);
-      gelu_parallel(act, pre, n * H);
+      nn::gelu_forward(act, pre, n * H);
       std::fill(d_act, d_act + n * H, T(0));
       nn::linear_backward(d_act, g.fc2_weight, g.fc2_bias, d_mlp, act, w.fc2_weight, n, H, C);
       std::fill(d_pre, d_pre + n * H, T(0));
-      gelu_backward_parallel(d_pre, d_act, pre, n * H);
+      nn::gelu_backward(d_pre, d_act, pre, n * H);
       nn::layernorm_forward(normed, x_mid, w.norm2_weight, w.norm2_bias, n, C, static_cast<T>(c.norm_eps));
       std::fill(d_normed, d_normed + n * C, T(0));
       nn::linear_backward(d_normed, g.fc1_weight, g.fc1_bias, d_pre, normed, w.fc1_weight, n, C, H);
