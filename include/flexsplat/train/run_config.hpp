@@ -1,0 +1,199 @@
+#pragma once
+// The configuration of a `flexsplat train` run from its JSON file: model ("tiny", "paper" or a FlexSplat config
+// object), seed, global batch, views per scene, Gaussians, clipping, LPIPS weights, checkpoint/log periods and the
+// stages (steps, learning rate, warmup, losses). Every key is checked before any compute; unknown keys are errors.
+#include <algorithm>
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+#include <filesystem>
+#include <set>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/model/config.hpp"
+#include "flexsplat/model/train.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace train {
+
+struct TrainStage {
+  std::string name;
+  std::uint64_t steps = 1;
+  double lr = 1e-3;
+  std::uint64_t warmup = 0;
+  model::StepConfig step;
+};
+
+struct TrainRunConfig {
+  model::FlexSplatConfig model;
+  std::uint64_t seed = 0;
+  index_t batch = 4;
+  int inputs_min = 2, inputs_max = 4, targets = 2;
+  index_t gaussians = 0;  // 0: tied to the view count (the model's budget)
+  double max_grad_norm = 1.0;
+  std::string lpips_weights;
+  std::vector<TrainStage> stages;
+  std::uint64_t checkpoint_every = 100, log_every = 10;
+
+  std::uint64_t total_steps() const {
+    std::uint64_t n = 0;
+    for (const auto& s : stages) n += s.steps;
+    return n;
+  }
+  // The stage running global step `step` and the step at which it started.
+  std::size_t stage_at(std::uint64_t step, std::uint64_t& start) const {
+    start = 0;
+    for (std::size_t i = 0; i < stages.size(); ++i) {
+      if (step < start + stages[i].steps || i + 1 == stages.size()) return i;
+      start += stages[i].steps;
+    }
+    return 0;
+  }
+};
+
+namespace detail {
+
+// Reads one JSON object's keys with a path for error messages; unknown keys are errors.
+class Keys {
+public:
+  Keys(const nlohmann::json& j, std::string where) : j_(j), where_(std::move(where)) {
+    require(j.is_object(), "train config: ", where_.empty() ? "the file" : "'" + where_ + "'", " must be a JSON object");
+  }
+  std::string path(const std::string& key) const { return where_.empty() ? key : where_ + "." + key; }
+  const nlohmann::json* find(const std::string& key) {
+    seen_.insert(key);
+    const auto it = j_.find(key);
+    return it == j_.end() ? nullptr : &*it;
+  }
+  double number(const std::string& key, double fallback, double lo, double hi) {
+    const nlohmann::json* v = find(key);
+    if (!v) return fallback;
+    require(v->is_number() && std::isfinite(v->get<double>()) && v->get<double>() >= lo && v->get<double>() <= hi,
+            "train config: '", path(key), "' is ", v->dump(), ", expected a number in [", lo, ", ", hi, "]");
+    return v->get<double>();
+  }
+  std::uint64_t integer(const std::string& key, std::uint64_t fallback, std::uint64_t lo, std::uint64_t hi) {
+    const nlohmann::json* v = find(key);
+    if (!v) return fallback;
+    require(v->is_number_unsigned() && v->get<std::uint64_t>() >= lo && v->get<std::uint64_t>() <= hi, "train config: '",
+            path(key), "' is ", v->dump(), ", expected an integer in [", lo, ", ", hi, "]");
+    return v->get<std::uint64_t>();
+  }
+  bool boolean(const std::string& key, bool fallback) {
+    const nlohmann::json* v = find(key);
+    if (!v) return fallback;
+    require(v->is_boolean(), "train config: '", path(key), "' is ", v->dump(), ", expected true or false");
+    return v->get<bool>();
+  }
+  std::string string(const std::string& key, const std::string& fallback) {
+    const nlohmann::json* v = find(key);
+    if (!v) return fallback;
+    require(v->is_string(), "train config: '", path(key), "' is ", v->dump(), ", expected a string");
+    return v->get<std::string>();
+  }
+  void finish() const {
+    for (const auto& [key, value] : j_.items())
+      require(seen_.count(key), "train config: unknown key '", path(key), "'");
+  }
+
+private:
+  const nlohmann::json& j_;
+  std::string where_;
+  std::set<std::string> seen_;
+};
+
+inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where) {
+  Keys k(j, where);
+  TrainStage s;
+  s.name = k.string("name", where);
+  s.steps = k.integer("steps", 100, 1, 1000000000);
+  s.lr = k.number("lr", 1e-3, 0, 10);
+  s.warmup = k.integer("warmup", 0, 0, s.steps);
+  s.step.appearance = k.boolean("appearance", true);
+  s.step.train_geometry = k.boolean("train_geometry", true);
+  s.step.camera_weight = k.number("camera_weight", 0.0, 0, 1e6);
+  s.step.depth_weight = k.number("depth_weight", 0.0, 0, 1e6);
+  if (const nlohmann::json* o = k.find("objective")) {
+    Keys ok(*o, k.path("objective"));
+    auto& w = s.step.objective;
+    w.rgb_head = ok.number("rgb_head", w.rgb_head, 0, 1e6);
+    w.render = ok.number("render", w.render, 0, 1e6);
+    w.depth = ok.number("depth", w.depth, 0, 1e6);
+    w.lpips = ok.number("lpips", w.lpips, 0, 1e6);
+    ok.finish();
+  }
+  k.finish();
+  require(s.step.appearance || s.step.camera_weight > 0 || s.step.depth_weight > 0, "train config: '", where,
+          "' has no loss (appearance is false and camera_weight and depth_weight are 0)");
+  require(s.step.train_geometry || s.step.appearance, "train config: '", where,
+          "' trains nothing (train_geometry and appearance are both false)");
+  return s;
+}
+
+}  // namespace detail
+
+// Checks every key and value before anything is computed; the error names the key path and the value.
+inline TrainRunConfig parse_train_config(const nlohmann::json& j) {
+  detail::Keys k(j, "");
+  TrainRunConfig c;
+  if (const nlohmann::json* m = k.find("model")) {
+    if (m->is_string() && *m == "tiny") c.model = model::flexsplat_tiny_config();
+    else if (m->is_string() && *m == "paper") c.model = model::flexsplat_paper_config();
+    else {
+      require(m->is_object(), "train config: 'model' is ", m->dump(), ", expected \"tiny\", \"paper\" or a FlexSplat config object");
+      c.model = model::flexsplat_config_from_json(m->dump());
+    }
+  } else {
+    c.model = model::flexsplat_tiny_config();
+  }
+  require(c.model.image_h == c.model.image_w, "train config: 'model' is ", c.model.image_w, " x ", c.model.image_h,
+          "; training data is square, so image_h must equal image_w");
+  c.seed = k.integer("seed", 0, 0, UINT64_MAX);
+  c.batch = static_cast<index_t>(k.integer("batch", 4, 1, 1000000));
+  const index_t max_views = c.model.appearance.decoder.max_views;
+  if (const nlohmann::json* in = k.find("inputs")) {
+    require(in->is_array() && in->size() == 2 && (*in)[0].is_number_unsigned() && (*in)[1].is_number_unsigned(),
+            "train config: 'inputs' is ", in->dump(), ", expected [min, max] view counts");
+    c.inputs_min = static_cast<int>(std::min<std::uint64_t>((*in)[0].get<std::uint64_t>(), 1 << 20));
+    c.inputs_max = static_cast<int>(std::min<std::uint64_t>((*in)[1].get<std::uint64_t>(), 1 << 20));
+  } else {
+    c.inputs_min = static_cast<int>(std::min<index_t>(2, max_views)), c.inputs_max = static_cast<int>(max_views);
+  }
+  require(c.inputs_min >= 1 && c.inputs_min <= c.inputs_max && c.inputs_max <= max_views, "train config: 'inputs' is [",
+          c.inputs_min, ", ", c.inputs_max, "], expected 1 <= min <= max <= ", max_views,
+          " (the decoder's max_views)");
+  c.targets = static_cast<int>(k.integer("targets", 2, 0, 64));
+  c.gaussians = static_cast<index_t>(k.integer("gaussians", 0, 0, 100000000));
+  c.max_grad_norm = k.number("max_grad_norm", 1.0, 0, 1e12);
+  c.lpips_weights = k.string("lpips_weights", "");
+  c.checkpoint_every = k.integer("checkpoint_every", 100, 1, UINT64_MAX);
+  c.log_every = k.integer("log_every", 10, 1, UINT64_MAX);
+  if (const nlohmann::json* st = k.find("stages")) {
+    require(st->is_array() && !st->empty(), "train config: 'stages' is ", st->dump().substr(0, 80),
+            ", expected a non-empty array of stage objects");
+    for (std::size_t i = 0; i < st->size(); ++i) c.stages.push_back(detail::parse_stage((*st)[i], concat("stages[", i, "]")));
+  } else {
+    c.stages.push_back(detail::parse_stage(nlohmann::json::object(), "stages[0]"));
+  }
+  k.finish();
+  for (auto& s : c.stages) {
+    s.step.gaussians = c.gaussians;
+    s.step.max_grad_norm = c.max_grad_norm;
+    if (s.step.objective.lpips > 0)
+      require(!c.lpips_weights.empty(), "train config: stage '", s.name,
+              "' has objective.lpips > 0 but 'lpips_weights' (an LPIPS safetensors file) is not set");
+  }
+  if (!c.lpips_weights.empty())
+    require(std::filesystem::is_regular_file(c.lpips_weights), "train config: 'lpips_weights' file '", c.lpips_weights, "' does not exist");
+  return c;
+}
+
+}  // namespace train
+}  // namespace v0
+}  // namespace flexsplat
