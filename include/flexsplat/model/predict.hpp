@@ -1,0 +1,209 @@
+#pragma once
+// Forward-only inference of the whole FlexSplat model: images at the model's size -> VGGT (cameras, depth,
+// confidence, depth features; no training cache) -> UNet, fusion and Gaussian decoder -> the last decoder layer's
+// Gaussians, in the model's frame (first input camera = identity, the model's own scale). Also the input side: any
+// RGBA/RGB picture turned into a model-size view the way the data module makes training views (premultiplied
+// antialiased bicubic resize, composited on the background), with the intrinsics that follow the crop and resize.
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <vector>
+
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/core/gaussians.hpp"
+#include "flexsplat/core/tensor.hpp"
+#include "flexsplat/decoder/model.hpp"
+#include "flexsplat/geometry/pose_encoding.hpp"
+#include "flexsplat/image/resample.hpp"
+#include "flexsplat/model/geometry_stage.hpp"
+#include "flexsplat/model/objective.hpp"
+#include "flexsplat/model/weights.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace model {
+
+template <class T>
+struct Prediction {
+  index_t views = 0, h = 0, w = 0;
+  GeometryResult<T> geometry;   // w2c [V, 3, 4], K [V, 3, 3] (pixel centres at +0.5), depth, confidence, features
+  std::vector<T> pose_enc;      // [V, 9] the camera head's last refinement iteration
+  GaussianSet<T> gaussians;     // the last decoder layer
+  double geometry_ms = 0, decoder_ms = 0;  // wall time of the two stages
+};
+
+template <class T>
+struct PredictWorkspace {
+  GeometryStage<T> geometry;
+  decoder::ModelWorkspace<T> model;
+};
+
+namespace detail {
+template <class T>
+void require_finite(const T* p, std::size_t n, const char* what) {
+  for (std::size_t i = 0; i < n; ++i)
+    require(std::isfinite(static_cast<double>(p[i])), "predict: the model produced a non-finite ", what, " (entry ",
+            i, " = ", static_cast<double>(p[i]), "); the weights hold NaN/Inf or overflow");
+}
+}  // namespace detail
+
+// images [views, 3, h, w] in [0, 1] at the configuration's size (image_h x image_w). n_gaussians 0: the
+// configuration's budget for the view count.
+template <class T>
+Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, const T* images, index_t views,
+                      index_t n_gaussians = 0) {
+  const FlexSplatConfig& c = w.config();
+  require(images, "predict: null images");
+  require(views >= 1 && views <= c.appearance.decoder.max_views, "predict: ", views,
+          " input views; the model takes 1 to ", c.appearance.decoder.max_views, " (decoder max_views)");
+  const index_t n = n_gaussians > 0 ? n_gaussians : c.gaussians_for(views);
+  require(n_gaussians >= 0 && n <= c.appearance.decoder.max_queries, "predict: ", n,
+          " Gaussians requested; the decoder has ", c.appearance.decoder.max_queries, " queries (max_queries)");
+  const index_t h = c.image_h, wd = c.image_w, values = views * 3 * h * wd;
+  for (index_t i = 0; i < values; ++i)
+    require(images[i] >= T(0) && images[i] <= T(1), "predict: image value ", static_cast<double>(images[i]),
+            " at flat index ", i, " of [", views, ", 3, ", h, ", ", wd, "] is outside [0, 1]");
+  using clock = std::chrono::steady_clock;
+  const auto t0 = clock::now();
+  geometry_stage_forward(ws.geometry, w, images, views, /*train=*/false);
+  const auto t1 = clock::now();
+  const GeometryResult<T>& g = ws.geometry.result;
+  detail::require_finite(g.extrinsics.data(), g.extrinsics.size(), "camera extrinsic");
+  detail::require_finite(g.K.data(), g.K.size(), "camera intrinsic");
+  detail::require_finite(g.depth.data(), g.depth.size(), "depth");
+  decoder::model_forward(ws.model, n, w.appearance(), c.appearance, images, h, wd, g.features.data(), g.feature_h,
+                         g.feature_w, g.view_geometry());
+  const auto t2 = clock::now();
+  Prediction<T> p;
+  p.views = views, p.h = h, p.w = wd;
+  p.gaussians = ws.model.gaussians().back();
+  const GaussianSet<T>& s = p.gaussians;
+  for (const auto* t : {&s.means, &s.quats, &s.scales}) detail::require_finite(t->data(), static_cast<std::size_t>(t->size()), "Gaussian parameter");
+  detail::require_finite(s.opacities.data(), static_cast<std::size_t>(s.opacities.size()), "Gaussian opacity");
+  detail::require_finite(s.sh.data(), static_cast<std::size_t>(s.sh.size()), "Gaussian colour");
+  const std::size_t last = static_cast<std::size_t>((ws.geometry.iterations - 1) * views * geometry::pose_encoding_dim);
+  p.pose_enc.assign(ws.geometry.pose_enc.begin() + static_cast<std::ptrdiff_t>(last), ws.geometry.pose_enc.end());
+  p.geometry = std::move(ws.geometry.result);  // the workspace refills it on the next call
+  p.geometry_ms = std::chrono::duration<double, std::milli>(t1 - t0).count();
+  p.decoder_ms = std::chrono::duration<double, std::milli>(t2 - t1).count();
+  return p;
+}
+
+// The same from a tensor, whose shape is checked against the model.
+template <class T>
+Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, TensorView<const T, 4> images,
+                      index_t n_gaussians = 0) {
+  const FlexSplatConfig& c = w.config();
+  require(images.shape(1) == 3 && images.shape(2) == c.image_h && images.shape(3) == c.image_w,
+          "predict: images have shape ", shape_string(images.shape()), "; the model takes [V, 3, ", c.image_h, ", ",
+          c.image_w, "] (prepare them with model::model_view)");
+  require(images.is_contiguous(), "predict: images must be contiguous, got shape ", shape_string(images.shape()));
+  return predict(ws, w, images.data(), images.shape(0), n_gaussians);
+}
+
+// How a source picture maps onto a model view: centre crop (x0, y0, width x height in source pixels), then resize by
+// scale_x, scale_y. With pixel centres at +0.5, K follows as fx' = fx sx, cx' = (cx - x0) sx (and y alike).
+struct ViewMapping {
+  index_t x0 = 0, y0 = 0, width = 0, height = 0;
+  double scale_x = 1, scale_y = 1;
+
+  // Row-major K [3, 3] of the source camera -> the model view's (in place).
+  void intrinsics(double* K) const {
+    K[0] *= scale_x, K[1] *= scale_x, K[2] = (K[2] - static_cast<double>(x0)) * scale_x;
+    K[4] *= scale_y, K[5] = (K[5] - static_cast<double>(y0)) * scale_y;
+  }
+};
+
+// The largest centred window of a W x H picture with the aspect ratio of h x w.
+inline ViewMapping view_mapping(index_t W, index_t H, index_t h, index_t w) {
+  require(W >= 1 && H >= 1, "model view: source image is ", W, " x ", H, " (empty)");
+  require(h >= 1 && w >= 1, "model view: target size ", w, " x ", h, " is empty");
+  ViewMapping m;
+  // Compare W/H with w/h in integers: keep the full width when the picture is relatively taller.
+  if (W * h <= H * w) {
+    m.width = W;
+    m.height = std::clamp<index_t>(static_cast<index_t>(std::llround(static_cast<double>(W) * h / w)), 1, H);
+  } else {
+    m.height = H;
+    m.width = std::clamp<index_t>(static_cast<index_t>(std::llround(static_cast<double>(H) * w / h)), 1, W);
+  }
+  m.x0 = (W - m.width) / 2, m.y0 = (H - m.height) / 2;
+  m.scale_x = static_cast<double>(w) / static_cast<double>(m.width);
+  m.scale_y = static_cast<double>(h) / static_cast<double>(m.height);
+  return m;
+}
+
+// rgba [H, W, 4] straight alpha in [0, 1] -> out [3, h, w] (CHW, the model's input layout) composited on
+// `background`: the centred window of the model's aspect ratio, resized as data::sample_batch resizes training
+// views (antialiased bicubic on premultiplied RGBA, colour clamped to [0, alpha]; a window of the model's size is
+// copied). alpha_out [h, w] may be null.
+template <class T>
+ViewMapping model_view(T* out, TensorView<const float, 3> rgba, index_t h, index_t w,
+                       const std::array<float, 3>& background = {1.0f, 1.0f, 1.0f}, T* alpha_out = nullptr) {
+  require(rgba.shape(2) == 4, "model view: image has shape ", shape_string(rgba.shape()),
+          "; expected [H, W, 4] RGBA (read it with image::read_float(path, 4))");
+  const ViewMapping m = view_mapping(rgba.shape(1), rgba.shape(0), h, w);
+  for (index_t i = 0; i < rgba.size(); ++i)
+    require(rgba.data()[i] >= 0.0f && rgba.data()[i] <= 1.0f, "model view: pixel value ", rgba.data()[i],
+            " outside [0, 1]");
+  const index_t px = h * w;
+  auto put = [&](index_t y, index_t x, const float rgb[3], float a) {
+    for (int ch = 0; ch < 3; ++ch) out[ch * px + y * w + x] = static_cast<T>(rgb[ch]);
+    if (alpha_out) alpha_out[y * w + x] = static_cast<T>(a);
+  };
+  if (m.width == w && m.height == h) {
+    for (index_t y = 0; y < h; ++y)
+      for (index_t x = 0; x < w; ++x) {
+        const float a = rgba(m.y0 + y, m.x0 + x, 3);
+        float c[3];
+        for (int ch = 0; ch < 3; ++ch) c[ch] = rgba(m.y0 + y, m.x0 + x, ch) * a + background[static_cast<std::size_t>(ch)] * (1.0f - a);
+        put(y, x, c, a);
+      }
+    return m;
+  }
+  Tensor<float, 3> planar(Shape<3>{4, m.height, m.width});
+  for (index_t y = 0; y < m.height; ++y)
+    for (index_t x = 0; x < m.width; ++x) {
+      const float a = rgba(m.y0 + y, m.x0 + x, 3);
+      for (int ch = 0; ch < 3; ++ch) planar(ch, y, x) = rgba(m.y0 + y, m.x0 + x, ch) * a;
+      planar(3, y, x) = a;
+    }
+  const Tensor<float, 3> resized = interpolate_bicubic_antialias<float>(TensorView<const float, 3>(planar.view()), h, w);
+  for (index_t y = 0; y < h; ++y)
+    for (index_t x = 0; x < w; ++x) {
+      const float a = std::clamp(resized(3, y, x), 0.0f, 1.0f);
+      float c[3];
+      for (int ch = 0; ch < 3; ++ch)
+        c[ch] = std::clamp(resized(ch, y, x), 0.0f, a) + background[static_cast<std::size_t>(ch)] * (1.0f - a);
+      put(y, x, c, a);
+    }
+  return m;
+}
+
+// Several pictures as the model's input tensor [V, 3, image_h, image_w]; mappings (may be null) receives one
+// ViewMapping per picture.
+template <class T>
+Tensor<T, 4> model_input(const std::vector<Tensor<float, 3>>& rgba, const FlexSplatConfig& c,
+                         std::vector<ViewMapping>* mappings = nullptr,
+                         const std::array<float, 3>& background = {1.0f, 1.0f, 1.0f}) {
+  const index_t V = static_cast<index_t>(rgba.size());
+  require(V >= 1, "model input: no images");
+  Tensor<T, 4> out(Shape<4>{V, 3, c.image_h, c.image_w});
+  if (mappings) mappings->clear();
+  for (index_t v = 0; v < V; ++v) {
+    try {
+      const ViewMapping m = model_view<T>(out.data() + v * 3 * c.image_h * c.image_w,
+                                          TensorView<const float, 3>(rgba[static_cast<std::size_t>(v)].view()),
+                                          c.image_h, c.image_w, background);
+      if (mappings) mappings->push_back(m);
+    } catch (const Error& e) {
+      fail("model input: image ", v, " of ", V, ": ", e.what());
+    }
+  }
+  return out;
+}
+
+}  // namespace model
+}  // namespace v0
+}  // namespace flexsplat

@@ -1,0 +1,143 @@
+#include <catch2/catch.hpp>
+
+#include <cmath>
+#include <filesystem>
+#include <limits>
+
+#include "flexsplat/data/dataset.hpp"
+#include "flexsplat/model/predict.hpp"
+#include "flexsplat/model/train.hpp"
+
+using namespace flexsplat;
+
+namespace {
+data::SceneSample predict_scene(int inputs, int targets, std::uint64_t seed) {
+  data::GeneratorConfig g;
+  g.size = 28;
+  g.supersample = 2;
+  data::BatchOptions o;
+  o.inputs = inputs;
+  o.targets = targets;
+  o.structured_inputs = false;
+  return data::generate_batch(g, 1, seed, 0, o)[0];
+}
+
+template <class A, class B>
+double max_rel_diff(const A* a, const B* b, std::size_t n) {
+  double m = 0;
+  for (std::size_t i = 0; i < n; ++i) {
+    const double x = static_cast<double>(a[i]), y = static_cast<double>(b[i]);
+    m = std::max(m, std::abs(x - y) / (1.0 + std::abs(y)));
+  }
+  return m;
+}
+}  // namespace
+
+TEST_CASE("predict gives the cameras, depth and Gaussians of the training path's forward", "[model][predict]") {
+  const auto c = model::flexsplat_tiny_config();
+  auto w = model::FlexSplatWeights<float>::create(c, true);
+  w->init(11);
+  const auto e = model::make_train_example<float>(predict_scene(3, 1, 4), c);
+  model::StepConfig sc;
+  sc.gaussians = 40;
+  model::SceneWorkspace<float> tws;
+  w->store().zero_grads();
+  model::scene_gradient<float>(tws, *w, w->store().grads(), e, sc);
+  const auto& tg = tws.geometry.result;
+  const auto& tset = tws.objective.model.gaussians().back();
+
+  model::PredictWorkspace<float> ws;
+  const auto p = model::predict<float>(ws, *w, e.images.data(), e.views, 40);
+  REQUIRE(p.views == 3);
+  REQUIRE(p.gaussians.size() == 40);
+  REQUIRE(p.pose_enc.size() == 27u);
+  const auto& g = p.geometry;
+  CHECK(max_rel_diff(g.extrinsics.data(), tg.extrinsics.data(), tg.extrinsics.size()) <= 1e-6);
+  CHECK(max_rel_diff(g.K.data(), tg.K.data(), tg.K.size()) <= 1e-6);
+  CHECK(max_rel_diff(g.depth.data(), tg.depth.data(), tg.depth.size()) <= 1e-6);
+  CHECK(max_rel_diff(g.confidence.data(), tg.confidence.data(), tg.confidence.size()) <= 1e-6);
+  CHECK(max_rel_diff(g.features.data(), tg.features.data(), tg.features.size()) <= 1e-6);
+  const std::size_t last = static_cast<std::size_t>((tws.geometry.iterations - 1) * 27);
+  CHECK(max_rel_diff(p.pose_enc.data(), tws.geometry.pose_enc.data() + last, 27) <= 1e-6);
+  const auto& s = p.gaussians;
+  CHECK(max_rel_diff(s.means.data(), tset.means.data(), static_cast<std::size_t>(tset.means.size())) <= 1e-6);
+  CHECK(max_rel_diff(s.quats.data(), tset.quats.data(), static_cast<std::size_t>(tset.quats.size())) <= 1e-6);
+  CHECK(max_rel_diff(s.scales.data(), tset.scales.data(), static_cast<std::size_t>(tset.scales.size())) <= 1e-6);
+  CHECK(max_rel_diff(s.opacities.data(), tset.opacities.data(), static_cast<std::size_t>(tset.opacities.size())) <= 1e-6);
+  CHECK(max_rel_diff(s.sh.data(), tset.sh.data(), static_cast<std::size_t>(tset.sh.size())) <= 1e-6);
+
+  // A second call on the same workspace gives the same result (the geometry buffers were handed to the first).
+  const auto q = model::predict<float>(ws, *w, e.images.data(), e.views, 40);
+  CHECK(max_rel_diff(q.gaussians.means.data(), s.means.data(), static_cast<std::size_t>(s.means.size())) == 0);
+  CHECK(q.geometry.extrinsics == g.extrinsics);
+}
+
+TEST_CASE("predict refuses wrong view counts, sizes, values and non-finite weights", "[model][predict]") {
+  const auto c = model::flexsplat_tiny_config();
+  auto w = model::FlexSplatWeights<float>::create(c, false);
+  w->init(2);
+  model::PredictWorkspace<float> ws;
+  Tensor<float, 4> images(Shape<4>{5, 3, 28, 28}, 0.5f);
+  CHECK_THROWS_WITH(model::predict<float>(ws, *w, images.data(), 0), Catch::Contains("0 input views; the model takes 1 to 4"));
+  CHECK_THROWS_WITH(model::predict<float>(ws, *w, TensorView<const float, 4>(images.view())),
+                    Catch::Contains("5 input views; the model takes 1 to 4"));
+  Tensor<float, 4> wrong(Shape<4>{2, 3, 35, 35}, 0.5f);
+  CHECK_THROWS_WITH(model::predict<float>(ws, *w, TensorView<const float, 4>(wrong.view())),
+                    Catch::Contains("[2, 3, 35, 35]") && Catch::Contains("the model takes [V, 3, 28, 28]"));
+  CHECK_THROWS_WITH(model::predict<float>(ws, *w, images.data(), 2, 65), Catch::Contains("65 Gaussians requested"));
+  images.data()[7] = std::numeric_limits<float>::quiet_NaN();
+  CHECK_THROWS_WITH(model::predict<float>(ws, *w, images.data(), 2), Catch::Contains("at flat index 7"));
+  images.data()[7] = 0.5f;
+  // NaN in the decoder's weights (VGGT checks its own outputs): the Gaussians are checked before they leave.
+  const auto& seg = w->store().segment(model::appearance_segment);
+  w->appearance()[seg.size - 1] = std::numeric_limits<float>::quiet_NaN();
+  CHECK_THROWS_WITH(model::predict<float>(ws, *w, images.data(), 2), Catch::Contains("non-finite"));
+  std::fill(w->appearance(), w->appearance() + seg.size, std::numeric_limits<float>::quiet_NaN());
+  CHECK_THROWS_WITH(model::predict<float>(ws, *w, images.data(), 2), Catch::Contains("non-finite"));
+  w->store().param("camera_head.pose_branch.fc2.bias")[0] = std::numeric_limits<float>::quiet_NaN();
+  CHECK_THROWS_WITH(model::predict<float>(ws, *w, images.data(), 2), Catch::Contains("not finite"));
+}
+
+TEST_CASE("model views of the shared renders equal the data module's full-image training views", "[model][predict]") {
+  const auto objects = data::load_objects({std::filesystem::path(FLEXSPLAT_SHARED_DIR) / "data/objects/spot"});
+  const auto& rec = objects[0];
+  REQUIRE(rec.input_views.size() == 4u);
+  data::BatchOptions o;
+  o.inputs = 4;
+  o.targets = 0;
+  o.crop = 28;
+  o.scale_min = o.scale_max = 28.0 / rec.width;  // the window is the whole image
+  const auto s = data::sample_batch(objects, 1, 0, 0, o)[0];
+  std::vector<Tensor<float, 3>> rgba;
+  for (int v : rec.input_views) rgba.push_back(image::read_float<float>(rec.frames[static_cast<std::size_t>(v)].image, 4));
+  auto c = model::flexsplat_tiny_config();
+  std::vector<model::ViewMapping> maps;
+  const auto x = model::model_input<float>(rgba, c, &maps);
+  REQUIRE(x.shape() == Shape<4>{4, 3, 28, 28});
+  for (index_t v = 0; v < 4; ++v) {
+    for (index_t y = 0; y < 28; ++y)
+      for (index_t xx = 0; xx < 28; ++xx)
+        for (int ch = 0; ch < 3; ++ch) REQUIRE(x(v, ch, y, xx) == s.inputs.rgb(v, y, xx, ch));
+    double K[9];
+    const auto& cam = rec.frames[static_cast<std::size_t>(rec.input_views[static_cast<std::size_t>(v)])].camera;
+    for (int r = 0; r < 3; ++r)
+      for (int col = 0; col < 3; ++col) K[3 * r + col] = cam.K[col][r];
+    maps[static_cast<std::size_t>(v)].intrinsics(K);
+    const auto& sk = s.inputs.cameras[static_cast<std::size_t>(v)].K;
+    for (int r = 0; r < 3; ++r)
+      for (int col = 0; col < 3; ++col) CHECK(K[3 * r + col] == Approx(sk[col][r]).epsilon(1e-12));
+  }
+  // A wide picture keeps its centred square; the crop moves the principal point.
+  const model::ViewMapping m = model::view_mapping(300, 200, 28, 28);
+  CHECK(m.x0 == 50);
+  CHECK(m.y0 == 0);
+  CHECK(m.width == 200);
+  CHECK(m.height == 200);
+  double K[9] = {100, 0, 150, 0, 100, 100, 0, 0, 1};
+  m.intrinsics(K);
+  CHECK(K[0] == Approx(14.0));
+  CHECK(K[2] == Approx(14.0));
+  CHECK(K[5] == Approx(14.0));
+  Tensor<float, 3> rgb(Shape<3>{10, 10, 3}, 0.5f);
+  CHECK_THROWS_WITH(model::model_input<float>({rgb}, c), Catch::Contains("image 0 of 1") && Catch::Contains("RGBA"));
+}
