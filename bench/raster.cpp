@@ -64,6 +64,7 @@ struct Result {
   double forward_ms = 0, backward_ms = 0, forward_cpu_ms = 0, backward_cpu_ms = 0;  // wall and process CPU time
   double contributors_per_pixel = 0, entries = 0;
   ForwardStageTimes stages;  // medians over the repetitions
+  BackwardStageTimes backward_stages;
 };
 
 template <class T>
@@ -81,6 +82,7 @@ Result<T> run(const Scene<T>& s, const RenderOptions& opt, int reps, unsigned co
   RenderWorkspace<T> ws;
   std::vector<double> fwd, bwd, fwd_cpu, bwd_cpu;
   std::vector<ForwardStageTimes> stages;
+  std::vector<BackwardStageTimes> backward_stages;
   auto cpu_ms = [] {
     timespec ts{};
     clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
@@ -105,6 +107,7 @@ Result<T> run(const Scene<T>& s, const RenderOptions& opt, int reps, unsigned co
       bwd.push_back(std::chrono::duration<double, std::milli>(t3 - t2).count());
       fwd_cpu.push_back(c1 - c0);
       stages.push_back(ws.forward_times);
+      backward_stages.push_back(ws.backward_times);
       bwd_cpu.push_back(c3 - c2);
     }
   }
@@ -125,6 +128,12 @@ Result<T> run(const Scene<T>& s, const RenderOptions& opt, int reps, unsigned co
   for (auto field : {&ForwardStageTimes::validate, &ForwardStageTimes::project, &ForwardStageTimes::intersect,
                      &ForwardStageTimes::rasterize})
     r.stages.*field = median(field);
+  for (auto field : {&BackwardStageTimes::cotangents, &BackwardStageTimes::blend, &BackwardStageTimes::gaussians}) {
+    std::vector<double> v;
+    for (const auto& s : backward_stages) v.push_back(s.*field);
+    std::sort(v.begin(), v.end());
+    r.backward_stages.*field = v[v.size() / 2];
+  }
   double total = 0;
   for (auto v : r.out.n_contrib.span()) total += v;
   r.contributors_per_pixel = total / double(H * W);
@@ -219,6 +228,8 @@ int main(int argc, char** argv) {
     std::printf("forward stages (median wall ms): validate %.2f, project+SH %.2f, intersect %.2f, rasterize %.2f, "
                 "(outputs written by the blend)\n", r.stages.validate, r.stages.project, r.stages.intersect,
                 r.stages.rasterize);
+    std::printf("backward stages (median wall ms): cotangents %.2f, blend+reduce %.2f, per-Gaussian %.2f\n",
+                r.backward_stages.cotangents, r.backward_stages.blend, r.backward_stages.gaussians);
     return 0;
   }
   std::vector<Row> rows;

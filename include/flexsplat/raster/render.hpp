@@ -90,6 +90,12 @@ struct ForwardStageTimes {
   double validate = 0, project = 0, intersect = 0, rasterize = 0;
 };
 
+// Wall time of each stage of the last render_backward (milliseconds): the output cotangents as planes, the blend's
+// adjoint with the per-Gaussian reduction of its entry records, and the per-Gaussian adjoints (projection, SH).
+struct BackwardStageTimes {
+  double cotangents = 0, blend = 0, gaussians = 0;
+};
+
 template <class T>
 struct RenderWorkspace {
   std::vector<std::uint8_t> visible;
@@ -105,6 +111,7 @@ struct RenderWorkspace {
   int sh_degree = 0, channel_count = 0;
   index_t n = 0;
   ForwardStageTimes forward_times;
+  BackwardStageTimes backward_times;
 };
 
 namespace detail {
@@ -476,6 +483,240 @@ bool gaussian_block(const GaussianPass<T>& pass, index_t g0) {
   return true;
 }
 
+// Everything the per-Gaussian pass of render_backward reads, shared by its scalar and batched paths.
+template <class T>
+struct GaussianBackwardPass {
+  const GaussianSet<T>* in = nullptr;
+  const RenderWorkspace<T>* ws = nullptr;
+  GaussianSetGrad<T>* grads = nullptr;
+  CameraParams<T> cam;
+  ProjectSettings<T> set;
+  std::array<T, 3> campos{};
+  int degree = 0, F = 0, stride = 0;
+  index_t n = 0, K = 0;
+};
+
+// Gradient record of a Gaussian as the per-Gaussian adjoint reads it: d(u, v, conic a, b, c, opacity), d(colour) of
+// the channels whose SH value was not clamped (others pass nothing), d(depth).
+inline constexpr int backward_record_fields = 10;
+
+// The adjoint of one Gaussian per lane of V (V = T: one Gaussian): colour through SH and the view direction, then the
+// projection. dm, dq, ds, dopacity and dcam (this Gaussian's camera contribution) are set from zero; d_coeffs gets
+// b_k d_rgb where colour_live (some colour cotangent is non-zero). The scalar and batched paths share this body, so
+// their lanes are bit-identical.
+template <class V, class T>
+FLEXSPLAT_ALWAYS_INLINE void gaussian_backward_lanes(const GaussianBackwardPass<T>& pass, const V m[3], const V q[4],
+                                                     const V s[3], V opacity, const V* coeffs,
+                                                     const V gg[backward_record_fields],
+                                                     simd::lane_mask<V>& colour_live, V* d_coeffs, V dm[3], V dq[4],
+                                                     V ds[3], V& dopacity, CameraGradParams<V>& dcam) {
+  const V zero = V(T(0));
+  for (int i = 0; i < 3; ++i) dm[i] = zero, ds[i] = zero, dcam.t[i] = zero;
+  for (int i = 0; i < 4; ++i) dq[i] = zero;
+  for (int i = 0; i < 9; ++i) dcam.R[i] = zero;
+  dcam.fx = zero, dcam.fy = zero, dcam.cx = zero, dcam.cy = zero;
+  dopacity = zero;
+  const V d_rgb[3] = {gg[6], gg[7], gg[8]};
+  colour_live = (d_rgb[0] != zero) | (d_rgb[1] != zero) | (d_rgb[2] != zero);
+  if (simd::lane_any(colour_live)) {
+    const V dir[3] = {m[0] - V(pass.campos[0]), m[1] - V(pass.campos[1]), m[2] - V(pass.campos[2])};
+    V d_dir[3] = {zero, zero, zero};
+    sh_backward_lanes<V>(pass.degree, 3, coeffs, dir, d_rgb, d_coeffs, d_dir);
+    for (int i = 0; i < 3; ++i) d_dir[i] = simd::lane_select(colour_live, d_dir[i], zero);
+    // dir = m - campos, campos = -R^T t
+    for (int i = 0; i < 3; ++i) {
+      dm[i] = dm[i] + d_dir[i];
+      for (int j = 0; j < 3; ++j) dcam.R[j * 3 + i] = simd::lane_mul_add(d_dir[i], V(pass.cam.t[j]), dcam.R[j * 3 + i]);
+      dcam.t[i] = dcam.t[i] + detail::dot3_lanes(V(pass.cam.R[i * 3]), d_dir[0], V(pass.cam.R[i * 3 + 1]), d_dir[1],
+                                                 V(pass.cam.R[i * 3 + 2]), d_dir[2]);
+    }
+  }
+  ProjectionGrad<V> pg;
+  pg.u = gg[0], pg.v = gg[1];
+  pg.conic[0] = gg[2], pg.conic[1] = gg[3], pg.conic[2] = gg[4];
+  pg.opacity = gg[5];
+  pg.z = gg[9];
+  project_backward_lanes<V, T>(m, q, s, opacity, pass.cam, pass.set, pg, dm, dq, ds, dopacity, dcam);
+}
+
+// Whether Gaussian g has a gradient record (visible with tile entries).
+template <class T>
+bool has_backward(const RenderWorkspace<T>& ws, index_t g) {
+  return ws.visible[g] && ws.tiles.gaussian_counts[g] != 0;
+}
+
+// The record of Gaussian g in the layout gaussian_backward_lanes reads (scalar form).
+template <class T>
+void backward_record(const GaussianBackwardPass<T>& pass, index_t g, T gg[backward_record_fields]) {
+  const T* row = &pass.ws->gaussian_grads[g * pass.stride];
+  for (int i = 0; i < 6; ++i) gg[i] = row[i];
+  for (int c = 0; c < 3; ++c) gg[6 + c] = pass.ws->color_positive[g * 3 + c] ? row[entry_grad_fixed + c] : T(0);
+  gg[9] = row[entry_grad_fixed + 3];
+}
+
+// Adds one Gaussian's results into the gradient tensors (empty ones are skipped); d_coeffs null: no SH gradient,
+// else coefficient j at d_coeffs[j * coeff_stride].
+template <class T>
+void add_gaussian_grads(const GaussianBackwardPass<T>& pass, index_t g, const T dm[3], const T dq[4], const T ds[3],
+                        T dopacity, const T* d_coeffs, int coeff_stride) {
+  GaussianSetGrad<T>& grads = *pass.grads;
+  if (!grads.means.empty())
+    for (int i = 0; i < 3; ++i) grads.means.data()[g * 3 + i] += dm[i];
+  if (!grads.quats.empty())
+    for (int i = 0; i < 4; ++i) grads.quats.data()[g * 4 + i] += dq[i];
+  if (!grads.scales.empty())
+    for (int i = 0; i < 3; ++i) grads.scales.data()[g * 3 + i] += ds[i];
+  if (!grads.opacities.empty()) grads.opacities.data()[g] += dopacity;
+  if (d_coeffs && !grads.sh.empty()) {
+    T* dsh = grads.sh.data() + g * pass.K * 3;
+    for (int j = 0; j < sh_coefficients(pass.degree) * 3; ++j) dsh[j] += d_coeffs[j * coeff_stride];
+  }
+  if (!grads.features.empty()) {
+    const T* row = &pass.ws->gaussian_grads[g * pass.stride];
+    for (int f = 0; f < pass.F; ++f) grads.features.data()[g * pass.F + f] += row[entry_grad_fixed + 4 + f];
+  }
+}
+
+// Scalar path, one Gaussian with a gradient record: adds its gradients and its camera contribution to dcam.
+template <class T>
+void gaussian_backward_one(const GaussianBackwardPass<T>& pass, index_t g, CameraGradParams<T>& dcam) {
+  const GaussianSet<T>& in = *pass.in;
+  T gg[backward_record_fields];
+  backward_record(pass, g, gg);
+  T dm[3], dq[4], ds[3], dopacity, d_coeffs[16 * 3];
+  bool colour_live = false;
+  CameraGradParams<T> mine;
+  gaussian_backward_lanes<T, T>(pass, in.means.data() + g * 3, in.quats.data() + g * 4, in.scales.data() + g * 3,
+                                in.opacities.data()[g], in.sh.data() + g * pass.K * 3, gg, colour_live, d_coeffs, dm,
+                                dq, ds, dopacity, mine);
+  add_gaussian_grads(pass, g, dm, dq, ds, dopacity, colour_live ? d_coeffs : nullptr, 1);
+  dcam.add(mine);
+}
+
+// Batched path: Gaussians [g0, g0 + L) (padding lanes past n repeat the last Gaussian and write nothing; lanes
+// without a record compute unused values). Adds the same gradients as gaussian_backward_one, Gaussian by Gaussian in
+// index order, camera contributions included.
+template <class V, class T>
+void gaussian_backward_block(const GaussianBackwardPass<T>& pass, index_t g0, CameraGradParams<T>& dcam) {
+  constexpr int L = int(simd::lane_count<V>::value);
+  const GaussianSet<T>& in = *pass.in;
+  const RenderWorkspace<T>& ws = *pass.ws;
+  const int live = int(std::min<index_t>(L, pass.n - g0));
+  bool any = false;
+  for (int l = 0; l < live; ++l) any = any || has_backward(ws, g0 + l);
+  if (!any) return;
+  const index_t K3 = pass.K * 3;
+  // Inputs of the block `ahead` blocks on (contiguous ranges), as in the forward's per-Gaussian pass.
+  constexpr index_t ahead = 2;
+  if (const index_t gp = g0 + ahead * L; gp + L <= pass.n) {
+    auto prefetch = [](const T* p, index_t count) {
+      for (index_t i = 0; i < count; i += index_t(64 / sizeof(T))) __builtin_prefetch(p + i);
+    };
+    prefetch(in.means.data() + gp * 3, L * 3);
+    prefetch(in.quats.data() + gp * 4, L * 4);
+    prefetch(in.scales.data() + gp * 3, L * 3);
+    prefetch(in.opacities.data() + gp, L);
+    prefetch(in.sh.data() + gp * K3, L * K3);
+    prefetch(ws.gaussian_grads.data() + gp * pass.stride, L * pass.stride);
+    // The SH gradients are read and written back (192 bytes per Gaussian at degree 3): the largest stream.
+    if (!pass.grads->sh.empty())
+      for (index_t i = 0; i < L * K3; i += index_t(64 / sizeof(T))) __builtin_prefetch(pass.grads->sh.data() + gp * K3 + i, 1);
+  }
+  // Structure of arrays of the block (transposed through the stack).
+  alignas(64) T a_m[3][L], a_q[4][L], a_s[3][L], a_o[L], a_g[backward_record_fields][L];
+  for (int l = 0; l < L; ++l) {
+    const index_t g = g0 + std::min(l, live - 1);
+    for (int i = 0; i < 3; ++i) a_m[i][l] = in.means.data()[g * 3 + i];
+    for (int i = 0; i < 4; ++i) a_q[i][l] = in.quats.data()[g * 4 + i];
+    for (int i = 0; i < 3; ++i) a_s[i][l] = in.scales.data()[g * 3 + i];
+    a_o[l] = in.opacities.data()[g];
+    T gg[backward_record_fields];
+    backward_record(pass, g, gg);
+    for (int i = 0; i < backward_record_fields; ++i) a_g[i][l] = gg[i];
+  }
+  V m[3], q[4], sc[3], gv[backward_record_fields];
+  for (int i = 0; i < 3; ++i) m[i] = simd::lane_load<V>(a_m[i]), sc[i] = simd::lane_load<V>(a_s[i]);
+  for (int i = 0; i < 4; ++i) q[i] = simd::lane_load<V>(a_q[i]);
+  for (int i = 0; i < backward_record_fields; ++i) gv[i] = simd::lane_load<V>(a_g[i]);
+  const T* sh_rows[L];
+  for (int l = 0; l < L; ++l) sh_rows[l] = in.sh.data() + (g0 + std::min(l, live - 1)) * K3;
+  const int coeff_count = sh_coefficients(pass.degree) * 3;
+  V coeffs[16 * 3], d_coeffs[16 * 3];
+  simd::load_columns<V, T>(sh_rows, coeff_count, coeffs);
+  V dm[3], dq[4], ds[3], dopacity;
+  simd::lane_mask<V> colour_live;
+  CameraGradParams<V> cam;
+  gaussian_backward_lanes<V, T>(pass, m, q, sc, simd::lane_load<V>(a_o), coeffs, gv, colour_live, d_coeffs, dm, dq,
+                                ds, dopacity, cam);
+  // Lane values back to arrays, then added Gaussian by Gaussian.
+  alignas(64) T a_dm[3][L], a_dq[4][L], a_ds[3][L], a_dop[L], a_live[L], a_cam[16][L];
+  alignas(64) T a_dsh[16 * 3][L];
+  for (int i = 0; i < 3; ++i) simd::lane_store(a_dm[i], dm[i]), simd::lane_store(a_ds[i], ds[i]);
+  for (int i = 0; i < 4; ++i) simd::lane_store(a_dq[i], dq[i]);
+  simd::lane_store(a_dop, dopacity);
+  simd::lane_store(a_live, simd::lane_select(colour_live, V(T(1)), V(T(0))));
+  const bool sh_wanted = !pass.grads->sh.empty() && simd::lane_any(colour_live);
+  if (sh_wanted)
+    for (int j = 0; j < coeff_count; ++j) simd::lane_store(a_dsh[j], d_coeffs[j]);
+  for (int i = 0; i < 9; ++i) simd::lane_store(a_cam[i], cam.R[i]);
+  for (int i = 0; i < 3; ++i) simd::lane_store(a_cam[9 + i], cam.t[i]);
+  simd::lane_store(a_cam[12], cam.fx), simd::lane_store(a_cam[13], cam.fy);
+  simd::lane_store(a_cam[14], cam.cx), simd::lane_store(a_cam[15], cam.cy);
+  for (int l = 0; l < live; ++l) {
+    const index_t g = g0 + l;
+    if (!has_backward(ws, g)) continue;
+    const T dml[3] = {a_dm[0][l], a_dm[1][l], a_dm[2][l]}, dsl[3] = {a_ds[0][l], a_ds[1][l], a_ds[2][l]};
+    const T dql[4] = {a_dq[0][l], a_dq[1][l], a_dq[2][l], a_dq[3][l]};
+    add_gaussian_grads(pass, g, dml, dql, dsl, a_dop[l], sh_wanted && a_live[l] != T(0) ? &a_dsh[0][l] : nullptr, L);
+    CameraGradParams<T> mine;
+    for (int i = 0; i < 9; ++i) mine.R[i] = a_cam[i][l];
+    for (int i = 0; i < 3; ++i) mine.t[i] = a_cam[9 + i][l];
+    mine.fx = a_cam[12][l], mine.fy = a_cam[13][l], mine.cx = a_cam[14][l], mine.cy = a_cam[15][l];
+    dcam.add(mine);
+  }
+}
+
+template <class T>
+GaussianBackwardPass<T> backward_pass(const GaussianSet<T>& in, const Camera<T>& camera, const RenderOptions& opt,
+                                      const RenderWorkspace<T>& ws, GaussianSetGrad<T>& grads) {
+  GaussianBackwardPass<T> pass;
+  pass.in = &in, pass.ws = &ws, pass.grads = &grads;
+  pass.cam = camera_params(camera), pass.set = project_settings<T>(opt);
+  pass.campos = camera_centre(pass.cam);
+  pass.degree = ws.sh_degree, pass.F = ws.channel_count - 4, pass.stride = entry_grad_fixed + ws.channel_count;
+  pass.n = in.means.shape(0), pass.K = in.sh.shape(1);
+  return pass;
+}
+
+// The per-Gaussian adjoints of render_backward for every Gaussian with a gradient record, on the scalar path or in
+// the lanes of `kernel`. Camera contributions: partial sums over fixed blocks of Gaussians, each Gaussian's added in
+// index order (the same for any thread count and on every path), into partials (one per block, to be summed in
+// block order).
+template <class T>
+void gaussians_backward(const GaussianBackwardPass<T>& pass, BlendKernel kernel,
+                        std::vector<CameraGradParams<T>>& partials, ThreadPool& pool) {
+  constexpr index_t block = 256;
+  const index_t n = pass.n, blocks = (n + block - 1) / block;
+  const RenderWorkspace<T>& ws = *pass.ws;
+  partials.assign(std::size_t(blocks), CameraGradParams<T>{});
+  parallel_for(blocks, [&](index_t bb, index_t be, int) {
+    if (kernel == BlendKernel::scalar) {
+      for (index_t b = bb; b < be; ++b)
+        for (index_t g = b * block; g < std::min(n, (b + 1) * block); ++g)
+          if (has_backward(ws, g)) gaussian_backward_one(pass, g, partials[b]);
+      return;
+    }
+    with_exact_lanes<T>(kernel, [&](auto* lanes) {
+      using V = std::remove_pointer_t<decltype(lanes)>;
+      constexpr index_t L = index_t(simd::lane_count<V>::value);
+      static_assert(block % L == 0, "lane blocks never straddle a camera block");
+      for (index_t b = bb; b < be; ++b)
+        for (index_t g0 = b * block; g0 < std::min(n, (b + 1) * block); g0 += L)
+          gaussian_backward_block<V, T>(pass, g0, partials[b]);
+    });
+  }, pool);
+}
+
 template <class T, class Tensor_, std::size_t R>
 void ensure_shape(Tensor_& t, const Shape<R>& shape) {
   if (t.shape() != shape) t.resize(shape);
@@ -592,6 +833,12 @@ template <class T>
 void render_backward(const GaussianSet<T>& in, const Camera<T>& camera, const RenderOptions& opt,
                      RenderWorkspace<T>& ws, const RenderOutputGrads<T>& d_out, GaussianSetGrad<T>& grads,
                      CameraGrad<T>* d_camera = nullptr) {
+  using clock = std::chrono::steady_clock;
+  auto stage_end = [last = clock::now()](double& ms) mutable {
+    const auto now = clock::now();
+    ms = std::chrono::duration<double, std::milli>(now - last).count();
+    last = now;
+  };
   const index_t n = in.means.shape(0);
   const int C = ws.channel_count, F = C - 4;
   ThreadPool& pool = opt.pool ? *opt.pool : global_pool();
@@ -642,66 +889,15 @@ void render_backward(const GaussianSet<T>& in, const Camera<T>& camera, const Re
         for (int f = 0; f < F; ++f) planes[(4 + f) * pixels + p] = d_out.features.data()[p * F + f];
     }
   }, pool);
+  stage_end(ws.backward_times.cotangents);
   const int stride = entry_grad_fixed + C;
   ws.gaussian_grads.assign(std::size_t(n * stride), T(0));
   rasterize_backward(ws.tiles, ws.projections.data(), ws.channels.data(), C, ws.background.data(), ws.blend,
                      ws.d_out_channels.data(), ws.d_alpha.data(), opt.skips, ws.raster, n, ws.gaussian_grads.data(), pool);
-  const CameraParams<T> cam = detail::camera_params(camera);
-  const ProjectSettings<T> set = detail::project_settings<T>(opt);
-  const std::array<T, 3> campos = detail::camera_centre(cam);
-  const index_t K = in.sh.shape(1);
-  // Camera gradients: partial sums over fixed blocks of Gaussians, then summed in block order (thread-independent).
-  constexpr index_t block = 256;
-  const index_t blocks = (n + block - 1) / block;
-  ws.camera_partials.assign(std::size_t(blocks), CameraGradParams<T>{});
-  parallel_for(blocks, [&](index_t bb, index_t be, int) {
-    for (index_t b = bb; b < be; ++b) {
-      CameraGradParams<T>& dcam = ws.camera_partials[b];
-      for (index_t g = b * block; g < std::min(n, (b + 1) * block); ++g) {
-        if (!ws.visible[g] || ws.tiles.gaussian_counts[g] == 0) continue;
-        const T* gg = &ws.gaussian_grads[g * stride];
-        const T* m = in.means.data() + g * 3;
-        T dm[3] = {0, 0, 0}, dq[4] = {0, 0, 0, 0}, ds[3] = {0, 0, 0}, dopacity = 0;
-        // Colour from SH (clamped channels pass no gradient).
-        T d_rgb[3];
-        bool any = false;
-        for (int c = 0; c < 3; ++c) {
-          d_rgb[c] = ws.color_positive[g * 3 + c] ? gg[entry_grad_fixed + c] : T(0);
-          any = any || d_rgb[c] != T(0);
-        }
-        if (any) {
-          const T dir[3] = {m[0] - campos[0], m[1] - campos[1], m[2] - campos[2]};
-          T d_dir[3] = {0, 0, 0};
-          T* dsh = grads.sh.empty() ? nullptr : grads.sh.data() + g * K * 3;
-          T dsh_local[16 * 3] = {};
-          if (!dsh) dsh = dsh_local;
-          sh_backward(ws.sh_degree, 3, in.sh.data() + g * K * 3, dir, d_rgb, dsh, d_dir);
-          // dir = m - campos, campos = -R^T t
-          for (int i = 0; i < 3; ++i) {
-            dm[i] += d_dir[i];
-            for (int j = 0; j < 3; ++j) dcam.R[j * 3 + i] += d_dir[i] * cam.t[j];
-            dcam.t[i] += cam.R[i * 3] * d_dir[0] + cam.R[i * 3 + 1] * d_dir[1] + cam.R[i * 3 + 2] * d_dir[2];
-          }
-        }
-        ProjectionGrad<T> pg;
-        pg.u = gg[0], pg.v = gg[1];
-        pg.conic[0] = gg[2], pg.conic[1] = gg[3], pg.conic[2] = gg[4];
-        pg.opacity = gg[5];
-        pg.z = gg[entry_grad_fixed + 3];
-        project_backward_one(m, in.quats.data() + g * 4, in.scales.data() + g * 3, in.opacities.data()[g], cam, set, pg,
-                             dm, dq, ds, dopacity, dcam);
-        if (!grads.means.empty())
-          for (int i = 0; i < 3; ++i) grads.means.data()[g * 3 + i] += dm[i];
-        if (!grads.quats.empty())
-          for (int i = 0; i < 4; ++i) grads.quats.data()[g * 4 + i] += dq[i];
-        if (!grads.scales.empty())
-          for (int i = 0; i < 3; ++i) grads.scales.data()[g * 3 + i] += ds[i];
-        if (!grads.opacities.empty()) grads.opacities.data()[g] += dopacity;
-        if (!grads.features.empty())
-          for (int f = 0; f < F; ++f) grads.features.data()[g * F + f] += gg[entry_grad_fixed + 4 + f];
-      }
-    }
-  }, pool);
+  stage_end(ws.backward_times.blend);
+  const detail::GaussianBackwardPass<T> pass = detail::backward_pass(in, camera, opt, ws, grads);
+  detail::gaussians_backward(pass, detail::choose_blend_kernel<T>(opt.skips), ws.camera_partials, pool);
+  stage_end(ws.backward_times.gaussians);
   if (d_camera) {
     CameraGradParams<T> total;
     for (const auto& part : ws.camera_partials) total.add(part);
