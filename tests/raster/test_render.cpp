@@ -362,14 +362,18 @@ TEST_CASE("render: the batched per-Gaussian backward is bit-identical to the sca
     RenderWorkspace<float> ws;
     RenderOutputs<float> out;
     render_forward(s.set(), s.camera, opt, ws, out);
-    // Random gradient records; some with zero colour cotangents (no SH adjoint) or zero everywhere.
+    // Random entry gradient records; some Gaussians with zero colour cotangents (no SH adjoint) or zero everywhere.
     const int stride = entry_grad_fixed + ws.channel_count;
-    ws.gaussian_grads.assign(std::size_t(spec.n * stride), 0.0f);
+    std::vector<float>& entries = ws.raster.entry_grads;
+    entries.assign(std::size_t(ws.tiles.tile_offsets.back() * stride), 0.0f);
     for (index_t g = 0; g < spec.n; ++g) {
       const int kind = pick(rng);
-      for (int j = 0; j < stride; ++j) ws.gaussian_grads[g * stride + j] = kind == 0 ? 0.0f : normal(rng);
-      if (kind == 1)
-        for (int c = 0; c < 3; ++c) ws.gaussian_grads[g * stride + entry_grad_fixed + c] = 0.0f;
+      for (std::int64_t e = ws.tiles.gaussian_offsets[g]; e < ws.tiles.gaussian_offsets[g] + ws.tiles.gaussian_counts[g];
+           ++e) {
+        for (int j = 0; j < stride; ++j) entries[e * stride + j] = kind == 0 ? 0.0f : normal(rng);
+        if (kind == 1)
+          for (int c = 0; c < 3; ++c) entries[e * stride + entry_grad_fixed + c] = 0.0f;
+      }
       const bool record = detail::has_backward(ws, g);
       with_record += record, culled += !ws.visible[g];
       colour_dead += record && (kind <= 1 || !(ws.color_positive[g * 3] || ws.color_positive[g * 3 + 1] ||

@@ -51,10 +51,12 @@ struct TileState {
   // Cache-line aligned: every lane batch is one whole line, so loads never split lines and stores forward to them.
   using Buffer = std::vector<T, AlignedAllocator<T>>;
   Buffer transmittance, n_contrib, last, done, final_transmittance, d_alpha, channels, d_channels, behind;
+  Buffer pending;  // backward: lane vectors of the gradient records of up to 16 entries, reduced together
   std::vector<std::uint8_t> batch_done;
   void reserve(int channel_count) {
     for (auto* a : {&transmittance, &n_contrib, &last, &done, &final_transmittance, &d_alpha}) a->resize(tile_pixels);
     for (auto* a : {&channels, &d_channels, &behind}) a->resize(std::size_t(tile_pixels) * std::size_t(channel_count));
+    pending.resize(std::size_t(6 + channel_count) * 16 * 16);
     batch_done.resize(tile_pixels);
   }
 };
@@ -293,6 +295,33 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
     }
   constexpr std::int64_t prefetch_distance = 8;
   V grad[entry_grad_fixed + max_channels];
+  // The lane sums of L entries' records are taken together: L x L transposes (simd::load_columns) and a pairwise
+  // sum, instead of a chain of L - 1 dependent scalar adds per value.
+  static_assert(L <= 16, "TileState::pending holds 16 x 16 values per record field");
+  T* const pending = st.pending.data();
+  T* pending_out[L];
+  int n_pending = 0;
+  auto flush = [&] {
+    for (int j = 0; j < stride; ++j) {
+      const T* rows[L];
+      for (int e = 0; e < L; ++e) rows[e] = pending + (std::size_t(j) * L + std::size_t(std::min(e, n_pending - 1))) * L;
+      V cols[L];
+      simd::load_columns<V, T>(rows, L, cols);
+      for (int w = L / 2; w >= 1; w /= 2)
+        for (int i = 0; i < w; ++i) cols[i] = cols[i] + cols[i + w];
+      alignas(64) T sums[L];
+      simd::lane_store(sums, cols[0]);
+      for (int e = 0; e < n_pending; ++e) pending_out[e][j] = sums[e];
+    }
+    n_pending = 0;
+  };
+  // Raw pointers: through st the compiler reloads every buffer's address after each store (as in the forward).
+  T* const transmittance_p = st.transmittance.data();
+  const T* const last_p = st.last.data();
+  const T* const final_transmittance_p = st.final_transmittance.data();
+  const T* const d_alpha_p = st.d_alpha.data();
+  const T* const d_channels_p = st.d_channels.data();
+  T* const behind_p = st.behind.data();
   for (std::int64_t k = count - 1; k >= 0; --k) {
     if (k - prefetch_distance >= 0)
       __builtin_prefetch(records + std::int64_t(gaussians[k - prefetch_distance]) * record_stride);
@@ -315,22 +344,22 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
         const T dy_row = column_sigma.dy(f.y_base + row);
         const V dy = V(dy_row);
         const V sigma = column_sigma.sigma(dy_row);
-        auto maybe = (sigma <= smax) & (entry_position < simd::lane_load<V>(&st.last[j * L]));
+        auto maybe = (sigma <= smax) & (entry_position < simd::lane_load<V>(&last_p[j * L]));
         if (!simd::lane_any(maybe)) continue;
-        const V raw = opacity * simd::lane_exp_blend(-sigma);
+        const V e = simd::lane_exp_blend(-sigma), raw = opacity * e;
         const V alpha = simd::lane_min(V(T(max_alpha)), raw);
         // No branch on "any lane valid", as in the forward kernel.
         const auto valid = maybe & (sigma >= V(T(0))) & (alpha >= V(T(alpha_threshold)));
         const V ra = V(T(1)) / (V(T(1)) - alpha);
-        const V trans = simd::lane_select(valid, simd::lane_load<V>(&st.transmittance[j * L]) * ra,
-                                          simd::lane_load<V>(&st.transmittance[j * L]));
-        simd::lane_store(&st.transmittance[j * L], trans);
+        const V trans = simd::lane_select(valid, simd::lane_load<V>(&transmittance_p[j * L]) * ra,
+                                          simd::lane_load<V>(&transmittance_p[j * L]));
+        simd::lane_store(&transmittance_p[j * L], trans);
         const V vis = alpha * trans;
-        const V t_final = simd::lane_load<V>(&st.final_transmittance[j * L]);
-        V v_alpha = simd::lane_load<V>(&st.d_alpha[j * L]) * t_final * ra;
+        const V t_final = simd::lane_load<V>(&final_transmittance_p[j * L]);
+        V v_alpha = simd::lane_load<V>(&d_alpha_p[j * L]) * t_final * ra;
         for (int c = 0; c < C; ++c) {
-          const V d_out = simd::lane_load<V>(&st.d_channels[c * P + j * L]);
-          T* behind_ptr = &st.behind[c * P + j * L];
+          const V d_out = simd::lane_load<V>(&d_channels_p[c * P + j * L]);
+          T* behind_ptr = &behind_p[c * P + j * L];
           const V behind = simd::lane_load<V>(behind_ptr);
           grad[entry_grad_fixed + c] = grad[entry_grad_fixed + c] + simd::lane_select(valid, vis * d_out, V(T(0)));
           v_alpha = v_alpha + (V(ch[c]) * trans - behind * ra) * d_out;
@@ -338,7 +367,7 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
         }
         const auto unclamped = valid & (raw < V(T(max_alpha)));
         const V v_sigma = simd::lane_select(unclamped, -alpha * v_alpha, V(T(0)));
-        const V v_opacity = simd::lane_select(unclamped, raw / opacity * v_alpha, V(T(0)));
+        const V v_opacity = simd::lane_select(unclamped, e * v_alpha, V(T(0)));
         grad[0] = grad[0] + v_sigma * (ca * dx + cb * dy);
         grad[1] = grad[1] + v_sigma * (cb * dx + cc * dy);
         grad[2] = grad[2] + T(0.5) * v_sigma * dx * dx;
@@ -347,8 +376,15 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
         grad[5] = grad[5] + v_opacity;
       }
     }
-    for (int j = 0; j < stride; ++j) record_out[j] = simd::lane_sum(grad[j]);
+    if constexpr (L == 1) {
+      for (int j = 0; j < stride; ++j) record_out[j] = simd::lane_sum(grad[j]);
+    } else {
+      for (int j = 0; j < stride; ++j) simd::lane_store(pending + (std::size_t(j) * L + std::size_t(n_pending)) * L, grad[j]);
+      pending_out[n_pending++] = record_out;
+      if (n_pending == L) flush();
+    }
   }
+  if (n_pending > 0) flush();
 }
 
 // Which blend kernel a render uses: the compile-time SIMD batches, a run-time dispatched wider one, or scalar.
@@ -521,8 +557,22 @@ void rasterize_forward(const TileIntersections& ti, const Projection<T>* proj, c
   }, pool);
 }
 
-// Adds into the per-Gaussian cotangents (grads [N, 6 + C], same record layout as an entry) from d_out_channels
-// (planar, as out_channels) and d_alpha [H*W] (may be null). Zero the caller's buffer once; this accumulates.
+// Sum of the gradient records of Gaussian g's entries (a Gaussian's entries are contiguous and in tile order: a fixed
+// summation order for any thread count) into out[0, 6 + C).
+template <class T>
+FLEXSPLAT_ALWAYS_INLINE void sum_entry_grads(const TileIntersections& ti, const RasterWorkspace<T>& ws, int C, index_t g,
+                                             T* out) {
+  const int stride = entry_grad_fixed + C;
+  for (int j = 0; j < stride; ++j) out[j] = T(0);
+  const std::int64_t first = ti.gaussian_offsets[g], cnt = ti.gaussian_counts[g];
+  for (std::int64_t e = first; e < first + cnt; ++e)
+    for (int j = 0; j < stride; ++j) out[j] += ws.entry_grads[e * stride + j];
+}
+
+// Writes the gradient record of every tile entry into ws.entry_grads from d_out_channels (planar, as out_channels)
+// and d_alpha [H*W] (may be null); then, unless gaussian_grads is null, adds their per-Gaussian sums
+// (sum_entry_grads) into gaussian_grads [N, 6 + C] (same record layout as an entry). A caller that passes null
+// reduces the records itself, e.g. while it reads them.
 template <class T>
 void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
                         const T* background, const BlendState<T>& state, const T* d_out_channels, const T* d_alpha,
@@ -546,13 +596,12 @@ void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, 
                                         d_alpha, grads);
     });
   });
-  // A Gaussian's entries are contiguous and in tile order: a fixed summation order for any thread count.
+  if (!gaussian_grads) return;
   parallel_for(n, [&](index_t gb, index_t ge, int) {
+    T sum[entry_grad_fixed + 64];
     for (index_t g = gb; g < ge; ++g) {
-      const std::int64_t first = ti.gaussian_offsets[g], cnt = ti.gaussian_counts[g];
-      T* out = gaussian_grads + g * stride;
-      for (std::int64_t e = first; e < first + cnt; ++e)
-        for (int j = 0; j < stride; ++j) out[j] += ws.entry_grads[e * stride + j];
+      sum_entry_grads(ti, ws, C, g, sum);
+      for (int j = 0; j < stride; ++j) gaussian_grads[g * stride + j] += sum[j];
     }
   }, pool);
 }

@@ -105,7 +105,7 @@ struct RenderWorkspace {
   TileIntersections tiles;
   BlendState<T> blend;
   RasterWorkspace<T> raster;
-  std::vector<T> blend_depth, d_out_channels, d_alpha, gaussian_grads;  // blend_depth: channel 3 per pixel
+  std::vector<T> blend_depth, d_out_channels, d_alpha;  // blend_depth: channel 3 per pixel
   std::vector<CameraGradParams<T>> camera_partials;
   std::vector<T> background;
   int sh_degree = 0, channel_count = 0;
@@ -499,6 +499,7 @@ struct GaussianBackwardPass {
 // Gradient record of a Gaussian as the per-Gaussian adjoint reads it: d(u, v, conic a, b, c, opacity), d(colour) of
 // the channels whose SH value was not clamped (others pass nothing), d(depth).
 inline constexpr int backward_record_fields = 10;
+inline constexpr int max_record_size = entry_grad_fixed + 4 + 48;  // 6 + C with C = 4 + F, F <= 48
 
 // The adjoint of one Gaussian per lane of V (V = T: one Gaussian): colour through SH and the view direction, then the
 // projection. dm, dq, ds, dopacity and dcam (this Gaussian's camera contribution) are set from zero; d_coeffs gets
@@ -545,10 +546,11 @@ bool has_backward(const RenderWorkspace<T>& ws, index_t g) {
   return ws.visible[g] && ws.tiles.gaussian_counts[g] != 0;
 }
 
-// The record of Gaussian g in the layout gaussian_backward_lanes reads (scalar form).
+// The record of Gaussian g: the sum of its entries' records (row, 6 + C values), and the values
+// gaussian_backward_lanes reads (gg).
 template <class T>
-void backward_record(const GaussianBackwardPass<T>& pass, index_t g, T gg[backward_record_fields]) {
-  const T* row = &pass.ws->gaussian_grads[g * pass.stride];
+void backward_record(const GaussianBackwardPass<T>& pass, index_t g, T* row, T gg[backward_record_fields]) {
+  sum_entry_grads(pass.ws->tiles, pass.ws->raster, pass.ws->channel_count, g, row);
   for (int i = 0; i < 6; ++i) gg[i] = row[i];
   for (int c = 0; c < 3; ++c) gg[6 + c] = pass.ws->color_positive[g * 3 + c] ? row[entry_grad_fixed + c] : T(0);
   gg[9] = row[entry_grad_fixed + 3];
@@ -557,8 +559,8 @@ void backward_record(const GaussianBackwardPass<T>& pass, index_t g, T gg[backwa
 // Adds one Gaussian's results into the gradient tensors (empty ones are skipped); d_coeffs null: no SH gradient,
 // else coefficient j at d_coeffs[j * coeff_stride].
 template <class T>
-void add_gaussian_grads(const GaussianBackwardPass<T>& pass, index_t g, const T dm[3], const T dq[4], const T ds[3],
-                        T dopacity, const T* d_coeffs, int coeff_stride) {
+void add_gaussian_grads(const GaussianBackwardPass<T>& pass, index_t g, const T* row, const T dm[3], const T dq[4],
+                        const T ds[3], T dopacity, const T* d_coeffs, int coeff_stride) {
   GaussianSetGrad<T>& grads = *pass.grads;
   if (!grads.means.empty())
     for (int i = 0; i < 3; ++i) grads.means.data()[g * 3 + i] += dm[i];
@@ -572,7 +574,6 @@ void add_gaussian_grads(const GaussianBackwardPass<T>& pass, index_t g, const T 
     for (int j = 0; j < sh_coefficients(pass.degree) * 3; ++j) dsh[j] += d_coeffs[j * coeff_stride];
   }
   if (!grads.features.empty()) {
-    const T* row = &pass.ws->gaussian_grads[g * pass.stride];
     for (int f = 0; f < pass.F; ++f) grads.features.data()[g * pass.F + f] += row[entry_grad_fixed + 4 + f];
   }
 }
@@ -581,15 +582,15 @@ void add_gaussian_grads(const GaussianBackwardPass<T>& pass, index_t g, const T 
 template <class T>
 void gaussian_backward_one(const GaussianBackwardPass<T>& pass, index_t g, CameraGradParams<T>& dcam) {
   const GaussianSet<T>& in = *pass.in;
-  T gg[backward_record_fields];
-  backward_record(pass, g, gg);
+  T row[max_record_size], gg[backward_record_fields];
+  backward_record(pass, g, row, gg);
   T dm[3], dq[4], ds[3], dopacity, d_coeffs[16 * 3];
   bool colour_live = false;
   CameraGradParams<T> mine;
   gaussian_backward_lanes<T, T>(pass, in.means.data() + g * 3, in.quats.data() + g * 4, in.scales.data() + g * 3,
                                 in.opacities.data()[g], in.sh.data() + g * pass.K * 3, gg, colour_live, d_coeffs, dm,
                                 dq, ds, dopacity, mine);
-  add_gaussian_grads(pass, g, dm, dq, ds, dopacity, colour_live ? d_coeffs : nullptr, 1);
+  add_gaussian_grads(pass, g, row, dm, dq, ds, dopacity, colour_live ? d_coeffs : nullptr, 1);
   dcam.add(mine);
 }
 
@@ -617,13 +618,15 @@ void gaussian_backward_block(const GaussianBackwardPass<T>& pass, index_t g0, Ca
     prefetch(in.scales.data() + gp * 3, L * 3);
     prefetch(in.opacities.data() + gp, L);
     prefetch(in.sh.data() + gp * K3, L * K3);
-    prefetch(ws.gaussian_grads.data() + gp * pass.stride, L * pass.stride);
+    const std::int64_t e0 = ws.tiles.gaussian_offsets[gp], e1 = ws.tiles.gaussian_offsets[gp + L - 1];
+    prefetch(ws.raster.entry_grads.data() + e0 * pass.stride, index_t(e1 - e0 + 1) * pass.stride);
     // The SH gradients are read and written back (192 bytes per Gaussian at degree 3): the largest stream.
     if (!pass.grads->sh.empty())
       for (index_t i = 0; i < L * K3; i += index_t(64 / sizeof(T))) __builtin_prefetch(pass.grads->sh.data() + gp * K3 + i, 1);
   }
   // Structure of arrays of the block (transposed through the stack).
   alignas(64) T a_m[3][L], a_q[4][L], a_s[3][L], a_o[L], a_g[backward_record_fields][L];
+  T rows[L][max_record_size];
   for (int l = 0; l < L; ++l) {
     const index_t g = g0 + std::min(l, live - 1);
     for (int i = 0; i < 3; ++i) a_m[i][l] = in.means.data()[g * 3 + i];
@@ -631,7 +634,7 @@ void gaussian_backward_block(const GaussianBackwardPass<T>& pass, index_t g0, Ca
     for (int i = 0; i < 3; ++i) a_s[i][l] = in.scales.data()[g * 3 + i];
     a_o[l] = in.opacities.data()[g];
     T gg[backward_record_fields];
-    backward_record(pass, g, gg);
+    backward_record(pass, g, rows[l], gg);
     for (int i = 0; i < backward_record_fields; ++i) a_g[i][l] = gg[i];
   }
   V m[3], q[4], sc[3], gv[backward_record_fields];
@@ -667,7 +670,8 @@ void gaussian_backward_block(const GaussianBackwardPass<T>& pass, index_t g0, Ca
     if (!has_backward(ws, g)) continue;
     const T dml[3] = {a_dm[0][l], a_dm[1][l], a_dm[2][l]}, dsl[3] = {a_ds[0][l], a_ds[1][l], a_ds[2][l]};
     const T dql[4] = {a_dq[0][l], a_dq[1][l], a_dq[2][l], a_dq[3][l]};
-    add_gaussian_grads(pass, g, dml, dql, dsl, a_dop[l], sh_wanted && a_live[l] != T(0) ? &a_dsh[0][l] : nullptr, L);
+    add_gaussian_grads(pass, g, rows[l], dml, dql, dsl, a_dop[l], sh_wanted && a_live[l] != T(0) ? &a_dsh[0][l] : nullptr,
+                       L);
     CameraGradParams<T> mine;
     for (int i = 0; i < 9; ++i) mine.R[i] = a_cam[i][l];
     for (int i = 0; i < 3; ++i) mine.t[i] = a_cam[9 + i][l];
@@ -890,10 +894,9 @@ void render_backward(const GaussianSet<T>& in, const Camera<T>& camera, const Re
     }
   }, pool);
   stage_end(ws.backward_times.cotangents);
-  const int stride = entry_grad_fixed + C;
-  ws.gaussian_grads.assign(std::size_t(n * stride), T(0));
+  // The per-Gaussian pass sums each Gaussian's entry records as it reads them.
   rasterize_backward(ws.tiles, ws.projections.data(), ws.channels.data(), C, ws.background.data(), ws.blend,
-                     ws.d_out_channels.data(), ws.d_alpha.data(), opt.skips, ws.raster, n, ws.gaussian_grads.data(), pool);
+                     ws.d_out_channels.data(), ws.d_alpha.data(), opt.skips, ws.raster, n, static_cast<T*>(nullptr), pool);
   stage_end(ws.backward_times.blend);
   const detail::GaussianBackwardPass<T> pass = detail::backward_pass(in, camera, opt, ws, grads);
   detail::gaussians_backward(pass, detail::choose_blend_kernel<T>(opt.skips), ws.camera_partials, pool);
