@@ -5,6 +5,7 @@
 #include <limits>
 
 #include "flexsplat/data/dataset.hpp"
+#include "flexsplat/model/evaluate.hpp"
 #include "flexsplat/model/predict.hpp"
 #include "flexsplat/model/train.hpp"
 
@@ -140,4 +141,92 @@ TEST_CASE("model views of the shared renders equal the data module's full-image 
   CHECK(K[5] == Approx(14.0));
   Tensor<float, 3> rgb(Shape<3>{10, 10, 3}, 0.5f);
   CHECK_THROWS_WITH(model::model_input<float>({rgb}, c), Catch::Contains("image 0 of 1") && Catch::Contains("RGBA"));
+}
+
+TEST_CASE("the evaluation protocol undoes a known similarity and scores ground-truth Gaussians above white",
+          "[model][predict][eval]") {
+  const auto objects = data::load_objects({std::filesystem::path(FLEXSPLAT_SHARED_DIR) / "data/objects/spot"});
+  const auto& rec = objects[0];
+  model::EvalOptions o;
+  o.max_targets = 4;
+  o.white_baseline = true;
+  o.grid_targets = 2;
+  std::vector<int> in, targets;
+  model::eval_views(rec, o, in, targets);
+  REQUIRE(in == rec.input_views);
+  REQUIRE(targets.size() == 4u);
+  // A "prediction" in another frame: the ground-truth cameras and surface points moved by a similarity.
+  model::Similarity sim;
+  sim.R = Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  sim.scale = 0.37;
+  sim.t = Eigen::Vector3d(0.3, -1.2, 2.0);
+  std::vector<float> pred_w2c;
+  std::vector<std::array<float, 6>> points;
+  for (int v : in) {
+    const auto& fr = rec.frames[static_cast<std::size_t>(v)];
+    double K[9], E[12];
+    model::detail::camera_arrays(fr.camera, K, E);
+    model::transform_camera(E, sim);
+    for (double e : E) pred_w2c.push_back(static_cast<float>(e));
+    const auto depth = image::read_depth_png<double>(fr.depth, rec.depth_scale);
+    const auto rgb = image::read_rgb<float>(fr.image);
+    const auto& c = fr.camera;
+    for (index_t y = 0; y < depth.shape(0); y += 4)
+      for (index_t x = 0; x < depth.shape(1); x += 4) {
+        const double z = depth(y, x);
+        if (!(z > 0)) continue;
+        const glm::dvec3 p = c.to_world({(x + 0.5 - c.K[2][0]) / c.K[0][0] * z, (y + 0.5 - c.K[2][1]) / c.K[1][1] * z, z});
+        const Eigen::Vector3d q = sim.apply(Eigen::Vector3d(p.x, p.y, p.z));
+        points.push_back({static_cast<float>(q.x()), static_cast<float>(q.y()), static_cast<float>(q.z()), rgb(y, x, 0),
+                          rgb(y, x, 1), rgb(y, x, 2)});
+      }
+  }
+  const index_t N = static_cast<index_t>(points.size());
+  GaussianSet<float> g;
+  g.means = Tensor<float, 2>(Shape<2>{N, 3});
+  g.quats = Tensor<float, 2>(Shape<2>{N, 4});
+  g.scales = Tensor<float, 2>(Shape<2>{N, 3});
+  g.opacities = Tensor<float, 1>(Shape<1>{N}, 0.95f);
+  g.sh = Tensor<float, 3>(Shape<3>{N, 1, 3});
+  for (index_t i = 0; i < N; ++i) {
+    const auto& pt = points[static_cast<std::size_t>(i)];
+    for (int k = 0; k < 3; ++k) {
+      g.means(i, k) = pt[static_cast<std::size_t>(k)];
+      g.scales(i, k) = static_cast<float>(0.02 * sim.scale);
+      g.sh(i, 0, k) = static_cast<float>((pt[static_cast<std::size_t>(3 + k)] - sh_color_offset) / sh_c0);
+    }
+    g.quats(i, 0) = 1, g.quats(i, 1) = g.quats(i, 2) = g.quats(i, 3) = 0;
+  }
+  model::EvalWorkspace ws;
+  const auto r = model::score_prediction(rec, in, targets, pred_w2c.data(), g, 64, 64, o, ws);
+  CHECK(r.rotation_error_deg < 0.01);
+  CHECK(r.center_error_rel < 1e-5);
+  CHECK(r.alignment.scale == Approx(1.0 / sim.scale).epsilon(1e-5));
+  CHECK(r.object_size > 1.5);
+  CHECK(r.object_size < 3.5);  // the mesh's bounding box spans [-1, 1] on its largest side
+  CHECK(std::isnan(r.model.lpips));
+  CHECK(r.model.psnr > r.white.psnr + 5);
+  CHECK(r.model.ssim > r.white.ssim);
+  REQUIRE(r.grid_gt.size() == 2u);
+  // The white baseline by hand: mean over targets of 10 log10(1 / MSE(white, resized ground truth)).
+  double expected = 0;
+  std::vector<float> chw(3 * 64 * 64);
+  for (int t : targets) {
+    model::model_view<float>(chw.data(), TensorView<const float, 3>(image::read_float<float>(rec.frames[static_cast<std::size_t>(t)].image, 4).view()), 64, 64);
+    double se = 0;
+    for (float v : chw) se += (1.0 - v) * (1.0 - v);
+    expected += 10 * std::log10(static_cast<double>(chw.size()) / se);
+  }
+  CHECK(r.white.psnr == Approx(expected / 4).epsilon(1e-9));
+
+  // Counts and lists of input views.
+  model::EvalOptions two;
+  two.view_count = 2;
+  model::eval_views(rec, two, in, targets);
+  CHECK(in == std::vector<int>{0, 16});
+  CHECK(targets.size() == 30u);
+  two.view_list = {3, 3};
+  CHECK_THROWS_WITH(model::eval_views(rec, two, in, targets), Catch::Contains("input view 3 is listed twice"));
+  two.view_list = {40};
+  CHECK_THROWS_WITH(model::eval_views(rec, two, in, targets), Catch::Contains("input view 40 is not a frame"));
 }
