@@ -278,21 +278,40 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
   const int stride = entry_grad_fixed + C;
   const V iota = lane_offsets<V, T>();
   std::int32_t max_last = 0;
-  for (int row = 0; row < tile_size; ++row)
-    for (int x = 0; x < tile_size; ++x) {
-      const int i = row * tile_size + x;
-      const bool inside = row < f.rows_here && x < f.width_here;
-      const std::int64_t pix = std::int64_t(f.y_base + row) * grid.width + f.x_base + x;
-      const T t_final = inside ? state.final_transmittance[pix] : T(1);
-      st.final_transmittance[i] = st.transmittance[i] = t_final;
-      st.last[i] = inside ? T(state.last_entry[pix]) : T(0);
-      st.d_alpha[i] = inside && d_alpha ? d_alpha[pix] : T(0);
-      for (int c = 0; c < C; ++c) {
-        st.d_channels[c * P + i] = inside ? d_out_channels[c * plane + pix] : T(0);
-        st.behind[c * P + i] = t_final * background[c];
+  for (int row = 0; row < tile_size; ++row) {
+    const std::int64_t pix0 = std::int64_t(f.y_base + row) * grid.width + f.x_base;
+    for (int x0 = 0; x0 < tile_size; x0 += L) {
+      const int i0 = row * tile_size + x0;
+      if (row < f.rows_here && x0 + L <= f.width_here) {  // whole batch inside the image
+        const std::int64_t pix = pix0 + x0;
+        const V t_final = simd::lane_load<V>(&state.final_transmittance[pix]);
+        simd::lane_store(&st.final_transmittance[i0], t_final);
+        simd::lane_store(&st.transmittance[i0], t_final);
+        simd::lane_store(&st.d_alpha[i0], d_alpha ? simd::lane_load<V>(d_alpha + pix) : V(T(0)));
+        for (int c = 0; c < C; ++c) {
+          simd::lane_store(&st.d_channels[c * P + i0], simd::lane_load<V>(d_out_channels + c * plane + pix));
+          simd::lane_store(&st.behind[c * P + i0], t_final * V(background[c]));
+        }
+        continue;
       }
-      if (inside) max_last = std::max(max_last, state.last_entry[pix]);
+      for (int x = x0; x < x0 + L; ++x) {  // the image's right and bottom edges
+        const int i = row * tile_size + x;
+        const bool inside = row < f.rows_here && x < f.width_here;
+        const T t_final = inside ? state.final_transmittance[pix0 + x] : T(1);
+        st.final_transmittance[i] = st.transmittance[i] = t_final;
+        st.d_alpha[i] = inside && d_alpha ? d_alpha[pix0 + x] : T(0);
+        for (int c = 0; c < C; ++c) {
+          st.d_channels[c * P + i] = inside ? d_out_channels[c * plane + pix0 + x] : T(0);
+          st.behind[c * P + i] = t_final * background[c];
+        }
+      }
     }
+    for (int x = 0; x < tile_size; ++x) {
+      const bool inside = row < f.rows_here && x < f.width_here;
+      st.last[row * tile_size + x] = inside ? T(state.last_entry[pix0 + x]) : T(0);
+      if (inside) max_last = std::max(max_last, state.last_entry[pix0 + x]);
+    }
+  }
   constexpr std::int64_t prefetch_distance = 8;
   V grad[entry_grad_fixed + max_channels];
   // The lane sums of L entries' records are taken together: L x L transposes (simd::load_columns) and a pairwise
