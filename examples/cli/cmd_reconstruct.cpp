@@ -1,0 +1,180 @@
+// reconstruct: a few uncalibrated photos -> FlexSplat's feed-forward prediction (cameras, depth, Gaussians) -> a
+// .glb (KHR_gaussian_splatting, with the predicted cameras as camera nodes) or .ply, and optionally a turntable.
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include <glm/glm.hpp>
+#include <glm/gtc/matrix_transform.hpp>
+
+#include "flexsplat/export/file.hpp"
+#include "flexsplat/image/image_io.hpp"
+#include "flexsplat/model/predict.hpp"
+#include "flexsplat/raster/render.hpp"
+#include "registry.hpp"
+
+namespace flexsplat::cli::reconstruct_cmd {
+
+namespace fs = std::filesystem;
+
+fs::path default_model_path() {
+#ifdef FLEXSPLAT_DEFAULT_MODEL
+  return FLEXSPLAT_DEFAULT_MODEL;
+#else
+  return "models/flexsplat-small.safetensors";
+#endif
+}
+
+// Wall-clock stages, printed with --verbose.
+struct Stages {
+  std::vector<std::pair<std::string, double>> ms;
+  std::chrono::steady_clock::time_point last = std::chrono::steady_clock::now();
+  void lap(const std::string& name) {
+    const auto now = std::chrono::steady_clock::now();
+    ms.emplace_back(name, std::chrono::duration<double, std::milli>(now - last).count());
+    last = now;
+  }
+};
+
+// `frames` views orbiting the Gaussians' opacity-weighted centre about the first camera's up axis, at the first
+// camera's distance, side by side in one picture (model size, the first camera's predicted K).
+void write_turntable(const fs::path& path, const model::Prediction<float>& p, int frames) {
+  const auto& s = p.gaussians;
+  glm::dvec3 centre(0.0);
+  double weight = 0;
+  for (index_t i = 0; i < s.size(); ++i) {
+    const double o = s.opacities(i);
+    centre += o * glm::dvec3(s.means(i, 0), s.means(i, 1), s.means(i, 2));
+    weight += o;
+  }
+  require(weight > 0, "turntable: every Gaussian is transparent");
+  centre /= weight;
+  const float* E = p.geometry.extrinsics.data();
+  glm::dmat3 R;  // glm is column-major: R[col][row]
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) R[c][r] = E[4 * r + c];
+  const glm::dvec3 eye0 = -glm::transpose(R) * glm::dvec3(E[3], E[7], E[11]);
+  const glm::dvec3 up = -glm::transpose(R)[1];  // OpenCV y points down
+  const index_t h = p.h, w = p.w, gap = 2;
+  Tensor<float, 3> strip(Shape<3>{h, frames * w + (frames - 1) * gap, 3}, 1.0f);
+  raster::RenderOptions ro;
+  ro.background = {1, 1, 1};
+  raster::RenderWorkspace<float> ws;
+  raster::RenderOutputs<float> out;
+  for (int f = 0; f < frames; ++f) {
+    const double angle = 2.0 * 3.14159265358979323846 * f / frames;
+    const glm::dmat4 turn = glm::rotate(glm::dmat4(1.0), angle, glm::normalize(up));
+    const glm::dvec3 eye = centre + glm::dvec3(turn * glm::dvec4(eye0 - centre, 0.0));
+    // glm::lookAt is OpenGL's view (y up, looking down -z); OpenCV flips y and z.
+    const glm::dmat4 gl = glm::lookAt(eye, centre, up);
+    float w2c[12];
+    for (int r = 0; r < 3; ++r) {
+      const double sign = r == 0 ? 1.0 : -1.0;
+      for (int c = 0; c < 4; ++c) w2c[4 * r + c] = static_cast<float>(sign * gl[c][r]);
+    }
+    raster::render_forward(s, model::render_camera(p.geometry.K.data(), w2c, static_cast<int>(w), static_cast<int>(h)),
+                           ro, ws, out);
+    for (index_t y = 0; y < h; ++y)
+      for (index_t x = 0; x < w; ++x)
+        for (int c = 0; c < 3; ++c) strip(y, f * (w + gap) + x, c) = std::clamp(out.image(y, x, c), 0.0f, 1.0f);
+  }
+  image::write_png(path, strip);
+}
+
+int reconstruct_command(Args args) {
+  std::string model_path, output, gaussians_text, turntable;
+  take_option(args, "--model", model_path);
+  require(take_option(args, "-o", output) || take_option(args, "--output", output),
+          "reconstruct needs -o out.glb or -o out.ply");
+  take_option(args, "--gaussians", gaussians_text);
+  take_option(args, "--turntable", turntable);
+  const bool verbose = take_flag(args, "--verbose");
+  for (const auto& a : args) require(a.empty() || a[0] != '-', "reconstruct: unknown option '", a, "'");
+  require(!args.empty(), "reconstruct needs at least one IMAGE (PNG or JPEG)");
+  const gaussians::FileFormat format = gaussians::format_of(output);
+  index_t n_gaussians = 0;
+  if (!gaussians_text.empty()) {
+    std::size_t used = 0;
+    long long v = -1;
+    try {
+      v = std::stoll(gaussians_text, &used);
+    } catch (const std::exception&) {
+      used = 0;
+    }
+    require(used == gaussians_text.size() && v >= 1, "--gaussians '", gaussians_text, "' must be a positive integer");
+    n_gaussians = static_cast<index_t>(v);
+  }
+  if (model_path.empty()) {
+    model_path = default_model_path().string();
+    require(fs::exists(model_path), "no shipped model yet at '", model_path, "'; pass --model");
+  }
+  require(fs::is_regular_file(model_path), "reconstruct: model file '", model_path, "' does not exist");
+
+  Stages t;
+  std::fprintf(stderr, "reconstruct: loading %s\n", model_path.c_str());
+  const auto w = model::load_flexsplat<float>(model_path);
+  const model::FlexSplatConfig& c = w->config();
+  require(static_cast<index_t>(args.size()) <= c.appearance.decoder.max_views, "reconstruct: ", args.size(),
+          " images; the model takes 1 to ", c.appearance.decoder.max_views);
+  t.lap("load model");
+  std::fprintf(stderr, "reconstruct: reading %zu image(s)\n", args.size());
+  std::vector<Tensor<float, 3>> rgba;
+  for (const auto& a : args) rgba.push_back(image::read_float<float>(a, 4));
+  t.lap("decode images");
+  const Tensor<float, 4> images = model::model_input<float>(rgba, c);
+  t.lap("preprocess");
+  std::fprintf(stderr, "reconstruct: predicting at %lld x %lld\n", static_cast<long long>(c.image_w),
+               static_cast<long long>(c.image_h));
+  model::PredictWorkspace<float> ws;
+  const model::Prediction<float> p = model::predict<float>(ws, *w, TensorView<const float, 4>(images.view()), n_gaussians);
+  t.ms.emplace_back("geometry (VGGT)", p.geometry_ms);
+  t.ms.emplace_back("decoder", p.decoder_ms);
+  t.last = std::chrono::steady_clock::now();
+
+  gltf::WriteOptions wo;
+  if (format == gaussians::FileFormat::Glb)
+    for (index_t v = 0; v < p.views; ++v) {
+      gaussians::Camera cam;
+      cam.name = fs::path(args[static_cast<std::size_t>(v)]).filename().string();
+      cam.width = static_cast<int>(p.w), cam.height = static_cast<int>(p.h);
+      for (int i = 0; i < 9; ++i) cam.K[static_cast<std::size_t>(i)] = p.geometry.K[static_cast<std::size_t>(9 * v + i)];
+      for (int i = 0; i < 12; ++i) cam.w2c[static_cast<std::size_t>(i)] = p.geometry.extrinsics[static_cast<std::size_t>(12 * v + i)];
+      wo.cameras.push_back(cam);
+    }
+  std::fprintf(stderr, "reconstruct: writing %s\n", output.c_str());
+  const auto report = gaussians::write_gaussians(p.gaussians, output, wo);
+  t.lap("export");
+  if (!turntable.empty()) {
+    std::fprintf(stderr, "reconstruct: rendering turntable %s\n", turntable.c_str());
+    write_turntable(turntable, p, 8);
+    t.lap("turntable");
+  }
+  std::printf("%s: %lld Gaussians, %zu camera(s), %zu bytes, from %zu image(s)\n", output.c_str(),
+              static_cast<long long>(p.gaussians.size()), wo.cameras.size(), report.bytes, args.size());
+  if (verbose) {
+    double total = 0;
+    for (const auto& [name, ms] : t.ms) {
+      std::printf("  %-18s %9.1f ms\n", name.c_str(), ms);
+      total += ms;
+    }
+    std::printf("  %-18s %9.1f ms\n", "total", total);
+  }
+  return 0;
+}
+
+const RegisterCommand registered_cmd_reconstruct(
+    "reconstruct", {"a Gaussian splat (.glb with the predicted cameras, or .ply) from a few uncalibrated images",
+                    "IMAGE... -o out.glb|out.ply [--model M.safetensors] [--gaussians N] [--turntable out.png] "
+                    "[--verbose]\n"
+                    "  IMAGE: 1 to the model's max_views PNG/JPEG files of any size; RGBA is composited on white and\n"
+                    "  each picture's centred window of the model's aspect ratio is resized to the model's size\n"
+                    "  --model: default the shipped model (models/flexsplat-small.safetensors in the source tree)\n"
+                    "  --gaussians: default the model's budget for the view count; --turntable: 8 views around the\n"
+                    "  object in one picture; --verbose: time of each stage",
+                    reconstruct_command});
+
+}  // namespace flexsplat::cli::reconstruct_cmd
