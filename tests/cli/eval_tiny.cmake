@@ -1,5 +1,6 @@
-# flexsplat eval end to end: a one-step tiny model (flexsplat train), evaluated on one shared object with the white
-# baseline; the JSON must have the issue's keys and finite numbers in range.
+# flexsplat eval and reconstruct end to end with a one-step tiny model (flexsplat train): eval on one shared object
+# with the white baseline (the JSON must have the issue's keys and finite numbers in range); reconstruct writes a .glb
+# with the predicted cameras and a turntable, and refuses an unreadable image and too many views.
 # -DFLEXSPLAT=exe -DCONFIG=json -DOBJECT=dir -DWORK_DIR=dir
 file(REMOVE_RECURSE ${WORK_DIR})
 file(MAKE_DIRECTORY ${WORK_DIR})
@@ -49,3 +50,21 @@ if(NOT rt STREQUAL "NULL")
   message(FATAL_ERROR "the white baseline has a rotation error (${rt}); it has no cameras")
 endif()
 message(STATUS "eval.json: model ${model}, object ${name}")
+
+set(images ${OBJECT}/images/000.png ${OBJECT}/images/001.png)
+execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/out.glb
+                        --turntable ${WORK_DIR}/turntable.png --verbose
+                RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
+if(NOT code EQUAL 0 OR NOT out MATCHES "out.glb: 48 Gaussians, 2 camera\\(s\\)" OR NOT out MATCHES "decoder"
+   OR NOT EXISTS ${WORK_DIR}/turntable.png)
+  message(FATAL_ERROR "reconstruct failed (${code}):\n${out}\n${err}")
+endif()
+function(expect_refusal pattern)
+  execute_process(COMMAND ${FLEXSPLAT} reconstruct ${ARGN} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/bad.glb
+                  RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
+  if(code EQUAL 0 OR NOT err MATCHES "${pattern}")
+    message(FATAL_ERROR "reconstruct ${ARGN} gave exit code ${code} and '${err}', expected an error matching '${pattern}'")
+  endif()
+endfunction()
+expect_refusal("cannot decode" ${CONFIG})
+expect_refusal("5 images; the model takes 1 to 4" ${images} ${images} ${OBJECT}/images/002.png)
