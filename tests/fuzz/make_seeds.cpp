@@ -11,11 +11,14 @@
 
 #include <nlohmann/json.hpp>
 
+#include "flexsplat/data/dataset.hpp"
 #include "flexsplat/export/cameras_json.hpp"
 #include "flexsplat/export/gltf.hpp"
 #include "flexsplat/export/ply.hpp"
 #include "flexsplat/image/image_io.hpp"
 #include "flexsplat/io/safetensors.hpp"
+#include "flexsplat/model/config.hpp"
+#include "flexsplat/train/checkpoint.hpp"
 
 using namespace flexsplat;
 namespace fs = std::filesystem;
@@ -29,6 +32,11 @@ void write_bytes(const fs::path& path, const void* data, std::size_t size) {
   require(out.good(), "cannot write ", path.string());
 }
 void write_text(const fs::path& path, const std::string& text) { write_bytes(path, text.data(), text.size()); }
+std::string read_text(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  require(in.good(), "cannot read ", path.string());
+  return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+}
 
 // Small deterministic set: values from a fixed formula, unit quaternions, scales in (0, 1).
 GaussianSet<float> small_set(index_t n, int degree) {
@@ -92,7 +100,7 @@ std::vector<unsigned char> png16(int width, int height, int channels) {
 
 int main(int argc, char** argv) {
   const fs::path root = argc > 1 ? argv[1] : "tests/fuzz/corpus";
-  for (const char* t : {"safetensors", "ply", "glb", "image", "cameras_json", "vggt_config"})
+  for (const char* t : {"safetensors", "ply", "glb", "image", "cameras_json", "vggt_config", "dataset", "checkpoint", "train_config"})
     fs::create_directories(root / t);
 
   // safetensors: every dtype, rank 0 to 2, an empty tensor, metadata; and a one-tensor file.
@@ -212,6 +220,55 @@ int main(int argc, char** argv) {
                R"( "aa_block_size": 1, "aa_order": ["frame", "global"], "dino_depth": 24, "dino_heads": 16,)"
                R"( "dino_mlp_ratio": 4.0, "trunk_depth": 4, "cam_heads": 16, "features": 256,)"
                R"( "out_channels": [256, 512, 1024, 1024], "intermediate_layer_idx": [4, 11, 17, 23]})");
+  }
+  // Dataset folder (fuzz_dataset.cpp's format: files joined by "\n--8<--\n"): a procedural object of 2 views at
+  // 8 x 8, written by data::write_object, and the same cut to one frame.
+  {
+    data::GeneratorConfig g;
+    g.size = 8, g.views = 2, g.structured = false, g.supersample = 1;
+    const fs::path dir = root / "dataset" / ".tmp_object";
+    fs::remove_all(dir);
+    data::write_object(dir, data::generate_object(3, 0, g));
+    const std::string sep = "\n--8<--\n";
+    nlohmann::json doc = nlohmann::json::parse(read_text(dir / "cameras.json"));
+    doc.erase("generator");
+    std::string two = doc.dump(1);
+    for (const char* f : {"images/000.png", "depth/000.png", "images/001.png", "depth/001.png"}) two += sep + read_text(dir / f);
+    write_text(root / "dataset" / "two_views_8px.bin", two);
+    doc["frames"] = nlohmann::json::array({doc["frames"][0]});
+    write_text(root / "dataset" / "one_view_8px.bin",
+               doc.dump(1) + sep + read_text(dir / "images/000.png") + sep + read_text(dir / "depth/000.png"));
+    fs::remove_all(dir);
+  }
+
+  // Checkpoints of fuzz_checkpoint.cpp's small store: a training state and a model file with its expected
+  // configuration, and a training state whose configuration is the tiny FlexSplat model (for model::load_flexsplat).
+  {
+    train::ParamStore<float> store;
+    store.add_segment("a", {{"layer.weight", {2, 3}}, {"layer.bias", {3}}});
+    store.add_segment("b", {{"norm.weight", {4}}, {"scalar", {}}});
+    store.allocate(true);
+    for (index_t i = 0; i < store.size(); ++i) {
+      store.params()[i] = 0.125f * static_cast<float>(i) - 1.0f;
+      store.adam_m()[i] = 0.01f * static_cast<float>(i);
+      store.adam_v()[i] = 0.001f * static_cast<float>(i);
+    }
+    const nlohmann::json config = {{"kind", "fuzz"}};
+    const train::TrainingState state{12, train::rng_state_string(std::mt19937_64(7))};
+    train::save_training_state(root / "checkpoint" / "training_state.safetensors", store, config, state);
+    train::save_model(root / "checkpoint" / "model.safetensors", store, config, 3);
+    train::save_training_state(root / "checkpoint" / "tiny_config_state.safetensors", store,
+                               model::to_json(model::flexsplat_tiny_config()), train::TrainingState{1, "x"});
+  }
+
+  // Train configs: the ctest's tiny run, and one with the FlexSplat model as an object.
+  {
+    write_text(root / "train_config" / "train_tiny.json", read_text("tests/cli/train_tiny.json"));
+    nlohmann::json cfg = {{"model", model::to_json(model::flexsplat_tiny_config())}, {"batch", 1}, {"inputs", {1, 2}},
+                          {"stages", {{{"name", "geometry"}, {"steps", 3}, {"appearance", false}, {"camera_weight", 1.0}},
+                                      {{"name", "joint"}, {"steps", 5}, {"lr", 2e-4}, {"warmup", 2},
+                                       {"objective", {{"render", 1.0}, {"lpips", 0.0}}}}}}};
+    write_text(root / "train_config" / "model_object.json", cfg.dump(1));
   }
   return 0;
 }

@@ -357,7 +357,7 @@ private:
   std::map<std::string, std::size_t> index_;
 };
 
-// Collects tensors, then writes them atomically (temp file in the same folder + rename).
+// Collects tensors, then writes them atomically (temp file in the same folder, fsync, rename).
 class Writer {
 public:
   void set_metadata(const std::string& key, const std::string& value) { metadata_[key] = value; }
@@ -415,10 +415,24 @@ public:
       for (auto& e : entries_) out.write(reinterpret_cast<const char*>(e.bytes.data()), static_cast<std::streamsize>(e.bytes.size()));
       out.flush();
       if (!out) {
+        const int err = errno;  // the failed write()'s reason (no space, file too large, I/O error)
         out.close();
         std::error_code ec;
         std::filesystem::remove(tmp, ec);
-        fail("safetensors writer: writing '", tmp.string(), "' failed");
+        fail("safetensors writer: writing '", tmp.string(), "' failed: ", std::strerror(err));
+      }
+    }
+    // The data reaches the disk before the rename publishes it: after a crash or power loss the name holds the old
+    // file or the complete new one, never a truncated one (and a write error the kernel reports late surfaces here).
+    {
+      const int fd = ::open(tmp.c_str(), O_RDONLY | O_CLOEXEC);
+      const int synced = fd >= 0 ? ::fsync(fd) : -1;
+      const int err = errno;
+      if (fd >= 0) ::close(fd);
+      if (synced != 0) {
+        std::error_code ignored;
+        std::filesystem::remove(tmp, ignored);
+        fail("safetensors writer: cannot flush '", tmp.string(), "' to disk: ", std::strerror(err));
       }
     }
     std::error_code ec;
@@ -427,6 +441,12 @@ public:
       std::error_code ignored;
       std::filesystem::remove(tmp, ignored);
       fail("safetensors writer: cannot rename '", tmp.string(), "' to '", path.string(), "': ", ec.message());
+    }
+    // The rename itself is durable once the folder's entry is (best effort: some file systems refuse fsync on a folder).
+    const std::filesystem::path parent = path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
+    if (const int dir = ::open(parent.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC); dir >= 0) {
+      (void)::fsync(dir);
+      ::close(dir);
     }
   }
 

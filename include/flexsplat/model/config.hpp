@@ -2,7 +2,11 @@
 // The architecture of a whole FlexSplat model: the VGGT geometry transformer, the appearance side (UNet, fusion,
 // Gaussian decoder), the model's input resolution and the Gaussian budget. Serialises to the JSON stored in a
 // checkpoint's __metadata__ ("config"), so a model file says what it is.
+#include <cstdint>
+#include <cstdlib>
 #include <string>
+#include <type_traits>
+#include <utility>
 
 #include <nlohmann/json.hpp>
 
@@ -26,6 +30,20 @@ struct FlexSplatConfig {
   void validate() const {
     geometry.validate();
     decoder::validate_model_config(appearance);
+    // Sizes the appearance side's parameter counts are taken from: positive, and the UNet's widest level (base <<
+    // levels) within 2^20 so that no count overflows.
+    const auto& u = appearance.unet;
+    const auto& d = appearance.decoder;
+    require(u.levels >= 0 && u.levels <= 20 && u.base >= 1 && u.base <= (index_t(1) << (20 - u.levels)),
+            "FlexSplat config: UNet base ", u.base, " and levels ", u.levels, " must be >= 1 and >= 0 with base << levels <= 2^20");
+    require(appearance.fusion.unet_channels >= 1 && appearance.fusion.out_channels >= 1 && appearance.fusion.depth_channels >= 1,
+            "FlexSplat config: fusion channels ", appearance.fusion.depth_channels, ", ", appearance.fusion.unet_channels,
+            ", ", appearance.fusion.out_channels, " must be positive");
+    require(d.dim >= 1 && d.ffn >= 1 && d.heads >= 1 && d.dim % d.heads == 0 && d.layers >= 1 && d.points >= 1 &&
+                d.max_views >= 1 && d.value_dim >= 1 && d.max_queries >= 1 && (!d.local_attention || d.window >= 1),
+            "FlexSplat config: decoder dim ", d.dim, ", ffn ", d.ffn, ", heads ", d.heads, ", layers ", d.layers, ", points ",
+            d.points, ", max_views ", d.max_views, ", value_dim ", d.value_dim, ", max_queries ", d.max_queries, ", window ",
+            d.window, " must be positive, with dim divisible by heads");
     const index_t p = geometry.aggregator.patch_size;
     require(image_h >= p && image_w >= p && image_h % p == 0 && image_w % p == 0, "FlexSplat config: image size ",
             image_h, " x ", image_w, " must be a positive multiple of the patch size ", p);
@@ -74,10 +92,27 @@ inline nlohmann::json to_json(const FlexSplatConfig& c) {
           {"image_w", c.image_w}, {"gaussians", c.gaussians}};
 }
 
+namespace detail {
+// Integer keys holding numbers are checked before nlohmann converts them (get<index_t> of 1e300 is undefined behaviour); sizes beyond
+// 2^20 would overflow the parameter counts taken from them, as in geometry::check_vggt_config_numbers.
+inline void check_config_integer(const nlohmann::json& o, const char* key) {
+  constexpr std::int64_t max_size = std::int64_t(1) << 20;
+  const nlohmann::json& v = o.at(key);
+  if (!v.is_number()) return;  // nlohmann's type error names it
+  const bool ok = v.is_number_unsigned() ? v.get<std::uint64_t>() <= std::uint64_t(max_size)
+                  : v.is_number_integer() ? std::abs(v.get<std::int64_t>()) <= max_size
+                                          : false;
+  require(ok, "FlexSplat config: '", key, "' = ", v.dump(), " is not an integer in [-", max_size, ", ", max_size, "]");
+}
+}  // namespace detail
+
 inline decoder::ModelConfig appearance_config_from_json(const nlohmann::json& j) {
   decoder::ModelConfig c;
   auto get = [](const nlohmann::json& o, const char* key, auto& v) {
-    if (o.contains(key)) v = o.at(key).get<std::remove_reference_t<decltype(v)>>();
+    using V = std::remove_reference_t<decltype(v)>;
+    if (!o.contains(key)) return;
+    if constexpr (std::is_integral_v<V> && !std::is_same_v<V, bool>) detail::check_config_integer(o, key);
+    v = o.at(key).get<V>();
   };
   if (j.contains("unet")) {
     const auto& u = j.at("unet");
@@ -106,9 +141,9 @@ inline FlexSplatConfig flexsplat_config_from_json(const std::string& text) {
     require(j.is_object(), "FlexSplat config is not a JSON object");
     if (j.contains("geometry")) c.geometry = geometry::vggt_config_from_json(j.at("geometry").dump());
     if (j.contains("appearance")) c.appearance = appearance_config_from_json(j.at("appearance"));
-    if (j.contains("image_h")) c.image_h = j.at("image_h").get<index_t>();
-    if (j.contains("image_w")) c.image_w = j.at("image_w").get<index_t>();
-    if (j.contains("gaussians")) c.gaussians = j.at("gaussians").get<index_t>();
+    for (auto [key, v] : {std::pair<const char*, index_t*>{"image_h", &c.image_h}, {"image_w", &c.image_w},
+                          {"gaussians", &c.gaussians}})
+      if (j.contains(key)) detail::check_config_integer(j, key), *v = j.at(key).get<index_t>();
   } catch (const nlohmann::json::exception& e) {
     fail("FlexSplat config JSON: ", e.what());
   }

@@ -8,6 +8,8 @@
 #include <memory>
 #include <random>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "flexsplat/decoder/param_names.hpp"
 #include "flexsplat/geometry/random_weights.hpp"
@@ -109,6 +111,24 @@ std::unique_ptr<FlexSplatWeights<T>> load_flexsplat(const std::filesystem::path&
   require(file.has_metadata(train::checkpoint_config_key), "model file '", path.string(),
           "' has no configuration in its metadata (not a flexsplat model; a VGGT checkpoint goes to --init)");
   const FlexSplatConfig c = flexsplat_config_from_json(file.metadata(train::checkpoint_config_key));
+  // The file must hold every tensor of that configuration, shape for shape, before the model is allocated: a few bytes
+  // of metadata could otherwise ask for any size (absent keys mean VGGT-1B). Layer counts are bounded by the file's
+  // tensor count first (each layer has tensors), so listing the names costs no more than the file.
+  const auto& a = c.geometry.aggregator;
+  const index_t layers = 2 * a.depth + a.dino.depth + c.geometry.camera.trunk_depth + c.appearance.decoder.layers +
+                         c.appearance.unet.levels;
+  require(layers <= static_cast<index_t>(file.tensors().size()), "model file '", path.string(), "' holds ",
+          file.tensors().size(), " tensors; its configuration has ", layers, " layers");
+  std::vector<geometry::TensorSpec> specs = geometry::vggt_parameter_specs(c.geometry);
+  for (auto& s : appearance_parameter_specs(c)) specs.push_back(std::move(s));
+  std::size_t absent = 0;
+  std::string first;
+  for (const auto& s : specs)
+    if (!file.contains(s.name) || file.info(s.name).shape != s.shape) {
+      if (absent++ == 0) first = s.name + " " + safetensors::shape_string(s.shape);
+    }
+  require(absent == 0, "model file '", path.string(), "' lacks ", absent, " of the ", specs.size(),
+          " tensors its configuration names, or holds them with another shape (first: ", first, ")");
   auto w = FlexSplatWeights<T>::create(c, training);
   w->load(path, training);
   return w;
