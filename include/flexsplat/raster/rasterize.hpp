@@ -263,10 +263,12 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
 
 // Writes the gradient record (6 + C values) of every entry of the tile into entry_grads at the entry's emission
 // slot, visiting entries back to front.
-template <class V, class T>
+template <class V, class T, int FixedChannels = 0>
 void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* records, int record_stride,
-                         TileState<T>& st, int C, const T* background, const BlendState<T>& state,
+                         TileState<T>& st, int channel_count, const T* background, const BlendState<T>& state,
                          const T* d_out_channels, const T* d_alpha, T* entry_grads) {
+  // A compile-time channel count keeps the per-channel sums in registers.
+  const int C = FixedChannels > 0 ? FixedChannels : channel_count;
   constexpr int L = int(simd::lane_count<V>::value), batches_per_row = tile_size / L;
   constexpr int P = TileState<T>::tile_pixels;
   constexpr int max_channels = 64;
@@ -611,8 +613,12 @@ void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, 
     T* grads = ws.entry_grads.data();
     detail::with_blend_lanes<T>(kernel, [&](auto* lanes) {
       using V = std::remove_pointer_t<decltype(lanes)>;
-      detail::blend_tile_backward<V, T>(ti, tile, records, ws.splat_stride, st, C, background, state, d_out_channels,
-                                        d_alpha, grads);
+      if (C == 4)  // image and depth, no features
+        detail::blend_tile_backward<V, T, 4>(ti, tile, records, ws.splat_stride, st, C, background, state,
+                                             d_out_channels, d_alpha, grads);
+      else
+        detail::blend_tile_backward<V, T>(ti, tile, records, ws.splat_stride, st, C, background, state,
+                                          d_out_channels, d_alpha, grads);
     });
   });
   if (!gaussian_grads) return;
