@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <memory>
 #include <random>
 #include <set>
@@ -14,9 +15,12 @@
 #include <nlohmann/json.hpp>
 
 #include "flexsplat/data/dataset.hpp"
+#include "flexsplat/image/image_io.hpp"
+#include "flexsplat/image/plot.hpp"
 #include "flexsplat/loss/lpips.hpp"
 #include "flexsplat/model/config.hpp"
 #include "flexsplat/model/train.hpp"
+#include "flexsplat/model/validate.hpp"
 #include "flexsplat/model/weights.hpp"
 #include "flexsplat/train/checkpoint.hpp"
 #include "flexsplat/train/distributed.hpp"
@@ -60,6 +64,141 @@ model::TrainExample<float> make_scene(const TrainData& d, const TrainRunConfig& 
     s = data::sample_batch(d.objects, 1, c.seed, index, o);
   }
   return model::make_train_example<float>(s[0], c.model);
+}
+
+std::string read_text(const fs::path& p);
+
+// Held-out scenes, built once: procedural scenes from another seed, and each object folder viewed whole.
+struct ValidationSet {
+  std::string name;
+  std::vector<std::string> scene_names;
+  std::vector<model::TrainExample<float>> scenes;
+};
+
+std::vector<ValidationSet> make_validation_sets(const TrainData& d, const TrainRunConfig& c) {
+  std::vector<ValidationSet> sets;
+  const auto& v = c.validation;
+  data::BatchOptions o;
+  o.inputs = std::min(4, c.inputs_max);
+  o.targets = v.targets;
+  if (v.scenes > 0) {
+    ValidationSet set{"procedural", {}, {}};
+    data::GeneratorConfig g = d.generator;
+    g.size = static_cast<int>(c.model.image_h);
+    const std::uint64_t seed = data::child_seed(c.seed, 0x76616c6964ull);  // never a training batch's seed
+    for (const auto& s : data::generate_batch(g, v.scenes, seed, 0, o)) {
+      set.scene_names.push_back(s.name);
+      set.scenes.push_back(model::make_train_example<float>(s, c.model));
+    }
+    sets.push_back(std::move(set));
+  }
+  if (!v.objects.empty()) {
+    ValidationSet set{"objects", {}, {}};
+    for (const auto& rec : data::load_objects(std::vector<fs::path>(v.objects.begin(), v.objects.end()))) {
+      require(rec.width == rec.height, "train: validation object '", rec.name, "' is ", rec.width, " x ", rec.height,
+              "; validation views are whole square images");
+      data::BatchOptions oo = o;
+      oo.crop = static_cast<int>(c.model.image_h);
+      oo.scale_min = oo.scale_max = static_cast<double>(c.model.image_h) / static_cast<double>(rec.width);
+      const auto s = data::sample_batch({rec}, 1, c.seed, 0, oo);
+      set.scene_names.push_back(rec.name);
+      set.scenes.push_back(model::make_train_example<float>(s[0], c.model));
+    }
+    sets.push_back(std::move(set));
+  }
+  return sets;
+}
+
+// Scores every set, logs one line, and draws RUN_DIR/validation.png: per scene its inputs, then target and render.
+nlohmann::json run_validation(const std::vector<ValidationSet>& sets, const model::FlexSplatWeights<float>& w,
+                              const fs::path& picture) {
+  model::ValidationWorkspace<float> ws;
+  json result = json::object();
+  std::vector<Tensor<float, 3>> keep;  // owns the renders the grid cells point at
+  keep.reserve(64);
+  std::vector<image::GridCell> cells;
+  const int inputs_shown = 4, targets_shown = 2, cols = inputs_shown + 2 * targets_shown;
+  for (const auto& set : sets) {
+    double psnr = 0, ssim = 0, rot = 0, depth = 0;
+    for (std::size_t i = 0; i < set.scenes.size(); ++i) {
+      const auto& e = set.scenes[i];
+      std::vector<Tensor<float, 3>> renders;
+      const model::ValidationScore s = model::validate_scene(ws, w, e, &renders);
+      psnr += s.psnr, ssim += s.ssim, rot += s.rotation_deg, depth += s.depth_rel;
+      if (i >= 4) continue;
+      const Shape<3> shape{e.h, e.w, 3};
+      for (int v = 0; v < inputs_shown; ++v)
+        cells.push_back(v < e.views ? image::GridCell{TensorView<const float, 3>(e.inputs_hwc.data() + v * e.h * e.w * 3, shape),
+                                                      v == 0 ? set.name.substr(0, 4) + " " + set.scene_names[i] : "input"}
+                                    : image::GridCell{TensorView<const float, 3>(), ""});
+      for (int t = 0; t < targets_shown; ++t) {
+        if (t >= e.targets) {
+          cells.push_back({TensorView<const float, 3>(), ""}), cells.push_back({TensorView<const float, 3>(), ""});
+          continue;
+        }
+        keep.push_back(renders[static_cast<std::size_t>(t)]);
+        cells.push_back({TensorView<const float, 3>(e.target_images.data() + t * e.h * e.w * 3, shape), "target"});
+        cells.push_back({TensorView<const float, 3>(keep.back().view()), "render"});
+      }
+    }
+    const double n = static_cast<double>(std::max<std::size_t>(set.scenes.size(), 1));
+    result[set.name] = {{"psnr", psnr / n}, {"ssim", ssim / n}, {"rotation_deg", rot / n}, {"depth_rel", depth / n}};
+  }
+  if (!cells.empty()) image::write_png(picture, image::image_grid(cells, cols, 112));
+  return result;
+}
+
+// RUN_DIR/curves.png from log.jsonl: training loss terms, PSNR and validation camera error against the step.
+void write_curves(const fs::path& log_path, const fs::path& picture) {
+  std::map<std::string, image::PlotSeries> loss, psnr, rot;
+  const image::Rgb8 palette[] = {{31, 119, 180}, {214, 39, 40}, {44, 160, 44}, {148, 103, 189}, {255, 127, 14}, {23, 190, 207}};
+  auto add = [&](std::map<std::string, image::PlotSeries>& m, const std::string& name, double x, double y) {
+    auto it = m.find(name);
+    if (it == m.end()) it = m.emplace(name, image::PlotSeries{name, {}, {}, palette[m.size() % 6]}).first;
+    it->second.x.push_back(x), it->second.y.push_back(y);
+  };
+  std::istringstream lines(read_text(log_path));
+  for (std::string line; std::getline(lines, line);) {
+    json j;
+    try {
+      j = json::parse(line);
+    } catch (const json::exception&) {
+      continue;
+    }
+    if (!j.contains("step")) continue;
+    const double step = j["step"].get<double>();
+    if (j.contains("validation")) {
+      for (const auto& [set, v] : j["validation"].items()) {
+        add(psnr, "val " + set, step, v.value("psnr", 0.0));
+        add(rot, "val " + set, step, v.value("rotation_deg", 0.0));
+      }
+      continue;
+    }
+    add(loss, "total", step, j.value("loss", 0.0));
+    for (const char* k : {"render", "camera", "depth", "rgb_head"})
+      if (j.value(k, 0.0) > 0) add(loss, k, step, j.value(k, 0.0));
+    if (j.value("psnr", 0.0) > 0) add(psnr, "train", step, j.value("psnr", 0.0));
+  }
+  auto values = [](const std::map<std::string, image::PlotSeries>& m) {
+    std::vector<image::PlotSeries> v;
+    for (const auto& [k, s] : m) v.push_back(s);
+    return v;
+  };
+  std::vector<Tensor<std::uint8_t, 3>> panels;
+  image::PlotOptions o;
+  o.width = 900, o.height = 320, o.x_label = "step";
+  o.title = "training loss", o.log_y = true;
+  panels.push_back(image::plot_lines(values(loss), o));
+  o.title = "psnr (db) of the last decoder layer", o.log_y = false;
+  panels.push_back(image::plot_lines(values(psnr), o));
+  if (!rot.empty()) {
+    o.title = "validation: rotation error of predicted cameras (deg)";
+    panels.push_back(image::plot_lines(values(rot), o));
+  }
+  Tensor<std::uint8_t, 3> all(Shape<3>{static_cast<index_t>(panels.size()) * o.height, o.width, 3});
+  for (std::size_t i = 0; i < panels.size(); ++i)
+    std::copy(panels[i].data(), panels[i].data() + panels[i].size(), all.data() + static_cast<index_t>(i) * panels[i].size());
+  image::write_png(picture, all);
 }
 
 std::string read_text(const fs::path& p) {
@@ -219,6 +358,8 @@ int train_command(Args args) {
                  static_cast<unsigned long long>(w->store().size()), comm.size(), static_cast<unsigned long long>(step),
                  static_cast<unsigned long long>(stop_at), static_cast<unsigned long long>(total));
 
+  std::vector<ValidationSet> validation;
+  if (root && cfg.validation.enabled()) validation = make_validation_sets(data, cfg);
   std::ofstream log;
   if (root) log.open(log_path, std::ios::app);
   model::StepWorkspace<float> ws;
@@ -261,7 +402,16 @@ int train_command(Args args) {
       log.flush();
       last_log_time = now, last_log_step = done;
     }
-    if (done % cfg.checkpoint_every == 0 || done == stop_at) save_state(done);
+    if (cfg.validation.enabled() && (done % cfg.validation.every == 0 || done == stop_at)) {
+      const double t0 = elapsed();
+      const json v = run_validation(validation, *w, run / "validation.png");
+      log << json{{"step", done}, {"validation", v}, {"seconds", now}, {"validation_seconds", elapsed() - t0}}.dump() << "\n";
+      log.flush();
+    }
+    if (done % cfg.checkpoint_every == 0 || done == stop_at) {
+      save_state(done);
+      write_curves(log_path, run / "curves.png");
+    }
     if (!quiet) {
       const int bar = 30,
                 filled = static_cast<int>(static_cast<double>(bar) * static_cast<double>(done) / static_cast<double>(total));
@@ -298,9 +448,11 @@ const RegisterCommand registered_cmd_train(
               "[--seconds S] [--quiet]\n"
               "  CFG.json keys (all optional): model (\"tiny\" | \"paper\" | FlexSplat config object), seed, batch (global),\n"
               "  inputs [min, max] views per scene, targets, gaussians (0: tied to the view count), max_grad_norm,\n"
-              "  lpips_weights, checkpoint_every, log_every, stages [{name, steps, lr, warmup, appearance, train_geometry,\n"
+              "  lpips_weights, checkpoint_every, log_every, validation, stages [{name, steps, lr, warmup, appearance, train_geometry,\n"
               "  camera_weight, depth_weight, objective {rgb_head, render, depth, lpips}}]; unknown keys are errors\n"
-              "  RUN_DIR: config.json, log.jsonl, state.safetensors (resume point), model.safetensors (at the end)\n"
+              "  validation {every, scenes, targets, objects [DIR...]}: held-out scores in log.jsonl and validation.png\n"
+              "  RUN_DIR: config.json, log.jsonl, state.safetensors (resume point), model.safetensors (at the end),\n"
+              "  curves.png (loss, PSNR, camera error against the step, redrawn at each checkpoint)\n"
               "  rerunning the same command resumes from state.safetensors; --steps N stops after global step N,\n"
               "  --seconds S after S seconds, both with a checkpoint; --init loads VGGT geometry weights on a fresh run",
               train_command});

@@ -66,11 +66,12 @@ TEST_CASE("image_grid places each image at an integer zoom and draws NaN magenta
   Tensor<float, 3> a(Shape<3>{4, 4, 3}, 0.f), b(Shape<3>{4, 4, 1}, 1.f);
   a(1, 2, 0) = 1.f;
   b(0, 0, 0) = std::numeric_limits<float>::quiet_NaN();
-  std::vector<image::GridCell> cells{{a.view(), "a"}, {b.view(), "b"}};
+  std::vector<image::GridCell> cells{{a.view(), "a"}, {b.view(), "b"}, {TensorView<const float, 3>(), "blank"}};
   const auto img = image::image_grid(cells, 2, 16);
   // zoom 4: cells 16 x 16, padding 6, label rows 16.
   CHECK(img.shape(1) == 2 * (16 + 6) + 6);
-  CHECK(img.shape(0) == 16 + 16 + 6 + 6);
+  CHECK(img.shape(0) == 2 * (16 + 16 + 6) + 6);
+  CHECK(is(img, 6 + 4, 6 + 38 + 4, {255, 255, 255}));
   CHECK(is(img, 6 + 2 * 4, 6 + 1 * 4, {255, 0, 0}));
   CHECK(is(img, 6 + 2 * 4 + 3, 6 + 1 * 4 + 3, {255, 0, 0}));
   CHECK(is(img, 6, 6, {0, 0, 0}));

@@ -121,7 +121,7 @@ inline std::vector<double> nice_ticks(double lo, double hi, int target) {
 
 inline std::string tick_label(double v) {
   char buf[32];
-  std::snprintf(buf, sizeof buf, "%g", v);
+  std::snprintf(buf, sizeof buf, "%.3g", v);
   return buf;
 }
 }  // namespace detail
@@ -210,15 +210,16 @@ inline Tensor<std::uint8_t, 3> plot_lines(std::span<const PlotSeries> series, co
   long ly = top + 6;
   for (const auto& s : series) {
     const long w = text_width(s.name) + 22;
-    detail::fill_rect(v, right - w - 6, ly - 2, right - 2, ly + 13, {255, 255, 255});
-    detail::fill_rect(v, right - w, ly + 3, right - w + 14, ly + 7, s.color);
-    draw_text(v, right - w + 18, ly, s.name, ink);
+    detail::fill_rect(v, right - w - 12, ly - 3, right - 1, ly + 13, {255, 255, 255});
+    detail::fill_rect(v, right - w - 6, ly + 3, right - w + 8, ly + 7, s.color);
+    draw_text(v, right - w + 12, ly, s.name, ink);
     ly += 16;
   }
   return img;
 }
 
-// One labelled cell of an image grid: an HWC float image in [0, 1] (1 or 3 channels; NaN is drawn magenta).
+// One labelled cell of an image grid: an HWC float image in [0, 1] (1 or 3 channels; NaN is drawn magenta); an
+// empty image leaves the cell blank.
 struct GridCell {
   TensorView<const float, 3> image;
   std::string label;
@@ -230,10 +231,12 @@ inline Tensor<std::uint8_t, 3> image_grid(std::span<const GridCell> cells, int c
   require(cell >= 8 && cell <= 4096, "image grid: cell size ", cell, " outside [8, 4096]");
   index_t ch = 0, cw = 0;
   for (const auto& c : cells) {
+    if (c.image.empty()) continue;
     require(c.image.shape(2) == 1 || c.image.shape(2) == 3, "image grid: cell '", c.label, "' has ", c.image.shape(2),
             " channels, expected 1 or 3");
     ch = std::max(ch, c.image.shape(0)), cw = std::max(cw, c.image.shape(1));
   }
+  require(ch > 0 && cw > 0, "image grid: every cell is empty");
   const index_t zoom = std::max<index_t>(1, cell / std::max(ch, cw));
   const long pad = 6, label_h = 16, cell_w = static_cast<long>(cw * zoom), cell_h = static_cast<long>(ch * zoom);
   const long rows = static_cast<long>((cells.size() + static_cast<std::size_t>(cols) - 1) / static_cast<std::size_t>(cols));
@@ -244,6 +247,7 @@ inline Tensor<std::uint8_t, 3> image_grid(std::span<const GridCell> cells, int c
     const long gx = pad + static_cast<long>(i % static_cast<std::size_t>(cols)) * (cell_w + pad);
     const long gy = pad + static_cast<long>(i / static_cast<std::size_t>(cols)) * (cell_h + label_h + pad);
     const auto& im = cells[i].image;
+    if (im.empty()) continue;
     const index_t C = im.shape(2);
     for (index_t y = 0; y < im.shape(0) * zoom; ++y)
       for (index_t x = 0; x < im.shape(1) * zoom; ++x) {

@@ -30,6 +30,17 @@ struct TrainStage {
   model::StepConfig step;
 };
 
+// Held-out scoring during a run: procedural scenes from a seed stream the training batches never draw, and object
+// folders (the layout of make-data and ../shared/data/objects) viewed whole at the model's size.
+struct ValidationConfig {
+  std::uint64_t every = 0;  // steps between validations; 0: none
+  int scenes = 8;           // held-out procedural scenes
+  int targets = 4;          // target views per scene
+  std::vector<std::string> objects;
+
+  bool enabled() const { return every > 0; }
+};
+
 struct TrainRunConfig {
   model::FlexSplatConfig model;
   std::uint64_t seed = 0;
@@ -40,6 +51,7 @@ struct TrainRunConfig {
   std::string lpips_weights;
   std::vector<TrainStage> stages;
   std::uint64_t checkpoint_every = 100, log_every = 10;
+  ValidationConfig validation;
 
   std::uint64_t total_steps() const {
     std::uint64_t n = 0;
@@ -174,6 +186,24 @@ inline TrainRunConfig parse_train_config(const nlohmann::json& j) {
   c.lpips_weights = k.string("lpips_weights", "");
   c.checkpoint_every = k.integer("checkpoint_every", 100, 1, UINT64_MAX);
   c.log_every = k.integer("log_every", 10, 1, UINT64_MAX);
+  if (const nlohmann::json* v = k.find("validation")) {
+    detail::Keys vk(*v, "validation");
+    c.validation.every = vk.integer("every", 0, 0, UINT64_MAX);
+    c.validation.scenes = static_cast<int>(vk.integer("scenes", 8, 0, 100000));
+    c.validation.targets = static_cast<int>(vk.integer("targets", 4, 1, 64));
+    if (const nlohmann::json* o = vk.find("objects")) {
+      require(o->is_array(), "train config: 'validation.objects' is ", o->dump().substr(0, 80),
+              ", expected an array of object folder paths");
+      for (std::size_t i = 0; i < o->size(); ++i) {
+        require((*o)[i].is_string(), "train config: 'validation.objects[", i, "]' is ", (*o)[i].dump().substr(0, 80),
+                ", expected a folder path");
+        c.validation.objects.push_back((*o)[i].get<std::string>());
+      }
+    }
+    vk.finish();
+    require(!c.validation.enabled() || c.validation.scenes > 0 || !c.validation.objects.empty(),
+            "train config: 'validation.every' is ", c.validation.every, " but there is nothing to validate on (scenes 0, no objects)");
+  }
   if (const nlohmann::json* st = k.find("stages")) {
     require(st->is_array() && !st->empty(), "train config: 'stages' is ", st->dump().substr(0, 80),
             ", expected a non-empty array of stage objects");

@@ -1,0 +1,84 @@
+#pragma once
+// Validation during training: a held-out scene through the forward model, its target views rendered with the
+// ground-truth cameras in the training frame (first input camera = identity, ground-truth scale normalised as in
+// make_train_example), scored against the targets. No similarity alignment: this measures what the training
+// objective asks of the model; `flexsplat eval` runs the paper's aligned protocol.
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/core/tensor.hpp"
+#include "flexsplat/loss/image.hpp"
+#include "flexsplat/loss/ssim.hpp"
+#include "flexsplat/model/cameras.hpp"
+#include "flexsplat/model/frames.hpp"
+#include "flexsplat/model/predict.hpp"
+#include "flexsplat/model/train.hpp"
+#include "flexsplat/raster/render.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace model {
+
+struct ValidationScore {
+  double psnr = 0, ssim = 0;    // means over the scene's target views
+  double rotation_deg = 0;      // mean over input views 2..V of the relative rotation error (0 for one view)
+  double depth_rel = 0;         // mean |predicted - ground-truth depth| / ground-truth depth on object pixels
+  index_t targets = 0, views = 0;
+};
+
+template <class T>
+struct ValidationWorkspace {
+  PredictWorkspace<T> predict;
+  raster::RenderWorkspace<T> render;
+  raster::RenderOutputs<T> out;
+  loss::SsimWorkspace ssim;
+};
+
+// Scores one scene. With `renders`, each target's render [h, w, 3] is appended (for pictures).
+template <class T>
+ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeights<T>& w, const TrainExample<T>& e,
+                               std::vector<Tensor<T, 3>>* renders = nullptr) {
+  require(e.targets >= 1, "validation: the scene has no target views");
+  const Prediction<T> p = predict(ws.predict, w, e.images.data(), e.views);
+  ValidationScore s;
+  s.views = e.views, s.targets = e.targets;
+  raster::RenderOptions ro;
+  ro.background = {static_cast<double>(e.background[0]), static_cast<double>(e.background[1]),
+                   static_cast<double>(e.background[2])};
+  const index_t px = e.h * e.w;
+  const loss::ImageShape shape{1, 3, e.h, e.w, loss::Layout::nhwc};
+  for (index_t m = 0; m < e.targets; ++m) {
+    const auto& K = e.target_K[static_cast<std::size_t>(m)];
+    const auto& E = e.target_w2c[static_cast<std::size_t>(m)];
+    const raster::Camera<T> cam = render_camera(K.data(), E.data(), static_cast<int>(e.w), static_cast<int>(e.h));
+    raster::render_forward(p.gaussians, cam, ro, ws.render, ws.out);
+    const T* target = e.target_images.data() + m * px * 3;
+    s.psnr += loss::psnr(ws.out.image.data(), target, 3 * px);
+    s.ssim += loss::ssim_forward(ws.out.image.data(), target, shape, loss::SsimConfig{}, ws.ssim);
+    if (renders) renders->push_back(ws.out.image);
+  }
+  s.psnr /= static_cast<double>(e.targets), s.ssim /= static_cast<double>(e.targets);
+  for (index_t v = 1; v < e.views; ++v) {
+    double a[12], b[12];
+    for (int i = 0; i < 12; ++i)
+      a[i] = static_cast<double>(p.geometry.extrinsics[static_cast<std::size_t>(12 * v + i)]),
+      b[i] = static_cast<double>(e.gt_extrinsics[static_cast<std::size_t>(12 * v + i)]);
+    s.rotation_deg += rotation_error_deg(a, b) / static_cast<double>(e.views - 1);
+  }
+  double err = 0;
+  index_t n = 0;
+  for (std::size_t i = 0; i < e.gt_depth.size(); ++i)
+    if (e.gt_depth[i] > T(0)) {
+      err += std::abs(static_cast<double>(p.geometry.depth[i]) - static_cast<double>(e.gt_depth[i])) /
+             static_cast<double>(e.gt_depth[i]);
+      ++n;
+    }
+  s.depth_rel = n > 0 ? err / static_cast<double>(n) : 0.0;
+  return s;
+}
+
+}  // namespace model
+}  // namespace v0
+}  // namespace flexsplat
