@@ -128,7 +128,7 @@ Result<T> run(const Scene<T>& s, const RenderOptions& opt, int reps, unsigned co
   for (auto field : {&ForwardStageTimes::validate, &ForwardStageTimes::project, &ForwardStageTimes::intersect,
                      &ForwardStageTimes::rasterize})
     r.stages.*field = median(field);
-  for (auto field : {&BackwardStageTimes::cotangents, &BackwardStageTimes::blend, &BackwardStageTimes::gaussians}) {
+  for (auto field : {&BackwardStageTimes::validate, &BackwardStageTimes::blend, &BackwardStageTimes::gaussians}) {
     std::vector<double> v;
     for (const auto& s : backward_stages) v.push_back(s.*field);
     std::sort(v.begin(), v.end());
@@ -228,8 +228,8 @@ int main(int argc, char** argv) {
     std::printf("forward stages (median wall ms): validate %.2f, project+SH %.2f, intersect %.2f, rasterize %.2f, "
                 "(outputs written by the blend)\n", r.stages.validate, r.stages.project, r.stages.intersect,
                 r.stages.rasterize);
-    std::printf("backward stages (median wall ms): cotangents %.2f, blend+reduce %.2f, per-Gaussian %.2f\n",
-                r.backward_stages.cotangents, r.backward_stages.blend, r.backward_stages.gaussians);
+    std::printf("backward stages (median wall ms): validate %.2f, blend %.2f, per-Gaussian %.2f\n",
+                r.backward_stages.validate, r.backward_stages.blend, r.backward_stages.gaussians);
     return 0;
   }
   std::vector<Row> rows;

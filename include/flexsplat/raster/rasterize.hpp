@@ -263,10 +263,12 @@ void blend_tile_forward(const TileIntersections& ti, index_t tile, const T* reco
 
 // Writes the gradient record (6 + C values) of every entry of the tile into entry_grads at the entry's emission
 // slot, visiting entries back to front.
-template <class V, class T, int FixedChannels = 0>
+// cotangents(p0, count, d_channels, plane, d_alpha) writes the output cotangents of pixels [p0, p0 + count) of one
+// image row: channel c of pixel p0 + x at d_channels[c * plane + x], d(alpha) at d_alpha[x].
+template <class V, class T, int FixedChannels = 0, class CotangentRows>
 void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* records, int record_stride,
                          TileState<T>& st, int channel_count, const T* background, const BlendState<T>& state,
-                         const T* d_out_channels, const T* d_alpha, T* entry_grads) {
+                         const CotangentRows& cotangents, T* entry_grads) {
   // A compile-time channel count keeps the per-channel sums in registers.
   const int C = FixedChannels > 0 ? FixedChannels : channel_count;
   constexpr int L = int(simd::lane_count<V>::value), batches_per_row = tile_size / L;
@@ -276,42 +278,36 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
   const TileFrame f(grid, tile);
   const std::int64_t begin = ti.tile_offsets[tile], count = ti.tile_offsets[tile + 1] - begin;
   const std::int32_t* gaussians = ti.tile_gaussian.data() + begin;
-  const std::int64_t plane = std::int64_t(grid.width) * grid.height;
   const int stride = entry_grad_fixed + C;
   const V iota = lane_offsets<V, T>();
   std::int32_t max_last = 0;
   for (int row = 0; row < tile_size; ++row) {
     const std::int64_t pix0 = std::int64_t(f.y_base + row) * grid.width + f.x_base;
+    const int width = row < f.rows_here ? f.width_here : 0;  // pixels of this tile row inside the image
+    if (width > 0) cotangents(pix0, width, &st.d_channels[row * tile_size], P, &st.d_alpha[row * tile_size]);
+    for (int x = width; x < tile_size; ++x) {
+      st.d_alpha[row * tile_size + x] = T(0);
+      for (int c = 0; c < C; ++c) st.d_channels[c * P + row * tile_size + x] = T(0);
+    }
     for (int x0 = 0; x0 < tile_size; x0 += L) {
       const int i0 = row * tile_size + x0;
-      if (row < f.rows_here && x0 + L <= f.width_here) {  // whole batch inside the image
-        const std::int64_t pix = pix0 + x0;
-        const V t_final = simd::lane_load<V>(&state.final_transmittance[pix]);
+      if (x0 + L <= width) {  // whole batch inside the image
+        const V t_final = simd::lane_load<V>(&state.final_transmittance[pix0 + x0]);
         simd::lane_store(&st.final_transmittance[i0], t_final);
         simd::lane_store(&st.transmittance[i0], t_final);
-        simd::lane_store(&st.d_alpha[i0], d_alpha ? simd::lane_load<V>(d_alpha + pix) : V(T(0)));
-        for (int c = 0; c < C; ++c) {
-          simd::lane_store(&st.d_channels[c * P + i0], simd::lane_load<V>(d_out_channels + c * plane + pix));
-          simd::lane_store(&st.behind[c * P + i0], t_final * V(background[c]));
-        }
+        for (int c = 0; c < C; ++c) simd::lane_store(&st.behind[c * P + i0], t_final * V(background[c]));
         continue;
       }
       for (int x = x0; x < x0 + L; ++x) {  // the image's right and bottom edges
         const int i = row * tile_size + x;
-        const bool inside = row < f.rows_here && x < f.width_here;
-        const T t_final = inside ? state.final_transmittance[pix0 + x] : T(1);
+        const T t_final = x < width ? state.final_transmittance[pix0 + x] : T(1);
         st.final_transmittance[i] = st.transmittance[i] = t_final;
-        st.d_alpha[i] = inside && d_alpha ? d_alpha[pix0 + x] : T(0);
-        for (int c = 0; c < C; ++c) {
-          st.d_channels[c * P + i] = inside ? d_out_channels[c * plane + pix0 + x] : T(0);
-          st.behind[c * P + i] = t_final * background[c];
-        }
+        for (int c = 0; c < C; ++c) st.behind[c * P + i] = t_final * background[c];
       }
     }
     for (int x = 0; x < tile_size; ++x) {
-      const bool inside = row < f.rows_here && x < f.width_here;
-      st.last[row * tile_size + x] = inside ? T(state.last_entry[pix0 + x]) : T(0);
-      if (inside) max_last = std::max(max_last, state.last_entry[pix0 + x]);
+      st.last[row * tile_size + x] = x < width ? T(state.last_entry[pix0 + x]) : T(0);
+      if (x < width) max_last = std::max(max_last, state.last_entry[pix0 + x]);
     }
   }
   constexpr std::int64_t prefetch_distance = 8;
@@ -590,15 +586,13 @@ FLEXSPLAT_ALWAYS_INLINE void sum_entry_grads(const TileIntersections& ti, const 
     for (int j = 0; j < stride; ++j) out[j] += ws.entry_grads[e * stride + j];
 }
 
-// Writes the gradient record of every tile entry into ws.entry_grads from d_out_channels (planar, as out_channels)
-// and d_alpha [H*W] (may be null); then, unless gaussian_grads is null, adds their per-Gaussian sums
-// (sum_entry_grads) into gaussian_grads [N, 6 + C] (same record layout as an entry). A caller that passes null
-// reduces the records itself, e.g. while it reads them.
-template <class T>
-void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
-                        const T* background, const BlendState<T>& state, const T* d_out_channels, const T* d_alpha,
-                        const RasterSkips& skips, RasterWorkspace<T>& ws, index_t n, T* gaussian_grads,
-                        ThreadPool& pool = global_pool()) {
+// Writes the gradient record of every tile entry into ws.entry_grads from the output cotangents, read per image row
+// by cotangents(p0, count, d_channels, plane, d_alpha) (as blend_tile_backward; called from several threads).
+template <class T, class CotangentRows>
+void rasterize_backward_rows(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
+                             const T* background, const BlendState<T>& state, const CotangentRows& cotangents,
+                             const RasterSkips& skips, RasterWorkspace<T>& ws, ThreadPool& pool = global_pool()) {
+  require(C >= 1 && C <= 64, "raster: ", C, " channels; between 1 and 64 are supported");
   const int stride = entry_grad_fixed + C;
   ws.entry_grads.resize(std::size_t(ti.tile_offsets.back()) * std::size_t(stride));
   ws.scratch.resize(std::size_t(pool.size()));
@@ -614,14 +608,33 @@ void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, 
     detail::with_blend_lanes<T>(kernel, [&](auto* lanes) {
       using V = std::remove_pointer_t<decltype(lanes)>;
       if (C == 4)  // image and depth, no features
-        detail::blend_tile_backward<V, T, 4>(ti, tile, records, ws.splat_stride, st, C, background, state,
-                                             d_out_channels, d_alpha, grads);
+        detail::blend_tile_backward<V, T, 4>(ti, tile, records, ws.splat_stride, st, C, background, state, cotangents,
+                                             grads);
       else
-        detail::blend_tile_backward<V, T>(ti, tile, records, ws.splat_stride, st, C, background, state,
-                                          d_out_channels, d_alpha, grads);
+        detail::blend_tile_backward<V, T>(ti, tile, records, ws.splat_stride, st, C, background, state, cotangents,
+                                          grads);
     });
   });
+}
+
+// rasterize_backward_rows from planar cotangents d_out_channels (as out_channels) and d_alpha [H*W] (may be null),
+// then, unless gaussian_grads is null, adds the per-Gaussian sums of the entry records (sum_entry_grads) into
+// gaussian_grads [N, 6 + C] (same record layout as an entry). A caller that passes null reduces the records itself,
+// e.g. while it reads them.
+template <class T>
+void rasterize_backward(const TileIntersections& ti, const Projection<T>* proj, const T* channels, int C,
+                        const T* background, const BlendState<T>& state, const T* d_out_channels, const T* d_alpha,
+                        const RasterSkips& skips, RasterWorkspace<T>& ws, index_t n, T* gaussian_grads,
+                        ThreadPool& pool = global_pool()) {
+  const std::int64_t plane = std::int64_t(ti.grid.width) * ti.grid.height;
+  auto planar = [&](std::int64_t p0, int count, T* d_channels, int row_plane, T* d_alpha_row) {
+    for (int c = 0; c < C; ++c) std::copy_n(d_out_channels + c * plane + p0, count, d_channels + c * row_plane);
+    if (d_alpha) std::copy_n(d_alpha + p0, count, d_alpha_row);
+    else std::fill_n(d_alpha_row, count, T(0));
+  };
+  rasterize_backward_rows(ti, proj, channels, C, background, state, planar, skips, ws, pool);
   if (!gaussian_grads) return;
+  const int stride = entry_grad_fixed + C;
   parallel_for(n, [&](index_t gb, index_t ge, int) {
     T sum[entry_grad_fixed + 64];
     for (index_t g = gb; g < ge; ++g) {

@@ -90,10 +90,11 @@ struct ForwardStageTimes {
   double validate = 0, project = 0, intersect = 0, rasterize = 0;
 };
 
-// Wall time of each stage of the last render_backward (milliseconds): the output cotangents as planes, the blend's
-// adjoint with the per-Gaussian reduction of its entry records, and the per-Gaussian adjoints (projection, SH).
+// Wall time of each stage of the last render_backward (milliseconds): the checks, the blend's adjoint (reading the
+// output cotangents and writing every entry's gradient record), and the per-Gaussian adjoints (summing each
+// Gaussian's entry records; SH, projection).
 struct BackwardStageTimes {
-  double cotangents = 0, blend = 0, gaussians = 0;
+  double validate = 0, blend = 0, gaussians = 0;
 };
 
 template <class T>
@@ -105,7 +106,7 @@ struct RenderWorkspace {
   TileIntersections tiles;
   BlendState<T> blend;
   RasterWorkspace<T> raster;
-  std::vector<T> blend_depth, d_out_channels, d_alpha;  // blend_depth: channel 3 per pixel
+  std::vector<T> blend_depth;  // channel 3 per pixel
   std::vector<CameraGradParams<T>> camera_partials;
   std::vector<T> background;
   int sh_degree = 0, channel_count = 0;
@@ -848,7 +849,7 @@ void render_backward(const GaussianSet<T>& in, const Camera<T>& camera, const Re
   ThreadPool& pool = opt.pool ? *opt.pool : global_pool();
   require(ws.n == n && index_t(ws.blend.final_transmittance.size()) == index_t(camera.width) * camera.height,
           "render_backward: the workspace does not hold the forward pass of these inputs");
-  const index_t H = camera.height, W = camera.width, pixels = H * W;
+  const index_t H = camera.height, W = camera.width;
   auto check = [&](auto view, auto shape, const char* what) {
     require(view.empty() || (view.shape() == shape && view.is_contiguous()), "render_backward: ", what, " must be ",
             shape_string(shape), ", got ", shape_string(view.shape()));
@@ -867,36 +868,37 @@ void render_backward(const GaussianSet<T>& in, const Camera<T>& camera, const Re
   check_grad(grads.opacities, Shape<1>{n}, "grad opacities");
   check_grad(grads.sh, in.sh.shape(), "grad sh");
   check_grad(grads.features, Shape<2>{n, F}, "grad features");
-  ws.d_out_channels.resize(std::size_t(pixels * C));
-  ws.d_alpha.resize(std::size_t(pixels));
-  parallel_for(pixels, [&](index_t begin, index_t end, int) {
-    T* planes = ws.d_out_channels.data();  // channel c of pixel p at [c * pixels + p]
-    for (index_t p = begin; p < end; ++p) {
-      for (int c = 0; c < C; ++c) planes[c * pixels + p] = T(0);
-      ws.d_alpha[p] = T(0);
+  stage_end(ws.backward_times.validate);
+  // The blend reads the output cotangents per image row as it sets a tile up (no planar copy of them).
+  const T* const final_transmittance = ws.blend.final_transmittance.data();
+  const T* const blend_depth = ws.blend_depth.data();
+  const bool expected_depth = opt.expected_depth;
+  auto cotangent_rows = [&](std::int64_t p0, int count, T* planes, int plane, T* d_alpha) {
+    for (int x = 0; x < count; ++x) {
+      const std::int64_t p = p0 + x;
+      for (int c = 0; c < C; ++c) planes[c * plane + x] = T(0);
+      d_alpha[x] = d_out.alpha.empty() ? T(0) : d_out.alpha.data()[p];
       if (!d_out.image.empty())
-        for (int c = 0; c < 3; ++c) planes[c * pixels + p] = d_out.image.data()[p * 3 + c];
-      if (!d_out.alpha.empty()) ws.d_alpha[p] = d_out.alpha.data()[p];
+        for (int c = 0; c < 3; ++c) planes[c * plane + x] = d_out.image.data()[p * 3 + c];
       if (!d_out.depth.empty()) {
         const T dd = d_out.depth.data()[p];
-        if (opt.expected_depth) {
-          const T a = T(1) - ws.blend.final_transmittance[p];
+        if (expected_depth) {
+          const T a = T(1) - final_transmittance[p];
           if (a > T(0)) {
-            planes[3 * pixels + p] = dd / a;
-            ws.d_alpha[p] -= dd * ws.blend_depth[p] / (a * a);
+            planes[3 * plane + x] = dd / a;
+            d_alpha[x] -= dd * blend_depth[p] / (a * a);
           }
         } else {
-          planes[3 * pixels + p] = dd;
+          planes[3 * plane + x] = dd;
         }
       }
       if (!d_out.features.empty())
-        for (int f = 0; f < F; ++f) planes[(4 + f) * pixels + p] = d_out.features.data()[p * F + f];
+        for (int f = 0; f < F; ++f) planes[(4 + f) * plane + x] = d_out.features.data()[p * F + f];
     }
-  }, pool);
-  stage_end(ws.backward_times.cotangents);
+  };
   // The per-Gaussian pass sums each Gaussian's entry records as it reads them.
-  rasterize_backward(ws.tiles, ws.projections.data(), ws.channels.data(), C, ws.background.data(), ws.blend,
-                     ws.d_out_channels.data(), ws.d_alpha.data(), opt.skips, ws.raster, n, static_cast<T*>(nullptr), pool);
+  rasterize_backward_rows(ws.tiles, ws.projections.data(), ws.channels.data(), C, ws.background.data(), ws.blend,
+                          cotangent_rows, opt.skips, ws.raster, pool);
   stage_end(ws.backward_times.blend);
   const detail::GaussianBackwardPass<T> pass = detail::backward_pass(in, camera, opt, ws, grads);
   detail::gaussians_backward(pass, detail::choose_blend_kernel<T>(opt.skips), ws.camera_partials, pool);
