@@ -5,6 +5,7 @@
 // flat block (ModelParamLayout); backward reaches the depth features, predicted depth, K and world-to-camera (not the
 // images).
 #include <algorithm>
+#include <cmath>
 #include <random>
 #include <vector>
 
@@ -73,6 +74,13 @@ void model_forward(ModelWorkspace<T>& ws, index_t n_queries, const T* params, co
   require(images && depth_features, "model: null images or depth features");
   const ModelParamLayout L(c);
   const index_t V = g.views;
+  // A NaN / Inf pixel would spread through the UNet into every Gaussian: refused, naming the pixel.
+  const index_t plane = h * w, pixels = V * c.unet.in_channels * plane;
+  for (index_t i = 0; i < pixels; ++i)
+    if (!std::isfinite(static_cast<double>(images[i])))
+      fail("decoder: input image ", i / (c.unet.in_channels * plane), " has a non-finite value ",
+           static_cast<double>(images[i]), " at channel ", i / plane % c.unet.in_channels, ", row ", i % plane / w,
+           ", column ", i % w);
   ws.views = V, ws.h = h, ws.w = w, ws.dh = dh, ws.dw = dw;
   ws.appearance.resize(static_cast<std::size_t>(V * c.unet.base * h * w));
   ws.fused.resize(static_cast<std::size_t>(V * c.fusion.out_channels * h * w));

@@ -4,6 +4,7 @@
 // world-to-camera extrinsics and intrinsics) and DPT depth head (depth, confidence, depth features) -> world points.
 // vggt_forward_train / vggt_backward: the same chain for training, gradients from any output to every parameter.
 #include <algorithm>
+#include <cmath>
 #include <functional>
 #include <set>
 #include <span>
@@ -144,9 +145,11 @@ VggtOutputs<T> vggt_forward_impl(const T* images, index_t frames, index_t image_
   require(image_h >= p && image_w >= p && image_h % p == 0 && image_w % p == 0, "VGGT: image size ", image_h, " x ",
           image_w, " must be a positive multiple of the patch size ", p, " (preprocess the images first)");
   const index_t n = frames * 3 * image_h * image_w;
+  const index_t plane = image_h * image_w;
   for (index_t i = 0; i < n; ++i)
     if (!std::isfinite(static_cast<double>(images[i])))
-      fail("VGGT: input image value ", static_cast<double>(images[i]), " at element ", i, " is not finite");
+      fail("VGGT: input image ", i / (3 * plane), " has a non-finite value ", static_cast<double>(images[i]),
+           " at channel ", i / plane % 3, ", row ", i % plane / image_w, ", column ", i % image_w);
   auto report = [&](const char* stage, index_t step, index_t steps) {
     if (options.progress) options.progress(stage, step, steps);
   };

@@ -82,7 +82,7 @@ struct RenderView {
 
 struct LossParts {
   double total = 0, rgb_head = 0, render = 0, depth = 0, lpips = 0;
-  double psnr_last = 0;  // mean PSNR of the last decoder layer's renders (a metric)
+  double psnr_last = 0;  // mean PSNR of the last decoder layer's renders (a metric; a view counts at most 100 dB)
 };
 
 // Wall time per phase in milliseconds, accumulated (benchmarks and the training log read it).
@@ -238,8 +238,10 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
                                 scale, ws.out.depth.data(), vggt_depth, ws.weights.data(), view.mask, pixels);
         any_depth = true;
       }
+      // A pixel-exact render (an empty scene over its own background) counts as 100 dB (MSE floored at 1e-10, far
+      // below 16-bit quantisation) instead of loss::psnr's +inf, so the logged mean stays a number.
       if (first + l == static_cast<index_t>(sets.size()) - 1)
-        psnr_sum += loss::psnr(img, view.target, 3 * pixels);
+        psnr_sum += std::min(loss::psnr(img, view.target, 3 * pixels), 100.0);
       raster::RenderOutputGrads<T> d_out;
       d_out.image = TensorView<const T, 3>(ws.d_image.data(), Shape<3>{H, W, 3});
       if (any_depth) d_out.depth = TensorView<const T, 2>(ws.d_depth.data(), Shape<2>{H, W});
