@@ -274,11 +274,11 @@ FLEXSPLAT_ALWAYS_INLINE void project_backward_lanes(const V m[3], const V q[4], 
     const V dcomp = g.opacity * opacity;
     const V ddet0 = dcomp * comp / (two * det0), ddetb = -dcomp * comp / (two * tr.det_b);
     const auto live = comp > zero;
-    const V db = (ddet0 + ddetb) * tr.b;
+    const V minus_ddet = -(ddet0 + ddetb);
     dC0 = lane_select(live, dC0 + lane_mul_add(ddetb, tr.c, ddet0 * tr.c11), dC0);
     dC3 = lane_select(live, dC3 + lane_mul_add(ddetb, tr.a, ddet0 * tr.c00), dC3);
-    dC1 = lane_select(live, dC1 - db, dC1);
-    dC2 = lane_select(live, dC2 - db, dC2);
+    dC1 = lane_select(live, lane_mul_add(minus_ddet, tr.b, dC1), dC1);
+    dC2 = lane_select(live, lane_mul_add(minus_ddet, tr.b, dC2), dC2);
   } else {
     dopacity = dopacity + g.opacity;
   }
@@ -334,11 +334,18 @@ FLEXSPLAT_ALWAYS_INLINE void project_backward_lanes(const V m[3], const V q[4], 
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j)
       dcw[i * 3 + j] = dot3_lanes(tmp[i * 3], Rc[j], tmp[i * 3 + 1], Rc[3 + j], tmp[i * 3 + 2], Rc[6 + j]);
-  for (int i = 0; i < 3; ++i) {
-    const V ds0 = dCc[i * 3] + dCc[i], ds1 = dCc[i * 3 + 1] + dCc[3 + i], ds2 = dCc[i * 3 + 2] + dCc[6 + i];
+  // dCc + dCc^T, each sum of products as one multiply-add (rows 0 and 1 of dCc are J00 A and J11 B).
+  const V P[2] = {tr.J00, tr.J11};
+  const V* X[2] = {A, B};
+  V dsym[9];
+  for (int i = 0; i < 2; ++i)
+    for (int k = 0; k < 3; ++k) dsym[i * 3 + k] = lane_mul_add(P[i], X[i][k], dCc[k * 3 + i]);
+  for (int k = 0; k < 2; ++k) dsym[6 + k] = dsym[k * 3 + 2];
+  dsym[8] = dCc[8] + dCc[8];
+  for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j)
-      dcam.R[i * 3 + j] = dcam.R[i * 3 + j] + dot3_lanes(ds0, tr.RC[j], ds1, tr.RC[3 + j], ds2, tr.RC[6 + j]);
-  }
+      dcam.R[i * 3 + j] = dcam.R[i * 3 + j] +
+                          dot3_lanes(dsym[i * 3], tr.RC[j], dsym[i * 3 + 1], tr.RC[3 + j], dsym[i * 3 + 2], tr.RC[6 + j]);
   // p = Rc m + t
   for (int i = 0; i < 3; ++i) {
     dm[i] = dm[i] + dot3_lanes(Rc[i], dp[0], Rc[3 + i], dp[1], Rc[6 + i], dp[2]);
