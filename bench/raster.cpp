@@ -70,7 +70,7 @@ struct Result {
 template <class T>
 Result<T> run(const Scene<T>& s, const RenderOptions& opt, int reps, unsigned cot_seed = 3) {
   Result<T> r;
-  const index_t n = s.means.shape(0), H = s.camera.height, W = s.camera.width;
+  const index_t H = s.camera.height, W = s.camera.width;
   Tensor<T, 3> d_image({H, W, 3});
   Tensor<T, 2> d_alpha({H, W}), d_depth({H, W});
   std::mt19937 rng(cot_seed);
