@@ -52,7 +52,7 @@ TEST_CASE("vggt_forward rejects images that are not whole patches or not finite"
   CHECK_THROWS_WITH(vggt_forward<float>(images.data(), 1, 28, 30, cfg, weights, ws), Catch::Contains("28 x 30"));
   images.assign(3 * 28 * 28, 0.5f);
   images[100] = std::numeric_limits<float>::quiet_NaN();
-  CHECK_THROWS_WITH(vggt_forward<float>(images.data(), 1, 28, 28, cfg, weights, ws), Catch::Contains("element 100"));
+  CHECK_THROWS_WITH(vggt_forward<float>(images.data(), 1, 28, 28, cfg, weights, ws), Catch::Contains("image 0 has a non-finite value nan at channel 0, row 3, column 16"));
   CHECK_THROWS_WITH(vggt_forward<float>(images.data(), 0, 28, 28, cfg, weights, ws), Catch::Contains("at least one image"));
 }
 
