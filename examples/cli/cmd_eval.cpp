@@ -30,14 +30,6 @@ struct Scores {
   double psnr = 0, ssim = 0, lpips = NAN, rotation_error_deg = NAN, center_error_rel = NAN, seconds = NAN;
 };
 
-fs::path default_model_path() {
-#ifdef FLEXSPLAT_DEFAULT_MODEL
-  return FLEXSPLAT_DEFAULT_MODEL;
-#else
-  return "models/flexsplat-small.safetensors";
-#endif
-}
-
 // --views: "N" (a count) or "i,j,k" (frame indices).
 struct ViewChoice {
   int count = 0;
@@ -204,10 +196,7 @@ int eval_command(Args args) {
   eo.grid_targets = grid_path.empty() ? 0 : parse_count(grid_cols_text, "--grid-targets", 4);
   eo.white_baseline = !baseline.empty();
 
-  if (model_path.empty()) {
-    model_path = default_model_path().string();
-    require(fs::exists(model_path), "no shipped model yet at '", model_path, "'; pass --model");
-  }
+  model_path = model_or_default(model_path);
   require(fs::is_regular_file(model_path), "eval: model file '", model_path, "' does not exist");
   const auto w = model::load_flexsplat<float>(model_path);
   std::optional<loss::LpipsWeights<float>> lpips;

@@ -21,14 +21,6 @@ namespace flexsplat::cli::reconstruct_cmd {
 
 namespace fs = std::filesystem;
 
-fs::path default_model_path() {
-#ifdef FLEXSPLAT_DEFAULT_MODEL
-  return FLEXSPLAT_DEFAULT_MODEL;
-#else
-  return "models/flexsplat-small.safetensors";
-#endif
-}
-
 // Wall-clock stages, printed with --verbose.
 struct Stages {
   std::vector<std::pair<std::string, double>> ms;
@@ -108,10 +100,7 @@ int reconstruct_command(Args args) {
     require(used == gaussians_text.size() && v >= 1, "--gaussians '", gaussians_text, "' must be a positive integer");
     n_gaussians = static_cast<index_t>(v);
   }
-  if (model_path.empty()) {
-    model_path = default_model_path().string();
-    require(fs::exists(model_path), "no shipped model yet at '", model_path, "'; pass --model");
-  }
+  model_path = model_or_default(model_path);
   require(fs::is_regular_file(model_path), "reconstruct: model file '", model_path, "' does not exist");
 
   Stages t;

@@ -2,6 +2,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <deque>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -114,8 +115,7 @@ nlohmann::json run_validation(const std::vector<ValidationSet>& sets, const mode
                               const fs::path& picture) {
   model::ValidationWorkspace<float> ws;
   json result = json::object();
-  std::vector<Tensor<float, 3>> keep;  // owns the renders the grid cells point at
-  keep.reserve(64);
+  std::deque<Tensor<float, 3>> keep;  // owns the renders the grid cells point at (a deque never moves them)
   std::vector<image::GridCell> cells;
   const int inputs_shown = 4, targets_shown = 2, cols = inputs_shown + 2 * targets_shown;
   for (const auto& set : sets) {

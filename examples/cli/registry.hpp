@@ -1,5 +1,6 @@
 #pragma once
 // Subcommands and reference-bundle checkers register themselves from their own .cpp files.
+#include <filesystem>
 #include <functional>
 #include <map>
 #include <string>
@@ -58,6 +59,18 @@ inline bool take_option(Args& args, const std::string& flag, std::string& value)
       return true;
     }
   return false;
+}
+
+// --model when given, else the shipped model (FLEXSPLAT_DEFAULT_MODEL, set by examples/CMakeLists.txt), which must exist.
+inline std::string model_or_default(const std::string& given) {
+  if (!given.empty()) return given;
+#ifdef FLEXSPLAT_DEFAULT_MODEL
+  const std::string path = FLEXSPLAT_DEFAULT_MODEL;
+#else
+  const std::string path = "models/flexsplat-small.safetensors";
+#endif
+  require(std::filesystem::exists(path), "no shipped model yet at '", path, "'; pass --model");
+  return path;
 }
 
 }  // namespace flexsplat::cli
