@@ -162,6 +162,61 @@ TEST_CASE("VGGT end to end: images -> cameras, depth, confidence, world points, 
   CHECK(result.ok());
 }
 
+TEST_CASE("VGGT frame_tokens: 2 leaves frames after the first order-free, 3 tells frame 2 from frame 1 and shares "
+          "the last set with frame 3; the token gradients match central differences",
+          "[geometry][vggt][backward]") {
+  const index_t S = 4, H = 4, W = 6;
+  auto one = random_doubles(static_cast<std::size_t>(3 * H * W), 9, 0.5);
+  std::vector<double> images;
+  for (index_t s = 0; s < S; ++s) images.insert(images.end(), one.begin(), one.end());  // four identical frames
+  VggtWorkspace<double> ws;
+  auto pose = [&](const VggtConfig& c, FlatVggt<double>& m) {
+    return vggt_forward<double>(images.data(), S, H, W, c, m.w, ws).pose_enc;
+  };
+  auto frame_pose = [](const Tensor<double, 3>& p, index_t s) {
+    return std::vector<double>(p.data() + s * pose_encoding_dim, p.data() + (s + 1) * pose_encoding_dim);
+  };
+  VggtConfig vggt = tiny_vggt();
+  FlatVggt<double> m2(vggt, 11);
+  const auto p2 = pose(vggt, m2);
+  CHECK(frame_pose(p2, 1) == frame_pose(p2, 2));
+  CHECK(frame_pose(p2, 1) == frame_pose(p2, 3));
+  CHECK(frame_pose(p2, 0) != frame_pose(p2, 1));
+
+  VggtConfig ordered = tiny_vggt();
+  ordered.aggregator.frame_tokens = 3;
+  FlatVggt<double> m3(ordered, 11);
+  const auto p3 = pose(ordered, m3);
+  CHECK(frame_pose(p3, 1) != frame_pose(p3, 2));
+  CHECK(frame_pose(p3, 2) == frame_pose(p3, 3));
+
+  VggtCache<double> cache;
+  VggtBackwardScratch<double> scratch;
+  auto first = vggt_forward_train<double>(images.data(), S, H, W, ordered, m3.w, cache, ws);
+  const std::vector<double> feedback(cache.camera.raw.begin(),
+                                     cache.camera.raw.begin() + (ordered.camera.iterations - 1) * S * pose_encoding_dim);
+  VggtTrainOptions<double> train;
+  train.camera_feedback = feedback.data();
+  auto forward = [&](std::span<double> out) {
+    VggtCache<double> k;
+    const auto o = vggt_forward_train<double>(images.data(), S, H, W, ordered, m3.w, k, ws, train);
+    std::copy(o.pose_enc.data(), o.pose_enc.data() + o.pose_enc.size(), out.data());
+  };
+  auto backward = [&](std::span<const double> d_out) {
+    const auto o = vggt_forward_train<double>(images.data(), S, H, W, ordered, m3.w, cache, ws, train);
+    VggtOutputGrads<double> d;
+    d.pose_enc = d_out.data();
+    vggt_backward<double>(nullptr, m3.g, d, o, cache, ordered, m3.w, scratch);
+  };
+  std::vector<testing::GradParam> tokens;
+  for (auto& p : m3.grad_params())
+    if (p.name == "aggregator.camera_token" || p.name == "aggregator.register_token") tokens.push_back(p);
+  REQUIRE(tokens.size() == 2);
+  auto result = testing::check_gradients(tokens, static_cast<std::size_t>(first.pose_enc.size()), forward, backward);
+  INFO(result.summary());
+  CHECK(result.ok());
+}
+
 TEST_CASE("VGGT training forward equals inference, recompute gives bit-identical gradients, aggregator-output "
           "gradients alone reach the trunk",
           "[geometry][vggt][backward]") {

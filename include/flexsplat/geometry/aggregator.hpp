@@ -26,16 +26,16 @@ namespace geometry {
 
 template <class T>
 struct AggregatorWeights {
-  const T* camera_token = nullptr;    // [1, 2, 1, C]
-  const T* register_token = nullptr;  // [1, 2, R, C]
+  const T* camera_token = nullptr;    // [1, K, 1, C], K = frame_tokens (VGGT: 2)
+  const T* register_token = nullptr;  // [1, K, R, C]
   std::vector<BlockWeights<T>> frame_blocks, global_blocks;
 };
 
 // Parameters of the aggregator outside the DINOv2 embedder ("aggregator." prefix included).
 inline void append_aggregator_trunk_specs(std::vector<TensorSpec>& out, const AggregatorConfig& c) {
   const index_t C = c.embed_dim;
-  out.push_back({"aggregator.camera_token", {1, 2, 1, C}});
-  out.push_back({"aggregator.register_token", {1, 2, c.num_register_tokens, C}});
+  out.push_back({"aggregator.camera_token", {1, c.frame_tokens, 1, C}});
+  out.push_back({"aggregator.register_token", {1, c.frame_tokens, c.num_register_tokens, C}});
   for (index_t i = 0; i < c.depth; ++i)
     append_block_specs(out, "aggregator.frame_blocks." + std::to_string(i) + ".", c.block());
   for (index_t i = 0; i < c.depth; ++i)
@@ -47,8 +47,8 @@ AggregatorWeights<T> load_aggregator_trunk_weights(ParamSource<T>& src, const Ag
   c.validate();
   const index_t C = c.embed_dim;
   AggregatorWeights<T> w;
-  w.camera_token = src.get("aggregator.camera_token", {1, 2, 1, C});
-  w.register_token = src.get("aggregator.register_token", {1, 2, c.num_register_tokens, C});
+  w.camera_token = src.get("aggregator.camera_token", {1, c.frame_tokens, 1, C});
+  w.register_token = src.get("aggregator.register_token", {1, c.frame_tokens, c.num_register_tokens, C});
   for (index_t i = 0; i < c.depth; ++i)
     w.frame_blocks.push_back(load_block_weights(src, "aggregator.frame_blocks." + std::to_string(i) + ".", c.block()));
   for (index_t i = 0; i < c.depth; ++i)
@@ -170,7 +170,7 @@ AggregatorOutputs<T> aggregator_forward_impl(const T* patch_tokens, index_t fram
   ws.tokens.resize(static_cast<std::size_t>(rows * C));
   T* x = ws.tokens.data();
   for (index_t s = 0; s < frames; ++s) {
-    const index_t which = s == 0 ? 0 : 1;  // frame 0 has its own camera and register tokens
+    const index_t which = c.frame_token(s);
     T* frame = x + s * N * C;
     std::copy(w.camera_token + which * C, w.camera_token + (which + 1) * C, frame);
     std::copy(w.register_token + which * R * C, w.register_token + (which + 1) * R * C, frame + C);
@@ -312,7 +312,7 @@ void aggregator_trunk_backward(T* d_patch_tokens, const AggregatorGrads<T>& g, s
                       (global ? w.global_blocks : w.frame_blocks)[layer], rope_ptr, pos_ptr, scratch.block);
   }
   for (index_t s = 0; s < frames; ++s) {
-    const index_t which = s == 0 ? 0 : 1;
+    const index_t which = c.frame_token(s);
     const T* frame = d_x + s * N * C;
     if (g.camera_token)
       for (index_t i = 0; i < C; ++i) g.camera_token[which * C + i] += frame[i];

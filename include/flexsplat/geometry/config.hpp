@@ -1,6 +1,7 @@
 #pragma once
 // Hyper-parameters of the VGGT geometry trunk (DINOv2 patch embedder + alternating frame/global aggregator).
 // Defaults are VGGT-1B; a reference bundle's `config` metadata JSON can be read into it.
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <string>
@@ -59,10 +60,14 @@ struct AggregatorConfig {
   double init_values = 0.01;        // LayerScale present when > 0
   double norm_eps = 1e-5;
   index_t aa_block_size = 1;        // consecutive blocks of one kind before switching
+  // Distinct camera/register token sets: frame s takes set min(s, frame_tokens - 1). VGGT's 2 (first frame, the
+  // rest) keeps the model order-free apart from the reference frame; more makes it depend on the input order.
+  index_t frame_tokens = 2;
   std::vector<std::string> aa_order{"frame", "global"};
   DinoConfig dino;
 
   index_t patch_start_idx() const { return 1 + num_register_tokens; }
+  index_t frame_token(index_t frame) const { return std::min(frame, frame_tokens - 1); }
   BlockConfig block() const {
     return {.dim = embed_dim, .num_heads = num_heads, .mlp_ratio = mlp_ratio,
             .qk_norm = qk_norm, .layer_scale = init_values > 0, .norm_eps = norm_eps};
@@ -78,6 +83,8 @@ struct AggregatorConfig {
             " must be a positive multiple of aa_block_size ", aa_block_size);
     require(rope_freq <= 0 || block().head_dim() % 4 == 0, "aggregator config: 2-D RoPE needs head_dim divisible by 4, got ",
             block().head_dim());
+    require(frame_tokens >= 2 && frame_tokens <= 64, "aggregator config: frame_tokens ", frame_tokens,
+            " must be in [2, 64]");
     require(!aa_order.empty(), "aggregator config: aa_order is empty");
     bool frame = false, global = false;
     for (auto& kind : aa_order) {
@@ -101,7 +108,7 @@ inline void check_vggt_config_numbers(const nlohmann::json& j) {
     require(ok, "VGGT config: '", key, "' = ", v.dump(), " is not an integer in [-", max_size, ", ", max_size, "]");
   };
   for (const char* key : {"img_size", "patch_size", "embed_dim", "depth", "num_heads", "num_register_tokens",
-                          "aa_block_size", "dino_depth", "dino_heads", "trunk_depth", "cam_heads", "features"})
+                          "aa_block_size", "frame_tokens", "dino_depth", "dino_heads", "trunk_depth", "cam_heads", "features"})
     if (j.contains(key)) check_integer(key, j.at(key));
   for (const char* key : {"out_channels", "intermediate_layer_idx"})
     if (j.contains(key) && j.at(key).is_array())
@@ -139,6 +146,7 @@ inline AggregatorConfig aggregator_config_from_json(const nlohmann::json& j) {
     get_double("rope_freq", c.rope_freq);
     get_double("init_values", c.init_values);
     get_int("aa_block_size", c.aa_block_size);
+    get_int("frame_tokens", c.frame_tokens);
     if (j.contains("aa_order")) c.aa_order = j.at("aa_order").get<std::vector<std::string>>();
     c.dino.patch_size = c.patch_size;
     c.dino.embed_dim = c.embed_dim;

@@ -71,6 +71,7 @@ inline nlohmann::json to_json(const geometry::VggtConfig& c) {
           {"num_register_tokens", a.num_register_tokens}, {"qk_norm", a.qk_norm},
           {"rope_freq", a.rope_freq},        {"init_values", a.init_values},
           {"aa_block_size", a.aa_block_size}, {"aa_order", a.aa_order},
+          {"frame_tokens", a.frame_tokens},
           {"dino_depth", a.dino.depth},      {"dino_heads", a.dino.num_heads},
           {"dino_mlp_ratio", a.dino.mlp_ratio}, {"trunk_depth", c.camera.trunk_depth},
           {"cam_heads", c.camera.num_heads}, {"features", c.depth.features},
