@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdint>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -19,6 +20,7 @@
 #include "flexsplat/loss/lpips.hpp"
 #include "flexsplat/model/evaluate.hpp"
 #include "flexsplat/model/predict.hpp"
+#include "flexsplat/model/refine.hpp"
 #include "registry.hpp"
 
 namespace flexsplat::cli::eval_cmd {
@@ -63,32 +65,85 @@ ViewChoice parse_views(const std::string& s) {
   return c;
 }
 
+// What eval does besides the protocol: test-time refinement, rotation noise, the posed-fit baseline.
+struct Experiment {
+  double refine_seconds = 0;      // 0: feed-forward only
+  double rotation_noise_deg = 0;  // 0: none
+  std::uint64_t seed = 0;         // rotation noise and the posed fit's initialisation (per object: model::object_seed)
+  bool posed_fit = false;
+};
+
+// The refinement's own numbers (steps, loss on the input views before and after, Gaussians pruned).
+struct RefineInfo {
+  double steps = NAN, loss_initial = NAN, loss_final = NAN, pruned = NAN;
+};
+
 struct ObjectResult {
   std::string name;
-  Scores model, white;
+  Scores model, white, posed_fit, feed_forward;  // feed_forward: the model before refinement (with --refine)
+  RefineInfo refine;
   std::vector<std::vector<float>> grid_gt, grid_render;
 };
 
+Scores row(const model::EvalResult& e, double seconds) {
+  return {e.model.psnr, e.model.ssim, e.model.lpips, e.rotation_error_deg, e.center_error_rel, seconds};
+}
+
 ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSplatWeights<float>& w,
                              model::PredictWorkspace<float>& ws, const model::EvalOptions& o,
-                             model::EvalWorkspace& ews) {
+                             model::EvalWorkspace& ews, const Experiment& x) {
   const model::FlexSplatConfig& c = w.config();
   std::vector<int> in, targets;
   model::eval_views(rec, o, in, targets);
-  // seconds: reading and resizing the input views and the model's forward pass (what reconstruct costs).
+  const std::uint64_t seed = model::object_seed(rec.name, x.seed);
+  // seconds: reading and resizing the input views, the model's forward pass and the refinement (what reconstruct
+  // costs).
   const auto t0 = std::chrono::steady_clock::now();
+  auto since = [](auto t) { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count(); };
   std::vector<Tensor<float, 3>> rgba;
   for (int v : in) rgba.push_back(image::read_float<float>(rec.frames[static_cast<std::size_t>(v)].image, 4));
   const Tensor<float, 4> images = model::model_input<float>(rgba, c);
-  const model::Prediction<float> p = model::predict<float>(ws, w, TensorView<const float, 4>(images.view()));
-  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  model::EvalResult e = model::score_prediction(rec, in, targets, p.geometry.extrinsics.data(), p.gaussians,
-                                                c.image_h, c.image_w, o, ews);
+  model::BeforeDecoder<float> noise;
+  if (x.rotation_noise_deg > 0)
+    noise = [&](model::GeometryResult<float>& g) {
+      model::rotation_noise(g.extrinsics.data(), g.views, x.rotation_noise_deg, seed);
+    };
+  model::Prediction<float> p = model::predict<float>(ws, w, TensorView<const float, 4>(images.view()), 0, noise);
+  double seconds = since(t0);
+  const index_t n_model = p.gaussians.size();
+  const int degree = p.gaussians.sh_degree();
   ObjectResult r;
   r.name = rec.name;
-  r.model = {e.model.psnr, e.model.ssim, e.model.lpips, e.rotation_error_deg, e.center_error_rel, seconds};
+  std::vector<float> w2c = p.geometry.extrinsics;
+  if (x.refine_seconds > 0) {
+    model::EvalOptions before = o;
+    before.white_baseline = false, before.grid_targets = 0;
+    r.feed_forward = row(model::score_prediction(rec, in, targets, w2c.data(), p.gaussians, c.image_h, c.image_w,
+                                                 before, ews), seconds);
+    const auto t1 = std::chrono::steady_clock::now();
+    const std::vector<float> targets_hwc = model::views_hwc(images.data(), p.views, p.h, p.w);
+    model::RefineConfig rc;
+    rc.seconds = x.refine_seconds;
+    model::RefineWorkspace<float> rws;
+    const model::RefineResult rr = model::refine(
+        p.gaussians, model::RefineViews<float>{p.views, p.h, p.w, targets_hwc.data(), p.geometry.K.data(), w2c.data()},
+        rc, rws);
+    seconds += since(t1);
+    r.refine = {static_cast<double>(rr.steps), rr.loss_initial, rr.loss_final, static_cast<double>(rr.pruned)};
+  }
+  model::EvalResult e = model::score_prediction(rec, in, targets, w2c.data(), p.gaussians, c.image_h, c.image_w, o, ews);
+  r.model = row(e, seconds);
   r.white = {e.white.psnr, e.white.ssim, e.white.lpips, NAN, NAN, NAN};
   r.grid_gt = std::move(e.grid_gt), r.grid_render = std::move(e.grid_render);
+  if (x.posed_fit) {
+    // The same input views with their ground-truth cameras, fitted for the time the model took.
+    const model::PosedFit f = model::posed_fit(rec, in, c.image_h, c.image_w, n_model, degree, seconds, seed);
+    model::EvalOptions po = o;
+    po.white_baseline = false, po.grid_targets = 0;
+    const model::EvalResult pe = model::score_prediction(rec, in, targets, f.w2c.data(), f.gaussians, c.image_h,
+                                                         c.image_w, po, ews);
+    r.posed_fit = {pe.model.psnr, pe.model.ssim, pe.model.lpips, NAN, NAN, f.seconds};
+  }
   return r;
 }
 
@@ -160,21 +215,54 @@ void write_grid(const fs::path& path, const std::vector<ObjectResult>& results, 
   image::write_png(path, grid);
 }
 
+// A positive (or, with allow_zero, non-negative) finite number.
+double parse_number(const std::string& text, const char* flag, bool allow_zero) {
+  std::size_t used = 0;
+  double v = NAN;
+  try {
+    v = std::stod(text, &used);
+  } catch (const std::exception&) {
+    used = 0;
+  }
+  require(used == text.size() && std::isfinite(v) && (v > 0 || (allow_zero && v == 0)), flag, " '", text,
+          "' must be a ", allow_zero ? "non-negative" : "positive", " number");
+  return v;
+}
+
+nlohmann::json refine_json(const RefineInfo& r, const Scores& refined, const Scores& before) {
+  nlohmann::json j;
+  j["steps"] = value_or_null(r.steps);
+  j["loss_initial"] = value_or_null(r.loss_initial);
+  j["loss_final"] = value_or_null(r.loss_final);
+  j["pruned"] = value_or_null(r.pruned);
+  j["psnr_change"] = value_or_null(refined.psnr - before.psnr);
+  return j;
+}
+
 int eval_command(Args args) {
-  std::string model_path, views_text, baseline, json_path, grid_path, lpips_path, max_targets_text, grid_cols_text;
+  std::string model_path, views_text, json_path, grid_path, lpips_path, max_targets_text, grid_cols_text;
+  std::string refine_text, noise_text, seed_text, baseline;
+  std::vector<std::string> baselines;
   take_option(args, "--model", model_path);
   take_option(args, "--views", views_text);
-  take_option(args, "--baseline", baseline);
+  while (take_option(args, "--baseline", baseline)) {
+    std::stringstream in(baseline);
+    for (std::string item; std::getline(in, item, ',');) baselines.push_back(item);
+  }
   take_option(args, "--json", json_path);
   take_option(args, "--grid", grid_path);
   take_option(args, "--grid-targets", grid_cols_text);
   take_option(args, "--lpips", lpips_path);
   take_option(args, "--max-targets", max_targets_text);
+  take_option(args, "--refine", refine_text);
+  take_option(args, "--rotation-noise", noise_text);
+  take_option(args, "--seed", seed_text);
   const bool quiet = take_flag(args, "--quiet");
   for (const auto& a : args) require(a.empty() || a[0] != '-', "eval: unknown option '", a, "'");
   require(!args.empty(), "eval needs at least one OBJECT_DIR (a folder with cameras.json, or a folder of them)");
-  require(baseline.empty() || baseline == "white", "eval: --baseline '", baseline,
-          "' is not known (available: white)");
+  auto has = [&](const char* b) { return std::find(baselines.begin(), baselines.end(), b) != baselines.end(); };
+  for (const auto& b : baselines)
+    require(b == "white" || b == "posed-fit", "eval: --baseline '", b, "' is not known (available: white, posed-fit)");
   auto parse_count = [](const std::string& text, const char* flag, int fallback) {
     if (text.empty()) return fallback;
     std::size_t used = 0;
@@ -194,7 +282,23 @@ int eval_command(Args args) {
   }
   eo.max_targets = parse_count(max_targets_text, "--max-targets", 0);
   eo.grid_targets = grid_path.empty() ? 0 : parse_count(grid_cols_text, "--grid-targets", 4);
-  eo.white_baseline = !baseline.empty();
+  eo.white_baseline = has("white");
+  Experiment x;
+  x.posed_fit = has("posed-fit");
+  if (!refine_text.empty()) x.refine_seconds = parse_number(refine_text, "--refine", false);
+  if (!noise_text.empty()) {
+    x.rotation_noise_deg = parse_number(noise_text, "--rotation-noise", true);
+    require(x.rotation_noise_deg <= 180, "--rotation-noise ", x.rotation_noise_deg, " must be at most 180 degrees");
+  }
+  if (!seed_text.empty()) {
+    std::size_t used = 0;
+    try {
+      x.seed = std::stoull(seed_text, &used);
+    } catch (const std::exception&) {
+      used = 0;
+    }
+    require(used == seed_text.size() && seed_text[0] != '-', "--seed '", seed_text, "' must be a non-negative integer");
+  }
 
   model_path = model_or_default(model_path);
   require(fs::is_regular_file(model_path), "eval: model file '", model_path, "' does not exist");
@@ -211,31 +315,72 @@ int eval_command(Args args) {
   for (std::size_t i = 0; i < objects.size(); ++i) {
     if (!quiet) std::fprintf(stderr, "eval: %s (%zu/%zu)\n", objects[i].name.c_str(), i + 1, objects.size());
     try {
-      results.push_back(evaluate_object(objects[i], *w, ws, eo, ews));
+      results.push_back(evaluate_object(objects[i], *w, ws, eo, ews, x));
     } catch (const Error& e) {
       fail("object '", objects[i].dir.string(), "': ", e.what());
     }
   }
 
+  const bool refined = x.refine_seconds > 0;
   std::vector<std::string> names;
-  std::vector<Scores> rows, white_rows;
-  for (const auto& r : results) names.push_back(r.name), rows.push_back(r.model), white_rows.push_back(r.white);
-  print_table(("model " + model_path).c_str(), names, rows);
-  if (!baseline.empty()) print_table("baseline white (a white image)", names, white_rows);
+  std::vector<Scores> rows, white_rows, posed_rows, ff_rows;
+  for (const auto& r : results) {
+    names.push_back(r.name), rows.push_back(r.model), white_rows.push_back(r.white);
+    posed_rows.push_back(r.posed_fit), ff_rows.push_back(r.feed_forward);
+  }
+  std::string title = "model " + model_path;
+  char buf[96];
+  if (x.rotation_noise_deg > 0) {
+    std::snprintf(buf, sizeof buf, ", rotation noise %g deg (seed %llu)", x.rotation_noise_deg,
+                  static_cast<unsigned long long>(x.seed));
+    title += buf;
+  }
+  if (refined) {
+    print_table((title + ", feed-forward").c_str(), names, ff_rows);
+    std::snprintf(buf, sizeof buf, ", refined %g s on the input views", x.refine_seconds);
+    title += buf;
+  }
+  print_table(title.c_str(), names, rows);
+  if (refined) {
+    std::printf("refinement\n%-20s %6s %10s %10s %7s %11s\n", "object", "steps", "loss_in", "loss_out", "pruned",
+                "psnr_change");
+    for (const auto& r : results)
+      std::printf("%-20s %6.0f %10.5f %10.5f %7.0f %+11.2f\n", r.name.c_str(), r.refine.steps, r.refine.loss_initial,
+                  r.refine.loss_final, r.refine.pruned, r.model.psnr - r.feed_forward.psnr);
+  }
+  if (eo.white_baseline) print_table("baseline white (a white image)", names, white_rows);
+  if (x.posed_fit)
+    print_table("baseline posed-fit (ground-truth input cameras, fitted for the model's seconds)", names, posed_rows);
 
   if (!json_path.empty()) {
     nlohmann::json j;
     j["model"] = model_path;
+    j["refine_seconds"] = x.refine_seconds;
+    j["rotation_noise_deg"] = x.rotation_noise_deg;
+    j["seed"] = x.seed;
     j["objects"] = nlohmann::json::array();
-    for (std::size_t i = 0; i < rows.size(); ++i) j["objects"].push_back(scores_json(names[i], rows[i]));
+    for (std::size_t i = 0; i < rows.size(); ++i) {
+      nlohmann::json o = scores_json(names[i], rows[i]);
+      if (refined) {
+        o["feed_forward"] = scores_json("", ff_rows[i]);
+        o["refine"] = refine_json(results[i].refine, rows[i], ff_rows[i]);
+      }
+      j["objects"].push_back(o);
+    }
     j["mean"] = scores_json("", mean_of(rows));
-    if (!baseline.empty()) {
+    if (refined) {
+      j["mean"]["feed_forward"] = scores_json("", mean_of(ff_rows));
+      j["mean"]["psnr_change"] = value_or_null(mean_of(rows).psnr - mean_of(ff_rows).psnr);
+    }
+    auto add_baseline = [&](const char* key, const std::vector<Scores>& b_rows) {
       nlohmann::json b;
       b["objects"] = nlohmann::json::array();
-      for (std::size_t i = 0; i < rows.size(); ++i) b["objects"].push_back(scores_json(names[i], white_rows[i]));
-      b["mean"] = scores_json("", mean_of(white_rows));
-      j["baselines"]["white"] = b;
-    }
+      for (std::size_t i = 0; i < b_rows.size(); ++i) b["objects"].push_back(scores_json(names[i], b_rows[i]));
+      b["mean"] = scores_json("", mean_of(b_rows));
+      j["baselines"][key] = b;
+    };
+    if (eo.white_baseline) add_baseline("white", white_rows);
+    if (x.posed_fit) add_baseline("posed-fit", posed_rows);
     std::ofstream f(json_path, std::ios::binary | std::ios::trunc);
     require(f.good(), "eval: cannot write '", json_path, "'");
     f << j.dump(1) << "\n";
@@ -247,7 +392,8 @@ int eval_command(Args args) {
 
 const RegisterCommand registered_cmd_eval(
     "eval", {"evaluate a model on object folders: predicted cameras aligned to the ground truth, held-out views scored",
-             "OBJECT_DIR... [--model M.safetensors] [--views N|i,j,k] [--max-targets N] [--baseline white]\n"
+             "OBJECT_DIR... [--model M.safetensors] [--views N|i,j,k] [--max-targets N]\n"
+             "  [--baseline white|posed-fit|white,posed-fit] [--refine SECONDS] [--rotation-noise DEG] [--seed N]\n"
              "  [--lpips LPIPS.safetensors] [--json out.json] [--grid out.png [--grid-targets 4]] [--quiet]\n"
              "  OBJECT_DIR: a folder in the layout of ../shared/data/objects/<name> or a folder of them\n"
              "  inputs: the folder's input_views (--views N: those when it lists N, else N evenly spaced frames;\n"
@@ -256,7 +402,12 @@ const RegisterCommand registered_cmd_eval(
              "  with a similarity (Umeyama); targets are rendered on white; lpips is null without --lpips\n"
              "  center_error_rel: median camera-centre error / diagonal of the input views' depth-point box\n"
              "  --json: {model, objects: [{name, psnr, ssim, lpips, rotation_error_deg, center_error_rel, seconds}],\n"
-             "  mean, baselines}; --grid: ground truth above render, one row pair per object (docs/app.md)",
+             "  mean, baselines}; --grid: ground truth above render, one row pair per object\n"
+             "  --refine S: optimise the predicted Gaussians and cameras on the input views for S seconds (the\n"
+             "  feed-forward scores and the PSNR change are reported too); --rotation-noise DEG: each predicted\n"
+             "  input camera turned by DEG degrees about a random axis before the decoder (seeded by --seed and the\n"
+             "  object's name); --baseline posed-fit: a per-scene fit from the input views with their ground-truth\n"
+             "  cameras for the model's seconds (docs/app.md)",
              eval_command});
 
 }  // namespace flexsplat::cli::eval_cmd

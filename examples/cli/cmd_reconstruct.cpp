@@ -14,6 +14,7 @@
 #include "flexsplat/export/file.hpp"
 #include "flexsplat/image/image_io.hpp"
 #include "flexsplat/model/predict.hpp"
+#include "flexsplat/model/refine.hpp"
 #include "flexsplat/raster/render.hpp"
 #include "registry.hpp"
 
@@ -78,12 +79,13 @@ void write_turntable(const fs::path& path, const model::Prediction<float>& p, in
 }
 
 int reconstruct_command(Args args) {
-  std::string model_path, output, gaussians_text, turntable;
+  std::string model_path, output, gaussians_text, turntable, refine_text;
   take_option(args, "--model", model_path);
   require(take_option(args, "-o", output) || take_option(args, "--output", output),
           "reconstruct needs -o out.glb or -o out.ply");
   take_option(args, "--gaussians", gaussians_text);
   take_option(args, "--turntable", turntable);
+  take_option(args, "--refine", refine_text);
   const bool verbose = take_flag(args, "--verbose");
   for (const auto& a : args) require(a.empty() || a[0] != '-', "reconstruct: unknown option '", a, "'");
   require(!args.empty(), "reconstruct needs at least one IMAGE (PNG or JPEG)");
@@ -99,6 +101,17 @@ int reconstruct_command(Args args) {
     }
     require(used == gaussians_text.size() && v >= 1, "--gaussians '", gaussians_text, "' must be a positive integer");
     n_gaussians = static_cast<index_t>(v);
+  }
+  double refine_seconds = 0;
+  if (!refine_text.empty()) {
+    std::size_t used = 0;
+    try {
+      refine_seconds = std::stod(refine_text, &used);
+    } catch (const std::exception&) {
+      used = 0;
+    }
+    require(used == refine_text.size() && std::isfinite(refine_seconds) && refine_seconds > 0, "--refine '",
+            refine_text, "' must be a positive number of seconds");
   }
   model_path = model_or_default(model_path);
   require(fs::is_regular_file(model_path), "reconstruct: model file '", model_path, "' does not exist");
@@ -119,10 +132,25 @@ int reconstruct_command(Args args) {
   std::fprintf(stderr, "reconstruct: predicting at %lld x %lld\n", static_cast<long long>(c.image_w),
                static_cast<long long>(c.image_h));
   model::PredictWorkspace<float> ws;
-  const model::Prediction<float> p = model::predict<float>(ws, *w, TensorView<const float, 4>(images.view()), n_gaussians);
+  model::Prediction<float> p = model::predict<float>(ws, *w, TensorView<const float, 4>(images.view()), n_gaussians);
   t.ms.emplace_back("geometry (VGGT)", p.geometry_ms);
   t.ms.emplace_back("decoder", p.decoder_ms);
   t.last = std::chrono::steady_clock::now();
+  if (refine_seconds > 0) {
+    // Test-time refinement of the Gaussians and the predicted cameras on the input pictures (camera 0 stays fixed).
+    std::fprintf(stderr, "reconstruct: refining for %g s on the input views\n", refine_seconds);
+    const std::vector<float> targets = model::views_hwc(images.data(), p.views, p.h, p.w);
+    model::RefineConfig rc;
+    rc.seconds = refine_seconds;
+    model::RefineWorkspace<float> rws;
+    const model::RefineResult rr = model::refine(
+        p.gaussians, model::RefineViews<float>{p.views, p.h, p.w, targets.data(), p.geometry.K.data(),
+                                               p.geometry.extrinsics.data()},
+        rc, rws);
+    std::fprintf(stderr, "reconstruct: %lld refinement steps, loss on the inputs %.5f -> %.5f, %lld Gaussians pruned\n",
+                 static_cast<long long>(rr.steps), rr.loss_initial, rr.loss_final, static_cast<long long>(rr.pruned));
+    t.lap("refine");
+  }
 
   gltf::WriteOptions wo;
   if (format == gaussians::FileFormat::Glb)
@@ -157,13 +185,15 @@ int reconstruct_command(Args args) {
 
 const RegisterCommand registered_cmd_reconstruct(
     "reconstruct", {"a Gaussian splat (.glb with the predicted cameras, or .ply) from a few uncalibrated images",
-                    "IMAGE... -o out.glb|out.ply [--model M.safetensors] [--gaussians N] [--turntable out.png] "
-                    "[--verbose]\n"
+                    "IMAGE... -o out.glb|out.ply [--model M.safetensors] [--gaussians N] [--refine SECONDS]\n"
+                    "  [--turntable out.png] [--verbose]\n"
                     "  IMAGE: 1 to the model's max_views PNG/JPEG files of any size; RGBA is composited on white and\n"
                     "  each picture's centred window of the model's aspect ratio is resized to the model's size\n"
                     "  --model: default the shipped model (models/flexsplat-small.safetensors in the source tree)\n"
                     "  --gaussians: default the model's budget for the view count; --turntable: 8 views around the\n"
-                    "  object in one picture; --verbose: time of each stage",
+                    "  object in one picture; --verbose: time of each stage\n"
+                    "  --refine S: optimise the Gaussians and the predicted cameras (all but the first) on the input\n"
+                    "  pictures for S seconds before writing (docs/app.md)",
                     reconstruct_command});
 
 }  // namespace flexsplat::cli::reconstruct_cmd

@@ -1,6 +1,7 @@
 # flexsplat eval and reconstruct end to end with a one-step tiny model (flexsplat train): eval on one shared object
-# with the white baseline (the JSON must have the issue's keys and finite numbers in range); reconstruct writes a .glb
-# with the predicted cameras and a turntable, and refuses an unreadable image and too many views.
+# with the white baseline (the JSON must have the issue's keys and finite numbers in range); eval with --refine,
+# --rotation-noise and the posed-fit baseline (their keys, the same noise twice, refusals); reconstruct writes a .glb
+# with the predicted cameras and a turntable, refines with --refine, and refuses an unreadable image and too many views.
 # -DFLEXSPLAT=exe -DCONFIG=json -DOBJECT=dir -DWORK_DIR=dir
 file(REMOVE_RECURSE ${WORK_DIR})
 file(MAKE_DIRECTORY ${WORK_DIR})
@@ -51,6 +52,47 @@ if(NOT rt STREQUAL "NULL")
 endif()
 message(STATUS "eval.json: model ${model}, object ${name}")
 
+# --refine, --rotation-noise and --baseline posed-fit: keys and ranges; the same seed gives the same noise.
+foreach(run a b)
+  run(${FLEXSPLAT} eval ${OBJECT} --model ${WORK_DIR}/run/model.safetensors --max-targets 2 --quiet --refine 0.2
+      --rotation-noise 10 --seed 4 --baseline white,posed-fit --json ${WORK_DIR}/eval_${run}.json)
+endforeach()
+file(READ ${WORK_DIR}/eval_a.json doc)
+file(READ ${WORK_DIR}/eval_b.json doc_b)
+check_range("refine_seconds" 0.2 0.2 refine_seconds)
+check_range("rotation_noise_deg" 10 10 rotation_noise_deg)
+check_range("refined psnr" 1 60 objects 0 psnr)
+check_range("feed-forward psnr" 1 60 objects 0 feed_forward psnr)
+check_range("feed-forward rotation error" 0 180 objects 0 feed_forward rotation_error_deg)
+check_range("refine steps" 1 1000000 objects 0 refine steps)
+check_range("refine loss" 0 10 objects 0 refine loss_final)
+check_range("psnr change" -60 60 objects 0 refine psnr_change)
+check_range("mean psnr change" -60 60 mean psnr_change)
+check_range("posed-fit psnr" 1 60 baselines posed-fit objects 0 psnr)
+check_range("posed-fit ssim" -1 1 baselines posed-fit mean ssim)
+check_range("posed-fit seconds" 0 60 baselines posed-fit objects 0 seconds)
+check_range("white psnr" 1 60 baselines white objects 0 psnr)
+string(JSON rt TYPE "${doc}" baselines posed-fit objects 0 rotation_error_deg)
+if(NOT rt STREQUAL "NULL")
+  message(FATAL_ERROR "the posed-fit baseline has a rotation error (${rt}); it is given the cameras")
+endif()
+string(JSON noisy_a GET "${doc}" objects 0 feed_forward rotation_error_deg)
+string(JSON noisy_b GET "${doc_b}" objects 0 feed_forward rotation_error_deg)
+string(JSON clean GET "${doc}" objects 0 rotation_error_deg)
+if(NOT noisy_a STREQUAL noisy_b)
+  message(FATAL_ERROR "--rotation-noise 10 --seed 4 gave rotation errors ${noisy_a} and ${noisy_b} in two runs")
+endif()
+function(expect_eval_refusal pattern)
+  execute_process(COMMAND ${FLEXSPLAT} eval ${OBJECT} --model ${WORK_DIR}/run/model.safetensors --quiet ${ARGN}
+                  RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
+  if(code EQUAL 0 OR NOT err MATCHES "${pattern}")
+    message(FATAL_ERROR "eval ${ARGN} gave exit code ${code} and '${err}', expected an error matching '${pattern}'")
+  endif()
+endfunction()
+expect_eval_refusal("--refine '-1' must be a positive number" --refine -1)
+expect_eval_refusal("--rotation-noise 200 must be at most 180" --rotation-noise 200)
+expect_eval_refusal("--baseline 'posed' is not known" --baseline white,posed)
+
 set(images ${OBJECT}/images/000.png ${OBJECT}/images/001.png)
 execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/out.glb
                         --turntable ${WORK_DIR}/turntable.png --verbose
@@ -66,5 +108,11 @@ function(expect_refusal pattern)
     message(FATAL_ERROR "reconstruct ${ARGN} gave exit code ${code} and '${err}', expected an error matching '${pattern}'")
   endif()
 endfunction()
+execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/refined.ply
+                        --refine 0.2
+                RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
+if(NOT code EQUAL 0 OR NOT err MATCHES "[0-9]+ refinement steps, loss on the inputs" OR NOT EXISTS ${WORK_DIR}/refined.ply)
+  message(FATAL_ERROR "reconstruct --refine failed (${code}):\n${out}\n${err}")
+endif()
 expect_refusal("cannot decode" ${CONFIG})
 expect_refusal("5 images; the model takes 1 to 4" ${images} ${images} ${OBJECT}/images/002.png)

@@ -3,10 +3,16 @@
 // data::load_objects): input views, held-out targets, the predicted input cameras aligned to the ground truth by a
 // similarity (align_cameras: Umeyama's least-squares estimator with scale over the camera centres), the camera
 // errors, and every target rendered from its ground-truth camera mapped into the model's frame, on white, at the
-// model's size, scored against the ground truth resized the same way (PSNR, SSIM, optionally LPIPS). docs/app.md.
+// model's size, scored against the ground truth resized the same way (PSNR, SSIM, optionally LPIPS). Also the
+// experiments' pieces: rotation noise on predicted cameras, the input views for test-time refinement and the
+// posed-fit baseline (a per-scene fit from the input views with their ground-truth cameras). docs/app.md.
 #include <algorithm>
+#include <chrono>
 #include <cmath>
+#include <cstdint>
 #include <limits>
+#include <random>
+#include <string>
 #include <vector>
 
 #include <glm/glm.hpp>
@@ -22,6 +28,7 @@
 #include "flexsplat/model/frames.hpp"
 #include "flexsplat/model/objective.hpp"
 #include "flexsplat/model/predict.hpp"
+#include "flexsplat/model/refine.hpp"
 #include "flexsplat/model/train.hpp"
 #include "flexsplat/raster/render.hpp"
 
@@ -204,6 +211,95 @@ inline EvalResult score_prediction(const data::ObjectRecord& rec, const std::vec
   for (EvalScores* s : {&r.model, &r.white}) s->psnr /= n, s->ssim /= n, s->lpips /= n;
   if (!o.white_baseline) r.white = EvalScores{std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::quiet_NaN()};
   return r;
+}
+
+// The seed of one object's random draws: seed XOR FNV-1a of its name, so an object's draws do not depend on which
+// other objects are evaluated with it.
+inline std::uint64_t object_seed(const std::string& name, std::uint64_t seed) {
+  std::uint64_t h = 1469598103934665603ull;
+  for (unsigned char ch : name) h = (h ^ ch) * 1099511628211ull;
+  return seed ^ h;
+}
+
+// Rotation noise of `deg` degrees on each camera of w2c [V, 3, 4]: a rotation by exactly deg about an axis drawn
+// uniformly on the sphere (a normalised standard-normal 3-vector, std::mt19937_64 seeded with `seed`, views in
+// order), applied about the camera's own centre: [R | t] -> [Rn R | Rn t].
+template <class T>
+void rotation_noise(T* w2c, index_t views, double deg, std::uint64_t seed) {
+  require(std::isfinite(deg) && deg >= 0 && deg <= 180, "rotation noise: ", deg, " degrees is not in [0, 180]");
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> normal;
+  for (index_t v = 0; v < views; ++v) {
+    Eigen::Vector3d axis;
+    do axis = Eigen::Vector3d(normal(rng), normal(rng), normal(rng));
+    while (axis.norm() < 1e-9);
+    const Eigen::Matrix3d Rn = Eigen::AngleAxisd(deg * 3.14159265358979323846 / 180.0, axis.normalized()).toRotationMatrix();
+    Eigen::Matrix<double, 3, 4> m;
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 4; ++c) m(r, c) = static_cast<double>(w2c[12 * v + 4 * r + c]);
+    m = (Rn * m).eval();
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 4; ++c) w2c[12 * v + 4 * r + c] = static_cast<T>(m(r, c));
+  }
+}
+
+// A folder's input views at the model's size with their ground-truth cameras: what the posed-fit baseline is given.
+struct PosedViews {
+  index_t views = 0, h = 0, w = 0;
+  std::vector<float> images, alpha, K, w2c;  // [V, h, w, 3] on white, [V, h, w], [V, 3, 3] (model size), [V, 3, 4]
+
+  RefineViews<float> refine_views() { return {views, h, w, images.data(), K.data(), w2c.data()}; }
+};
+
+inline PosedViews posed_views(const data::ObjectRecord& rec, const std::vector<int>& in, index_t h, index_t w) {
+  PosedViews p;
+  p.views = static_cast<index_t>(in.size()), p.h = h, p.w = w;
+  const index_t px = h * w;
+  std::vector<float> chw(static_cast<std::size_t>(3 * px));
+  p.images.resize(static_cast<std::size_t>(p.views * px * 3));
+  p.alpha.resize(static_cast<std::size_t>(p.views * px));
+  for (index_t v = 0; v < p.views; ++v) {
+    const data::FrameRecord& fr = rec.frames[static_cast<std::size_t>(in[static_cast<std::size_t>(v)])];
+    const Tensor<float, 3> rgba = image::read_float<float>(fr.image, 4);
+    const ViewMapping map = model_view<float>(chw.data(), TensorView<const float, 3>(rgba.view()), h, w,
+                                              {1.0f, 1.0f, 1.0f}, p.alpha.data() + v * px);
+    for (index_t q = 0; q < px; ++q)
+      for (int c = 0; c < 3; ++c) p.images[static_cast<std::size_t>((v * px + q) * 3 + c)] = chw[static_cast<std::size_t>(c * px + q)];
+    double K[9], E[12];
+    detail::camera_arrays(fr.camera, K, E);
+    map.intrinsics(K);
+    p.K.insert(p.K.end(), K, K + 9);
+    p.w2c.insert(p.w2c.end(), E, E + 12);
+  }
+  return p;
+}
+
+struct PosedFit {
+  GaussianSet<float> gaussians;
+  std::vector<float> w2c;  // the ground-truth input cameras (the fit's frame is the world)
+  RefineResult refine;
+  double seconds = 0;      // reading the views, the initialisation and the fit
+};
+
+// The posed-fit baseline: n Gaussians of SH degree `degree` started by random_gaussians_in_views (uniform in the
+// views' silhouettes, seeded), then refine with the cameras fixed until `seconds` have passed since the start
+// (reading the views included; at least one step).
+inline PosedFit posed_fit(const data::ObjectRecord& rec, const std::vector<int>& in, index_t h, index_t w, index_t n,
+                          int degree, double seconds, std::uint64_t seed) {
+  const auto t0 = std::chrono::steady_clock::now();
+  auto elapsed = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(); };
+  PosedViews views = posed_views(rec, in, h, w);
+  PosedFit f;
+  f.gaussians = random_gaussians_in_views<float>(n, degree, views.refine_views(), views.alpha.data(), seed);
+  RefineConfig rc;
+  rc.optimize_cameras = false;
+  rc.seconds = std::max(0.0, seconds - elapsed());
+  if (rc.seconds <= 0) rc.steps = 1;
+  RefineWorkspace<float> ws;
+  f.refine = refine(f.gaussians, views.refine_views(), rc, ws);
+  f.w2c = views.w2c;
+  f.seconds = elapsed();
+  return f;
 }
 
 }  // namespace model

@@ -8,6 +8,7 @@
 #include <array>
 #include <chrono>
 #include <cmath>
+#include <functional>
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
@@ -48,11 +49,16 @@ void require_finite(const T* p, std::size_t n, const char* what) {
 }
 }  // namespace detail
 
+// Called between the geometry stage and the decoder with the predicted cameras and depth (in place): where
+// experiments change the geometry the decoder sees (eval --rotation-noise); the Prediction holds the changed values.
+template <class T>
+using BeforeDecoder = std::function<void(GeometryResult<T>&)>;
+
 // images [views, 3, h, w] in [0, 1] at the configuration's size (image_h x image_w). n_gaussians 0: the
 // configuration's budget for the view count.
 template <class T>
 Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, const T* images, index_t views,
-                      index_t n_gaussians = 0) {
+                      index_t n_gaussians = 0, const BeforeDecoder<T>& before_decoder = {}) {
   const FlexSplatConfig& c = w.config();
   require(images, "predict: null images");
   require(views >= 1 && views <= c.appearance.decoder.max_views, "predict: ", views,
@@ -72,6 +78,7 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
   detail::require_finite(g.extrinsics.data(), g.extrinsics.size(), "camera extrinsic");
   detail::require_finite(g.K.data(), g.K.size(), "camera intrinsic");
   detail::require_finite(g.depth.data(), g.depth.size(), "depth");
+  if (before_decoder) before_decoder(ws.geometry.result);
   decoder::model_forward(ws.model, n, w.appearance(), c.appearance, images, h, wd, g.features.data(), g.feature_h,
                          g.feature_w, g.view_geometry());
   const auto t2 = clock::now();
@@ -93,13 +100,13 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
 // The same from a tensor, whose shape is checked against the model.
 template <class T>
 Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, TensorView<const T, 4> images,
-                      index_t n_gaussians = 0) {
+                      index_t n_gaussians = 0, const BeforeDecoder<T>& before_decoder = {}) {
   const FlexSplatConfig& c = w.config();
   require(images.shape(1) == 3 && images.shape(2) == c.image_h && images.shape(3) == c.image_w,
           "predict: images have shape ", shape_string(images.shape()), "; the model takes [V, 3, ", c.image_h, ", ",
           c.image_w, "] (prepare them with model::model_view)");
   require(images.is_contiguous(), "predict: images must be contiguous, got shape ", shape_string(images.shape()));
-  return predict(ws, w, images.data(), images.shape(0), n_gaussians);
+  return predict(ws, w, images.data(), images.shape(0), n_gaussians, before_decoder);
 }
 
 // How a source picture maps onto a model view: centre crop (x0, y0, width x height in source pixels), then resize by

@@ -1,0 +1,518 @@
+#pragma once
+// Test-time refinement: a Gaussian set (and optionally the cameras of its views) optimised through the rasterizer's
+// adjoints on those views, for a wall-time and/or step budget. Loss: 3DGS's (1 - w) L1 + w (1 - SSIM), the mean over
+// the views, every view rendered at every step. Parameters live in a train::ParamStore updated by train::adamw_step
+// (no weight decay): means, quaternions, log scales, opacity logits, SH DC and higher bands (3DGS's learning rates,
+// lengths scaled by the scene extent, the position rate decaying 100x over the budget). A camera moves by a rigid
+// increment [exp(omega) | tau] left-multiplied onto its world-to-camera and folded in after every step (the gradient
+// is taken at omega = tau = 0); camera 0 stays fixed by default, since it is the model's frame. Gaussians whose
+// opacity falls below refine_prune_opacity are removed every prune_every steps. With a step budget only, the result
+// is deterministic for a fixed thread count. Also here: random_gaussians_in_views, the start of a per-scene fit
+// from posed views (docs/app.md). Usage:
+//   model::RefineConfig rc;  rc.seconds = 5;                       // or rc.steps = 200
+//   model::RefineViews<float> v{V, h, w, images_hwc, K, w2c};       // w2c is updated when cameras are optimised
+//   model::RefineWorkspace<float> ws;
+//   model::RefineResult r = model::refine(set, v, rc, ws);          // set is optimised (and pruned) in place
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <random>
+#include <string>
+#include <vector>
+
+#include <Eigen/Dense>
+#include <Eigen/Geometry>
+
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/core/gaussians.hpp"
+#include "flexsplat/core/tensor.hpp"
+#include "flexsplat/decoder/init.hpp"
+#include "flexsplat/loss/image.hpp"
+#include "flexsplat/loss/ssim.hpp"
+#include "flexsplat/model/cameras.hpp"
+#include "flexsplat/raster/render.hpp"
+#include "flexsplat/train/optimizer.hpp"
+#include "flexsplat/train/params.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace model {
+
+inline constexpr double refine_ssim_weight = 0.2;        // 3DGS's lambda_DSSIM
+inline constexpr double refine_prune_opacity = 0.005;    // 3DGS's pruning threshold
+inline constexpr double refine_opacity_floor = 1e-4;     // opacities are clamped to [floor, 1 - floor] before the logit
+inline constexpr double refine_position_decay = 0.01;    // final / initial position learning rate (3DGS)
+inline constexpr double refine_init_opacity = 0.1;       // 3DGS's initial opacity
+inline constexpr double refine_mask_threshold = 0.5;     // a view's pixel is foreground at alpha >= this
+
+struct RefineConfig {
+  double seconds = 0;         // wall-time budget; 0: none
+  std::int64_t steps = 0;     // step budget; 0: none. At least one budget; at least one step always runs
+  bool optimize_cameras = true;
+  bool fix_first_camera = true;  // camera 0 defines the frame (the model's gauge)
+  double ssim_weight = refine_ssim_weight;
+  // AdamW learning rates per tensor (3DGS's, the position and translation rates times the scene extent).
+  double lr_means = 1.6e-3, lr_quats = 1e-3, lr_scales = 5e-3, lr_opacity = 5e-2, lr_sh = 2.5e-3;
+  double lr_sh_rest_ratio = 1.0 / 20;  // higher SH bands learn at lr_sh x this
+  double lr_rotation = 1e-3;           // radians per step (Adam's step size)
+  double lr_translation = 1e-3;        // x the scene extent
+  int prune_every = 50;                // 0: never prune
+  double prune_opacity = refine_prune_opacity;
+  double extent = 0;                   // 0: mean distance from the camera centres to the opacity-weighted centre
+  std::array<double, 3> background{1, 1, 1};
+};
+
+template <class T>
+struct RefineViews {
+  index_t views = 0, h = 0, w = 0;
+  const T* images = nullptr;        // [V, h, w, 3] targets in [0, 1] (composited on the background)
+  const T* K = nullptr;             // [V, 3, 3] row-major, pixel centres at +0.5
+  T* world_to_camera = nullptr;     // [V, 3, 4] row-major; updated in place when cameras are optimised
+};
+
+struct RefineResult {
+  std::int64_t steps = 0;
+  double seconds = 0;
+  double loss_initial = 0;  // the objective before the first update
+  double loss_final = 0;    // the objective after the last update (one more forward pass)
+  double extent = 0;        // the scene extent used
+  index_t pruned = 0;       // Gaussians removed
+};
+
+template <class T>
+struct RefineWorkspace {
+  train::ParamStore<T> store;
+  GaussianSet<T> set;              // the renderable set from the store (exp scales, sigmoid opacities)
+  GaussianSetGrad<T> grad;
+  raster::RenderWorkspace<T> render;
+  raster::RenderOutputs<T> out;
+  Tensor<T, 3> d_image;
+  loss::SsimWorkspace ssim;
+  std::vector<double> w2c;         // [V, 3, 4] the cameras in double (increments are folded in here)
+  std::vector<index_t> origin;     // row of the caller's set each stored Gaussian came from
+};
+
+// Model input [V, 3, h, w] -> refinement targets [V, h, w, 3].
+template <class T>
+std::vector<T> views_hwc(const T* chw, index_t views, index_t h, index_t w) {
+  std::vector<T> out(static_cast<std::size_t>(views * h * w * 3));
+  for (index_t v = 0; v < views; ++v)
+    for (index_t c = 0; c < 3; ++c)
+      for (index_t p = 0; p < h * w; ++p)
+        out[static_cast<std::size_t>((v * h * w + p) * 3 + c)] = chw[(v * 3 + c) * h * w + p];
+  return out;
+}
+
+namespace refine_detail {
+
+// Rodrigues: the rotation by angle |omega| about omega / |omega|.
+inline Eigen::Matrix3d exp_so3(const Eigen::Vector3d& omega) {
+  const double angle = omega.norm();
+  if (angle < 1e-12) return Eigen::Matrix3d::Identity();
+  return Eigen::AngleAxisd(angle, omega / angle).toRotationMatrix();
+}
+
+template <class T>
+void validate(const GaussianSet<T>& set, const RefineViews<T>& v, const RefineConfig& c) {
+  require(std::isfinite(c.seconds) && c.seconds >= 0 && c.steps >= 0 && (c.seconds > 0 || c.steps > 0),
+          "refine: budget of ", c.seconds, " s and ", c.steps, " steps; give seconds > 0 and/or steps > 0");
+  require(c.ssim_weight >= 0 && c.ssim_weight <= 1, "refine: ssim_weight ", c.ssim_weight, " outside [0, 1]");
+  for (double lr : {c.lr_means, c.lr_quats, c.lr_scales, c.lr_opacity, c.lr_sh, c.lr_sh_rest_ratio, c.lr_rotation,
+                    c.lr_translation})
+    require(std::isfinite(lr) && lr >= 0, "refine: learning rate ", lr, " must be finite and >= 0");
+  require(c.prune_every >= 0 && c.prune_opacity >= 0 && c.prune_opacity < 1, "refine: prune_every ", c.prune_every,
+          " must be >= 0 and prune_opacity ", c.prune_opacity, " in [0, 1)");
+  require(std::isfinite(c.extent) && c.extent >= 0, "refine: extent ", c.extent, " must be finite and >= 0");
+  require(v.views >= 1 && v.h >= 1 && v.w >= 1, "refine: ", v.views, " views of ", v.w, " x ", v.h,
+          "; need at least one view of positive size");
+  require(v.images && v.K && v.world_to_camera, "refine: null images, K or world_to_camera");
+  check_gaussian_shapes(set, "refine");
+  require(set.size() >= 1, "refine: the Gaussian set is empty");
+  const index_t n = set.size();
+  for (index_t i = 0; i < n * 3; ++i) {
+    const double s = static_cast<double>(set.scales.data()[i]);
+    require(std::isfinite(s) && s > 0, "refine: Gaussian ", i / 3, " has scale ", s, " (must be finite and > 0)");
+  }
+  for (index_t i = 0; i < n; ++i) {
+    const double o = static_cast<double>(set.opacities(i));
+    require(std::isfinite(o) && o >= 0 && o <= 1, "refine: Gaussian ", i, " has opacity ", o, " outside [0, 1]");
+  }
+  for (const auto* t : {&set.means, &set.quats})
+    for (index_t i = 0; i < t->size(); ++i)
+      require(std::isfinite(static_cast<double>(t->data()[i])), "refine: a Gaussian mean or quaternion is not finite (",
+              static_cast<double>(t->data()[i]), " at flat index ", i, ")");
+  for (index_t i = 0; i < set.sh.size(); ++i)
+    require(std::isfinite(static_cast<double>(set.sh.data()[i])), "refine: SH coefficient ", i, " is not finite");
+  const index_t values = v.views * v.h * v.w * 3;
+  for (index_t i = 0; i < values; ++i) {
+    const double x = static_cast<double>(v.images[i]);
+    require(x >= 0 && x <= 1, "refine: image value ", x, " at flat index ", i, " of [", v.views, ", ", v.h, ", ", v.w,
+            ", 3] is outside [0, 1]");
+  }
+  for (index_t k = 0; k < v.views; ++k) {
+    const T* K = v.K + 9 * k;
+    require(std::isfinite(static_cast<double>(K[0])) && std::isfinite(static_cast<double>(K[4])) && K[0] > T(0) &&
+                K[4] > T(0) && std::isfinite(static_cast<double>(K[2])) && std::isfinite(static_cast<double>(K[5])),
+            "refine: view ", k, " has intrinsics fx ", K[0], ", fy ", K[4], ", cx ", K[2], ", cy ", K[5],
+            " (must be finite, focal lengths > 0)");
+    for (int i = 0; i < 12; ++i)
+      require(std::isfinite(static_cast<double>(v.world_to_camera[12 * k + i])), "refine: view ", k,
+              " world_to_camera[", i / 4, ",", i % 4, "] = ", v.world_to_camera[12 * k + i], " is not finite");
+  }
+}
+
+// Mean distance from the camera centres to the opacity-weighted centre of the Gaussians (1 if that is degenerate).
+template <class T>
+double scene_extent(const GaussianSet<T>& set, const std::vector<double>& w2c, index_t views) {
+  Eigen::Vector3d centre = Eigen::Vector3d::Zero();
+  double weight = 0;
+  for (index_t i = 0; i < set.size(); ++i) {
+    const double o = static_cast<double>(set.opacities(i));
+    centre += o * Eigen::Vector3d(set.means(i, 0), set.means(i, 1), set.means(i, 2));
+    weight += o;
+  }
+  if (!(weight > 0)) return 1.0;
+  centre /= weight;
+  double sum = 0;
+  for (index_t v = 0; v < views; ++v) {
+    const double* E = w2c.data() + 12 * v;
+    Eigen::Matrix3d R;
+    for (int r = 0; r < 3; ++r)
+      for (int col = 0; col < 3; ++col) R(r, col) = E[4 * r + col];
+    const Eigen::Vector3d c = -R.transpose() * Eigen::Vector3d(E[3], E[7], E[11]);
+    sum += (c - centre).norm();
+  }
+  const double extent = sum / static_cast<double>(views);
+  return std::isfinite(extent) && extent > 0 ? extent : 1.0;
+}
+
+// A fresh store for n Gaussians with K SH coefficients and, with `cameras`, the views' rigid increments.
+template <class T>
+void build_store(train::ParamStore<T>& store, index_t n, index_t K, index_t views, bool cameras) {
+  store = train::ParamStore<T>{};
+  store.add_segment("gaussians", {{"means", {n, 3}}, {"quats", {n, 4}}, {"log_scales", {n, 3}},
+                                  {"opacity_logits", {n}}, {"sh_dc", {n, 1, 3}}, {"sh_rest", {n, K - 1, 3}}});
+  if (cameras) store.add_segment("cameras", {{"rotations", {views, 3}}, {"translations", {views, 3}}});
+  store.allocate(true);
+}
+
+template <class T>
+void set_learning_rates(train::ParamStore<T>& store, const RefineConfig& c, double extent, double progress) {
+  store.set_lr_scale("means", c.lr_means * extent * std::pow(refine_position_decay, progress));
+  store.set_lr_scale("quats", c.lr_quats);
+  store.set_lr_scale("log_scales", c.lr_scales);
+  store.set_lr_scale("opacity_logits", c.lr_opacity);
+  store.set_lr_scale("sh_dc", c.lr_sh);
+  store.set_lr_scale("sh_rest", c.lr_sh * c.lr_sh_rest_ratio);
+  if (store.contains("rotations")) {
+    store.set_lr_scale("rotations", c.lr_rotation);
+    store.set_lr_scale("translations", c.lr_translation * extent);
+  }
+}
+
+// The renderable set from the store's parameters.
+template <class T>
+void activate(RefineWorkspace<T>& ws, index_t n, index_t K) {
+  const auto& st = ws.store;
+  resize_gaussian_set(ws.set, n, sh_degree_for(K, "refine"));
+  std::copy_n(st.param("means").data(), n * 3, ws.set.means.data());
+  std::copy_n(st.param("quats").data(), n * 4, ws.set.quats.data());
+  const auto ls = st.param("log_scales");
+  for (index_t i = 0; i < n * 3; ++i) ws.set.scales.data()[i] = std::exp(ls[static_cast<std::size_t>(i)]);
+  const auto lo = st.param("opacity_logits");
+  for (index_t i = 0; i < n; ++i) ws.set.opacities(i) = T(1) / (T(1) + std::exp(-lo[static_cast<std::size_t>(i)]));
+  const auto dc = st.param("sh_dc"), rest = st.param("sh_rest");
+  for (index_t i = 0; i < n; ++i) {
+    std::copy_n(dc.data() + i * 3, 3, ws.set.sh.data() + i * K * 3);
+    std::copy_n(rest.data() + i * (K - 1) * 3, (K - 1) * 3, ws.set.sh.data() + (i * K + 1) * 3);
+  }
+}
+
+// Loss of every view for the current set; with backward, the gradients go into the store (cameras too).
+template <class T>
+double views_loss(RefineWorkspace<T>& ws, const RefineViews<T>& v, const RefineConfig& c, bool backward) {
+  const index_t n = ws.set.size(), K = ws.set.sh.shape(1), V = v.views;
+  raster::RenderOptions ro;
+  ro.background = c.background;
+  const loss::ImageShape shape{1, 3, v.h, v.w, loss::Layout::nhwc};
+  const T* no_mask = nullptr;
+  const double per_view = 1.0 / static_cast<double>(V);
+  const bool cameras = backward && ws.store.contains("rotations");
+  if (backward) {
+    ws.store.zero_grads();
+    resize_gaussian_grad(ws.grad, ws.set);
+    ws.grad.zero();
+  }
+  double total = 0;
+  for (index_t k = 0; k < V; ++k) {
+    T Kf[9], E[12];
+    for (int i = 0; i < 9; ++i) Kf[i] = v.K[9 * k + i];
+    for (int i = 0; i < 12; ++i) E[i] = static_cast<T>(ws.w2c[static_cast<std::size_t>(12 * k + i)]);
+    const raster::Camera<T> cam = render_camera(Kf, E, static_cast<int>(v.w), static_cast<int>(v.h));
+    raster::render_forward(ws.set, cam, ro, ws.render, ws.out);
+    const T* img = ws.out.image.data();
+    const T* target = v.images + k * v.h * v.w * 3;
+    const double l1 = loss::l1_forward(img, target, no_mask, shape);
+    const double ssim = c.ssim_weight > 0 ? loss::ssim_forward(img, target, shape, loss::SsimConfig{}, ws.ssim) : 1.0;
+    total += per_view * ((1 - c.ssim_weight) * l1 + c.ssim_weight * (1 - ssim));
+    if (!backward) continue;
+    ws.d_image.resize(ws.out.image.shape());
+    ws.d_image.fill(T(0));
+    loss::l1_backward(ws.d_image.data(), static_cast<T*>(nullptr), per_view * (1 - c.ssim_weight), img, target, no_mask,
+                      shape);
+    if (c.ssim_weight > 0)
+      loss::ssim_backward(ws.d_image.data(), static_cast<T*>(nullptr), -per_view * c.ssim_weight, img, target, shape,
+                          loss::SsimConfig{}, ws.ssim);
+    const bool this_camera = cameras && !(c.fix_first_camera && k == 0);
+    raster::CameraGrad<T> dcam;
+    raster::render_backward(ws.set, cam, ro, ws.render,
+                            raster::RenderOutputGrads<T>{TensorView<const T, 3>(ws.d_image.view()), {}, {}, {}},
+                            ws.grad, this_camera ? &dcam : nullptr);
+    if (!this_camera) continue;
+    // dL/domega_j = <M, [e_j]x>, M = G_R R^T + G_t t^T; dL/dtau = G_t (R, t: the current camera).
+    Eigen::Matrix3d M = Eigen::Matrix3d::Zero();
+    const double* W = ws.w2c.data() + 12 * k;
+    for (int r = 0; r < 3; ++r)
+      for (int col = 0; col < 3; ++col) {
+        double s = 0;
+        for (int j = 0; j < 3; ++j) s += static_cast<double>(dcam.world_to_camera[4 * r + j]) * W[4 * col + j];
+        M(r, col) = s + static_cast<double>(dcam.world_to_camera[4 * r + 3]) * W[4 * col + 3];
+      }
+    T* dr = ws.store.grad("rotations").data() + 3 * k;
+    T* dt = ws.store.grad("translations").data() + 3 * k;
+    dr[0] += static_cast<T>(M(2, 1) - M(1, 2));
+    dr[1] += static_cast<T>(M(0, 2) - M(2, 0));
+    dr[2] += static_cast<T>(M(1, 0) - M(0, 1));
+    for (int r = 0; r < 3; ++r) dt[r] += dcam.world_to_camera[4 * r + 3];
+  }
+  if (!backward) return total;
+  // Chain rule through the activations into the store.
+  auto& st = ws.store;
+  std::copy_n(ws.grad.means.data(), n * 3, st.grad("means").data());
+  std::copy_n(ws.grad.quats.data(), n * 4, st.grad("quats").data());
+  const auto gls = st.grad("log_scales");
+  for (index_t i = 0; i < n * 3; ++i) gls[static_cast<std::size_t>(i)] = ws.grad.scales.data()[i] * ws.set.scales.data()[i];
+  const auto glo = st.grad("opacity_logits");
+  for (index_t i = 0; i < n; ++i) {
+    const T o = ws.set.opacities(i);
+    glo[static_cast<std::size_t>(i)] = ws.grad.opacities(i) * o * (T(1) - o);
+  }
+  const auto gdc = st.grad("sh_dc"), grest = st.grad("sh_rest");
+  for (index_t i = 0; i < n; ++i) {
+    std::copy_n(ws.grad.sh.data() + i * K * 3, 3, gdc.data() + i * 3);
+    std::copy_n(ws.grad.sh.data() + (i * K + 1) * 3, (K - 1) * 3, grest.data() + i * (K - 1) * 3);
+  }
+  return total;
+}
+
+// Removes the Gaussians whose opacity is below the threshold (keeping at least one), with their Adam moments.
+template <class T>
+index_t prune(RefineWorkspace<T>& ws, index_t K, index_t views, double threshold) {
+  const index_t n = ws.set.size();
+  std::vector<index_t> keep;
+  for (index_t i = 0; i < n; ++i)
+    if (static_cast<double>(ws.set.opacities(i)) >= threshold) keep.push_back(i);
+  if (keep.empty() || static_cast<index_t>(keep.size()) == n) return 0;
+  const index_t m = static_cast<index_t>(keep.size());
+  train::ParamStore<T> next;
+  build_store(next, m, K, views, ws.store.contains("rotations"));
+  for (const auto& t : ws.store.tensors()) {
+    const train::ParamInfo& u = next.info(t.name);
+    if (t.name == "rotations" || t.name == "translations") {
+      std::copy_n(ws.store.params() + t.offset, t.numel, next.params() + u.offset);
+      std::copy_n(ws.store.adam_m() + t.offset, t.numel, next.adam_m() + u.offset);
+      std::copy_n(ws.store.adam_v() + t.offset, t.numel, next.adam_v() + u.offset);
+      continue;
+    }
+    const index_t row = t.numel / n;
+    for (index_t j = 0; j < m; ++j) {
+      const index_t src = t.offset + keep[static_cast<std::size_t>(j)] * row, dst = u.offset + j * row;
+      std::copy_n(ws.store.params() + src, row, next.params() + dst);
+      std::copy_n(ws.store.adam_m() + src, row, next.adam_m() + dst);
+      std::copy_n(ws.store.adam_v() + src, row, next.adam_v() + dst);
+    }
+  }
+  for (index_t j = 0; j < m; ++j) ws.origin[static_cast<std::size_t>(j)] = ws.origin[static_cast<std::size_t>(keep[static_cast<std::size_t>(j)])];
+  ws.origin.resize(static_cast<std::size_t>(m));
+  ws.store = std::move(next);
+  return n - m;
+}
+
+}  // namespace refine_detail
+
+// Optimises `set` (in place; pruned Gaussians are removed, features follow their rows and are not optimised) and,
+// with c.optimize_cameras, v.world_to_camera, on the views v. Intrinsics stay fixed.
+template <class T>
+RefineResult refine(GaussianSet<T>& set, const RefineViews<T>& v, const RefineConfig& c, RefineWorkspace<T>& ws) {
+  using clock = std::chrono::steady_clock;
+  const auto start = clock::now();
+  auto elapsed = [&] { return std::chrono::duration<double>(clock::now() - start).count(); };
+  refine_detail::validate(set, v, c);
+  const index_t V = v.views, K = set.sh.shape(1);
+  index_t n = set.size();
+  ws.w2c.assign(v.world_to_camera, v.world_to_camera + 12 * V);
+  const bool cameras = c.optimize_cameras && V > (c.fix_first_camera ? 1 : 0);
+  refine_detail::build_store(ws.store, n, K, V, cameras);
+  {
+    auto& st = ws.store;
+    std::copy_n(set.means.data(), n * 3, st.param("means").data());
+    std::copy_n(set.quats.data(), n * 4, st.param("quats").data());
+    for (index_t i = 0; i < n * 3; ++i) st.param("log_scales")[static_cast<std::size_t>(i)] = std::log(set.scales.data()[i]);
+    for (index_t i = 0; i < n; ++i) {
+      const double o = std::clamp(static_cast<double>(set.opacities(i)), refine_opacity_floor, 1 - refine_opacity_floor);
+      st.param("opacity_logits")[static_cast<std::size_t>(i)] = static_cast<T>(std::log(o / (1 - o)));
+      std::copy_n(set.sh.data() + i * K * 3, 3, st.param("sh_dc").data() + i * 3);
+      std::copy_n(set.sh.data() + (i * K + 1) * 3, (K - 1) * 3, st.param("sh_rest").data() + i * (K - 1) * 3);
+    }
+  }
+  ws.origin.resize(static_cast<std::size_t>(n));
+  for (index_t i = 0; i < n; ++i) ws.origin[static_cast<std::size_t>(i)] = i;
+  RefineResult r;
+  r.extent = c.extent > 0 ? c.extent : refine_detail::scene_extent(set, ws.w2c, V);
+  const train::AdamWConfig adam{0.9, 0.999, 1e-15, 0.0};
+  while (true) {
+    n = ws.store.info("means").shape[0];
+    double progress = 0;
+    if (c.steps > 0) progress = static_cast<double>(r.steps) / static_cast<double>(c.steps);
+    if (c.seconds > 0) progress = std::max(progress, elapsed() / c.seconds);
+    refine_detail::activate(ws, n, K);
+    const double loss = refine_detail::views_loss(ws, v, c, true);
+    require(std::isfinite(loss), "refine: the loss became ", loss, " at step ", r.steps + 1);
+    if (r.steps == 0) r.loss_initial = loss;
+    refine_detail::set_learning_rates(ws.store, c, r.extent, std::min(1.0, progress));
+    ++r.steps;
+    train::adamw_step(ws.store, adam, 1.0, static_cast<std::uint64_t>(r.steps));
+    auto quats = ws.store.param("quats");
+    for (index_t i = 0; i < n; ++i) {  // keep quaternions away from zero length
+      T* q = quats.data() + 4 * i;
+      if (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3] < T(1e-12)) q[0] = 1, q[1] = q[2] = q[3] = 0;
+    }
+    if (cameras) {  // fold each increment into its camera; the increments restart from zero
+      auto rot = ws.store.param("rotations"), tr = ws.store.param("translations");
+      for (index_t k = 0; k < V; ++k) {
+        T* o = rot.data() + 3 * k;
+        T* t = tr.data() + 3 * k;
+        const Eigen::Matrix3d E = refine_detail::exp_so3(Eigen::Vector3d(o[0], o[1], o[2]));
+        double* W = ws.w2c.data() + 12 * k;
+        Eigen::Matrix<double, 3, 4> M;
+        for (int row = 0; row < 3; ++row)
+          for (int col = 0; col < 4; ++col) M(row, col) = W[4 * row + col];
+        M = (E * M).eval();
+        for (int row = 0; row < 3; ++row) {
+          M(row, 3) += static_cast<double>(t[row]);
+          for (int col = 0; col < 4; ++col) W[4 * row + col] = M(row, col);
+        }
+        std::fill_n(o, 3, T(0));
+        std::fill_n(t, 3, T(0));
+      }
+    }
+    const bool done = (c.steps > 0 && r.steps >= c.steps) || (c.seconds > 0 && elapsed() >= c.seconds);
+    if (c.prune_every > 0 && r.steps % c.prune_every == 0 && !done) {
+      refine_detail::activate(ws, n, K);
+      r.pruned += refine_detail::prune(ws, K, V, c.prune_opacity);
+    }
+    if (done) break;
+  }
+  n = ws.store.info("means").shape[0];
+  refine_detail::activate(ws, n, K);
+  r.loss_final = refine_detail::views_loss(ws, v, c, false);
+  // Back to the caller: the optimised set (features follow their rows) and cameras.
+  Tensor<T, 2> features;
+  if (!set.features.empty()) {
+    const index_t F = set.features.shape(1);
+    features = Tensor<T, 2>(Shape<2>{n, F});
+    for (index_t i = 0; i < n; ++i)
+      std::copy_n(&set.features(ws.origin[static_cast<std::size_t>(i)], 0), F, &features(i, 0));
+  }
+  set = ws.set;
+  set.features = std::move(features);
+  if (cameras)
+    for (index_t i = 0; i < 12 * V; ++i) v.world_to_camera[i] = static_cast<T>(ws.w2c[static_cast<std::size_t>(i)]);
+  r.seconds = elapsed();
+  return r;
+}
+
+// n Gaussians for a per-scene fit from posed views, defined by the views alone: uniform in the sphere around the
+// point nearest to the optical axes (decoder::scene_centre_from_axes) whose radius the narrowest view sees whole
+// (distance x sin of the smallest half field of view), kept where every view's alpha is >= refine_mask_threshold
+// (the visual hull of the silhouettes; after 64 n draws the rest is taken without the test). Colour: the mean of the
+// views' pixels the centre projects to (occlusion ignored); scale: half the spacing of n points in the sphere;
+// opacity refine_init_opacity; identity rotations; SH degree `degree` (higher bands zero). images [V, h, w, 3],
+// alpha [V, h, w] (null: no silhouette test), K and w2c as RefineViews.
+template <class T>
+GaussianSet<T> random_gaussians_in_views(index_t n, int degree, const RefineViews<T>& v, const T* alpha,
+                                         std::uint64_t seed) {
+  require(n >= 1, "random Gaussians: count ", n, " must be >= 1");
+  require(v.views >= 1 && v.h >= 1 && v.w >= 1 && v.images && v.K && v.world_to_camera,
+          "random Gaussians: need at least one view with images, K and world_to_camera");
+  const index_t V = v.views;
+  std::vector<double> K(static_cast<std::size_t>(9 * V)), E(static_cast<std::size_t>(12 * V)),
+      depth(static_cast<std::size_t>(V), 1.0);
+  for (index_t i = 0; i < 9 * V; ++i) K[static_cast<std::size_t>(i)] = static_cast<double>(v.K[i]);
+  for (index_t i = 0; i < 12 * V; ++i) E[static_cast<std::size_t>(i)] = static_cast<double>(v.world_to_camera[i]);
+  const decoder::ViewGeometry<double> geometry{V, v.w, v.h, 1, 1, K.data(), E.data(), depth.data()};
+  const decoder::SceneCentre scene = decoder::scene_centre_from_axes(geometry);
+  const Eigen::Vector3d centre(scene.centre[0], scene.centre[1], scene.centre[2]);
+  std::vector<Eigen::Matrix3d> R(static_cast<std::size_t>(V));
+  std::vector<Eigen::Vector3d> t(static_cast<std::size_t>(V));
+  double radius = std::numeric_limits<double>::infinity();
+  for (index_t k = 0; k < V; ++k) {
+    const double* W = E.data() + 12 * k;
+    const double* Kk = K.data() + 9 * k;
+    auto& Rk = R[static_cast<std::size_t>(k)];
+    for (int r = 0; r < 3; ++r)
+      for (int col = 0; col < 3; ++col) Rk(r, col) = W[4 * r + col];
+    t[static_cast<std::size_t>(k)] = Eigen::Vector3d(W[3], W[7], W[11]);
+    const Eigen::Vector3d pc = Rk * centre + t[static_cast<std::size_t>(k)];
+    const double half = std::min({std::atan2(Kk[2], Kk[0]), std::atan2(static_cast<double>(v.w) - Kk[2], Kk[0]),
+                                  std::atan2(Kk[5], Kk[4]), std::atan2(static_cast<double>(v.h) - Kk[5], Kk[4])});
+    radius = std::min(radius, pc.norm() * std::sin(std::max(half, 1e-3)));
+  }
+  require(std::isfinite(radius) && radius > 0, "random Gaussians: the views see no sphere around the scene centre (",
+          "radius ", radius, ")");
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> uni(-1.0, 1.0);
+  GaussianSet<T> s = make_gaussian_set<T>(n, degree);
+  const index_t px = v.h * v.w;
+  index_t made = 0, draws = 0;
+  while (made < n) {
+    Eigen::Vector3d u(uni(rng), uni(rng), uni(rng));
+    if (u.squaredNorm() > 1) continue;
+    ++draws;
+    const Eigen::Vector3d p = centre + radius * u;
+    const bool test = alpha && draws <= 64 * n;
+    bool inside = true;
+    double rgb[3] = {0, 0, 0};
+    for (index_t k = 0; k < V && inside; ++k) {
+      const Eigen::Vector3d q = R[static_cast<std::size_t>(k)] * p + t[static_cast<std::size_t>(k)];
+      if (!(q.z() > 0)) {  // behind this camera: outside its silhouette
+        inside = !test;
+        if (!inside) break;
+        continue;
+      }
+      const double* Kk = K.data() + 9 * k;
+      const double x = std::clamp(Kk[0] * q.x() / q.z() + Kk[2], 0.0, static_cast<double>(v.w) - 1e-9);
+      const double y = std::clamp(Kk[4] * q.y() / q.z() + Kk[5], 0.0, static_cast<double>(v.h) - 1e-9);
+      const index_t pix = static_cast<index_t>(y) * v.w + static_cast<index_t>(x);
+      if (test && static_cast<double>(alpha[k * px + pix]) < refine_mask_threshold) inside = false;
+      for (int ch = 0; ch < 3; ++ch) rgb[ch] += static_cast<double>(v.images[(k * px + pix) * 3 + ch]) / static_cast<double>(V);
+    }
+    if (!inside) continue;
+    for (int ch = 0; ch < 3; ++ch) {
+      s.means(made, ch) = static_cast<T>(p[ch]);
+      s.sh(made, 0, ch) = static_cast<T>((rgb[ch] - sh_color_offset) / sh_c0);
+    }
+    ++made;
+  }
+  const T scale = static_cast<T>(0.5 * radius * std::cbrt(4.18879020478639 / static_cast<double>(n)));
+  s.scales.fill(scale);
+  s.opacities.fill(static_cast<T>(refine_init_opacity));
+  return s;
+}
+
+}  // namespace model
+}  // namespace v0
+}  // namespace flexsplat
