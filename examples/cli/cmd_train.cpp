@@ -333,7 +333,8 @@ int train_command(Args args) {
               "' is not a training state");
       step = info.state.step;
     } else if (!init.empty()) {
-      w->load_geometry(init);
+      w->load_geometry(init, train::vggt_name_prefix(safetensors::File::open(init)));
+      if (root && !quiet) std::fprintf(stderr, "train: geometry initialised from %s\n", init.c_str());
     }
     write_text_atomic(run / "config.json", raw.dump(2) + "\n");
     // Log lines past the checkpoint belong to steps that will be redone.

@@ -213,6 +213,20 @@ CheckpointInfo load_checkpoint(const std::filesystem::path& path, ParamStore<T>&
   return info;
 }
 
+// The prefix in front of VGGT's state_dict names in a file ("" for the model hub's file, "param." in reference
+// bundles): whatever precedes the one tensor named *aggregator.camera_token.
+inline std::string vggt_name_prefix(const safetensors::File& file) {
+  const std::string key = "aggregator.camera_token";
+  std::vector<std::string> found;
+  for (const auto& t : file.tensors())
+    if (t.name.size() >= key.size() && t.name.compare(t.name.size() - key.size(), key.size(), key) == 0 &&
+        (t.name.size() == key.size() || t.name[t.name.size() - key.size() - 1] == '.'))
+      found.push_back(t.name.substr(0, t.name.size() - key.size()));
+  require(found.size() == 1, "VGGT file '", file.path(), "': ", found.size(), " tensors named *", key,
+          found.empty() ? " (not a VGGT state dict)" : " (cannot tell which model to load)");
+  return found[0];
+}
+
 // Initialises the tensors of segment `segment` (named as VGGT's state_dict: aggregator.*, camera_head.*,
 // depth_head.*) from a VGGT-layout safetensors file, converting F16/BF16/F64 to T; file_prefix is prepended to every
 // name looked up ("param." in reference bundles). Tensors outside the segment's top-level modules (track_head.*,
