@@ -5,10 +5,10 @@
 // (no weight decay): means, quaternions, log scales, opacity logits, SH DC and higher bands (3DGS's learning rates,
 // lengths scaled by the scene extent, the position rate decaying 100x over the budget). A camera moves by a rigid
 // increment [exp(omega) | tau] left-multiplied onto its world-to-camera and folded in after every step (the gradient
-// is taken at omega = tau = 0); camera 0 stays fixed by default, since it is the model's frame. Gaussians whose
-// opacity falls below refine_prune_opacity are removed every prune_every steps. With a step budget only, the result
-// is deterministic for a fixed thread count. Also here: random_gaussians_in_views, the start of a per-scene fit
-// from posed views (docs/app.md). Usage:
+// is taken at omega = tau = 0); camera 0 stays fixed by default, since it is the model's frame. With prune_every > 0,
+// Gaussians whose opacity falls below refine_prune_opacity are removed every prune_every steps. With a step budget
+// only, the result is deterministic for a fixed thread count. Also here: random_gaussians_in_views, the start of a
+// per-scene fit from posed views (docs/app.md). Usage:
 //   model::RefineConfig rc;  rc.seconds = 5;                       // or rc.steps = 200
 //   model::RefineViews<float> v{V, h, w, images_hwc, K, w2c};       // w2c is updated when cameras are optimised
 //   model::RefineWorkspace<float> ws;
@@ -59,7 +59,7 @@ struct RefineConfig {
   double lr_sh_rest_ratio = 1.0 / 20;  // higher SH bands learn at lr_sh x this
   double lr_rotation = 1e-3;           // radians per step (Adam's step size)
   double lr_translation = 1e-3;        // x the scene extent
-  int prune_every = 50;                // 0: never prune
+  int prune_every = 0;                 // > 0: prune every this many steps (off: no measurable gain, docs/app.md)
   double prune_opacity = refine_prune_opacity;
   double extent = 0;                   // 0: mean distance from the camera centres to the opacity-weighted centre
   std::array<double, 3> background{1, 1, 1};
