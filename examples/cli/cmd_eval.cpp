@@ -17,6 +17,7 @@
 #include <nlohmann/json.hpp>
 
 #include "flexsplat/image/image_io.hpp"
+#include "flexsplat/image/plot.hpp"
 #include "flexsplat/loss/lpips.hpp"
 #include "flexsplat/model/evaluate.hpp"
 #include "flexsplat/model/predict.hpp"
@@ -82,7 +83,7 @@ struct ObjectResult {
   std::string name;
   Scores model, white, posed_fit, feed_forward;  // feed_forward: the model before refinement (with --refine)
   RefineInfo refine;
-  std::vector<std::vector<float>> grid_gt, grid_render;
+  std::vector<std::vector<float>> grid_gt, grid_render, grid_inputs;  // [h, w, 3] each
 };
 
 Scores row(const model::EvalResult& e, double seconds) {
@@ -135,6 +136,11 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
   r.model = row(e, seconds);
   r.white = {e.white.psnr, e.white.ssim, e.white.lpips, NAN, NAN, NAN};
   r.grid_gt = std::move(e.grid_gt), r.grid_render = std::move(e.grid_render);
+  if (o.grid_targets > 0) {
+    const std::vector<float> hwc = model::views_hwc(images.data(), p.views, p.h, p.w);
+    const std::size_t n = static_cast<std::size_t>(3 * p.h * p.w);
+    for (index_t v = 0; v < p.views; ++v) r.grid_inputs.emplace_back(hwc.begin() + v * n, hwc.begin() + (v + 1) * n);
+  }
   if (x.posed_fit) {
     // The same input views with their ground-truth cameras, fitted for the time the model took.
     const model::PosedFit f = model::posed_fit(rec, in, c.image_h, c.image_w, n_model, degree, seconds, seed);
@@ -192,27 +198,24 @@ void print_table(const char* title, const std::vector<std::string>& names, const
   line("mean", mean_of(rows));
 }
 
-// Rows: per object, ground truth above the render; columns: the first targets. Gaps are white.
+// Per object three rows: the input views the model saw, its renders of the first targets, their ground truth.
 void write_grid(const fs::path& path, const std::vector<ObjectResult>& results, index_t h, index_t w) {
   std::size_t cols = 0;
-  for (const auto& r : results) cols = std::max(cols, r.grid_gt.size());
+  for (const auto& r : results) cols = std::max({cols, r.grid_gt.size(), r.grid_inputs.size()});
   require(cols > 0, "eval --grid: no target was rendered");
-  const index_t gap = 2, rows = static_cast<index_t>(2 * results.size());
-  const index_t H = rows * h + (rows - 1) * gap, W = static_cast<index_t>(cols) * w + (static_cast<index_t>(cols) - 1) * gap;
-  Tensor<float, 3> grid(Shape<3>{H, W, 3}, 1.0f);
-  for (std::size_t o = 0; o < results.size(); ++o)
-    for (int which = 0; which < 2; ++which) {
-      const auto& images = which == 0 ? results[o].grid_gt : results[o].grid_render;
-      const index_t y0 = static_cast<index_t>(2 * o + which) * (h + gap);
-      for (std::size_t i = 0; i < images.size(); ++i) {
-        const index_t x0 = static_cast<index_t>(i) * (w + gap);
-        for (index_t y = 0; y < h; ++y)
-          for (index_t x = 0; x < w; ++x)
-            for (int c = 0; c < 3; ++c)
-              grid(y0 + y, x0 + x, c) = std::clamp(images[i][static_cast<std::size_t>((y * w + x) * 3 + c)], 0.0f, 1.0f);
-      }
-    }
-  image::write_png(path, grid);
+  std::vector<image::GridCell> cells;
+  auto row = [&](const std::vector<std::vector<float>>& images, const std::string& label) {
+    for (std::size_t i = 0; i < cols; ++i)
+      cells.push_back(i < images.size() ? image::GridCell{TensorView<const float, 3>(images[i].data(), Shape<3>{h, w, 3}),
+                                                          label + " " + std::to_string(i + 1)}
+                                        : image::GridCell{});
+  };
+  for (const auto& r : results) {
+    row(r.grid_inputs, r.name + " in");
+    row(r.grid_render, "render");
+    row(r.grid_gt, "truth");
+  }
+  image::write_png(path, image::image_grid(cells, static_cast<int>(cols), 112));
 }
 
 // A positive (or, with allow_zero, non-negative) finite number.
@@ -402,7 +405,7 @@ const RegisterCommand registered_cmd_eval(
              "  with a similarity (Umeyama); targets are rendered on white; lpips is null without --lpips\n"
              "  center_error_rel: median camera-centre error / diagonal of the input views' depth-point box\n"
              "  --json: {model, objects: [{name, psnr, ssim, lpips, rotation_error_deg, center_error_rel, seconds}],\n"
-             "  mean, baselines}; --grid: ground truth above render, one row pair per object\n"
+             "  mean, baselines}; --grid: per object its inputs, renders and ground truth\n"
              "  --refine S: optimise the predicted Gaussians and cameras on the input views for S seconds (the\n"
              "  feed-forward scores and the PSNR change are reported too); --rotation-noise DEG: each predicted\n"
              "  input camera turned by DEG degrees about a random axis before the decoder (seeded by --seed and the\n"
