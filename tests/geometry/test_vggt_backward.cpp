@@ -163,7 +163,7 @@ TEST_CASE("VGGT end to end: images -> cameras, depth, confidence, world points, 
 }
 
 TEST_CASE("VGGT frame_tokens: 2 leaves frames after the first order-free, 3 tells frame 2 from frame 1 and shares "
-          "the last set with frame 3; the token gradients match central differences",
+          "the last set with frame 3, and the token gradients match central differences",
           "[geometry][vggt][backward]") {
   const index_t S = 4, H = 4, W = 6;
   auto one = random_doubles(static_cast<std::size_t>(3 * H * W), 9, 0.5);
