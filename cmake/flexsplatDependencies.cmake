@@ -8,6 +8,7 @@ find_dependency(xtensor)
 find_dependency(glm)
 find_dependency(nlohmann_json 3)
 find_dependency(TinyGLTF)
+find_dependency(JPEG)
 find_path(FLEXSPLAT_STB_INCLUDE_DIR stb_image.h PATH_SUFFIXES stb REQUIRED)
 find_library(FLEXSPLAT_STB_LIBRARY stb REQUIRED)
 

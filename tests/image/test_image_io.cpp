@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <string>
@@ -16,6 +17,66 @@ const std::filesystem::path spot = std::filesystem::path(FLEXSPLAT_SHARED_DIR) /
 
 std::filesystem::path temp_path(const std::string& name) {
   return std::filesystem::temp_directory_path() / ("flexsplat_test_img_" + std::to_string(::getpid()) + "_" + name);
+}
+
+// A JPEG written by libjpeg: `components` 1 (grey), 3 (YCbCr) or 4 (CMYK); progressive with `ac_bands` spectral
+// bands per component, each sent at Al = 1 then refined (1 + 2 * ac_bands scans per component after the DC scan).
+std::vector<unsigned char> libjpeg_encode(int w, int h, int components, int ac_bands = 0) {
+  jpeg_compress_struct c{};
+  jpeg_error_mgr err{};
+  c.err = jpeg_std_error(&err);
+  jpeg_create_compress(&c);
+  unsigned char* out = nullptr;
+  unsigned long size = 0;
+  jpeg_mem_dest(&c, &out, &size);
+  c.image_width = static_cast<JDIMENSION>(w);
+  c.image_height = static_cast<JDIMENSION>(h);
+  c.input_components = components;
+  c.in_color_space = components == 1 ? JCS_GRAYSCALE : components == 3 ? JCS_RGB : JCS_CMYK;
+  jpeg_set_defaults(&c);
+  jpeg_set_quality(&c, 95, TRUE);
+  std::vector<jpeg_scan_info> script;
+  if (ac_bands > 0) {
+    jpeg_scan_info dc{};
+    dc.comps_in_scan = components;
+    for (int k = 0; k < components; ++k) dc.component_index[k] = k;
+    script.push_back(dc);
+    for (int pass = 0; pass < 2; ++pass)
+      for (int k = 0; k < components; ++k)
+        for (int b = 0; b < ac_bands; ++b) {
+          jpeg_scan_info ac{};
+          ac.comps_in_scan = 1;
+          ac.component_index[0] = k;
+          ac.Ss = 1 + b * 63 / ac_bands;
+          ac.Se = (b + 1) * 63 / ac_bands;
+          ac.Ah = pass;
+          ac.Al = 1 - pass;
+          script.push_back(ac);
+        }
+    c.scan_info = script.data();
+    c.num_scans = static_cast<int>(script.size());
+  }
+  jpeg_start_compress(&c, TRUE);
+  std::vector<unsigned char> row(static_cast<std::size_t>(w) * components);
+  while (c.next_scanline < c.image_height) {
+    for (int x = 0; x < w; ++x)
+      for (int k = 0; k < components; ++k)
+        row[x * components + k] = static_cast<unsigned char>((x * 7 + k * 50 + c.next_scanline * 3) & 255);
+    JSAMPROW r = row.data();
+    jpeg_write_scanlines(&c, &r, 1);
+  }
+  jpeg_finish_compress(&c);
+  jpeg_destroy_compress(&c);
+  std::vector<unsigned char> bytes(out, out + size);
+  std::free(out);
+  return bytes;
+}
+
+std::filesystem::path write_temp(const std::string& name, const std::vector<unsigned char>& bytes) {
+  const auto path = temp_path(name);
+  std::ofstream(path, std::ios::binary)
+      .write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
+  return path;
 }
 }  // namespace
 
@@ -149,6 +210,47 @@ TEST_CASE("reads JPEG", "[image]") {
   const auto with_alpha = image::read_u8(path, 4);
   CHECK(with_alpha(3, 5, 3) == 255);
   std::filesystem::remove(path);
+}
+
+TEST_CASE("JPEG channel conversions follow stb's rules for PNG", "[image]") {
+  const auto grey = write_temp("grey.jpg", libjpeg_encode(24, 16, 1));
+  const auto g = image::read_u8(grey);
+  REQUIRE(g.shape() == Shape<3>{16, 24, 1});
+  CHECK(image::probe(grey).channels == 1);
+  const auto g4 = image::read_u8(grey, 4);
+  const auto g16 = image::read_u16(grey, 2);
+  for (index_t y = 0; y < 16; ++y)
+    for (index_t x = 0; x < 24; ++x) {
+      CHECK(g4(y, x, 0) == g(y, x, 0));
+      CHECK(g4(y, x, 2) == g(y, x, 0));
+      CHECK(g4(y, x, 3) == 255);
+      CHECK(g16(y, x, 0) == 257 * g(y, x, 0));
+      CHECK(g16(y, x, 1) == 65535);
+    }
+  const auto rgb_path = write_temp("rgb.jpg", libjpeg_encode(24, 16, 3));
+  const auto rgb = image::read_u8(rgb_path);
+  const auto luma = image::read_u8(rgb_path, 1);
+  for (index_t y = 0; y < 16; ++y)
+    for (index_t x = 0; x < 24; ++x)
+      CHECK(int(luma(y, x, 0)) == (77 * rgb(y, x, 0) + 150 * rgb(y, x, 1) + 29 * rgb(y, x, 2)) >> 8);
+  for (const auto& p : {grey, rgb_path}) std::filesystem::remove(p);
+}
+
+TEST_CASE("corrupt, CMYK and endlessly progressive JPEGs are refused by name", "[image]") {
+  // 1 + 2 * 40 scans decode; 1 + 2 * 63 exceed image::detail::max_jpeg_scans.
+  const auto ok = write_temp("scans81.jpg", libjpeg_encode(16, 16, 1, 40));
+  const auto many = write_temp("scans127.jpg", libjpeg_encode(16, 16, 1, 63));
+  CHECK(image::read_u8(ok).shape() == Shape<3>{16, 16, 1});
+  CHECK_THROWS_WITH(image::read_u8(many),
+                    Catch::Contains(many.string()) && Catch::Contains("more than 100 progressive scans"));
+  const auto cmyk = write_temp("cmyk.jpg", libjpeg_encode(16, 16, 4));
+  CHECK_THROWS_WITH(image::probe(cmyk), Catch::Contains(cmyk.string()) && Catch::Contains("CMYK"));
+  // The entropy-coded data cut short: libjpeg would fill the rest with grey.
+  auto bytes = libjpeg_encode(64, 64, 3);
+  bytes.resize(bytes.size() * 2 / 3);
+  const auto cut = write_temp("cut.jpg", bytes);
+  CHECK_THROWS_WITH(image::read_u8(cut), Catch::Contains(cut.string()) && Catch::Contains("cannot decode JPEG"));
+  for (const auto& p : {ok, many, cmyk, cut}) std::filesystem::remove(p);
 }
 
 TEST_CASE("missing and corrupt image files give errors naming the file", "[image]") {

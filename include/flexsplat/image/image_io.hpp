@@ -1,12 +1,14 @@
 #pragma once
-// PNG/JPEG reading and PNG writing through stb (implementation in Debian's libstb.so). Images are HWC tensors:
-// uint8 or uint16 as stored, or float in [0, 1]. Straight (non-premultiplied) alpha, as PNG stores it.
+// PNG reading and writing through stb (implementation in Debian's libstb.so), JPEG reading through libjpeg-turbo.
+// Images are HWC tensors: uint8 or uint16 as stored, or float in [0, 1]. Straight (non-premultiplied) alpha.
 #include <algorithm>
 #include <array>
 #include <atomic>
 #include <cerrno>
 #include <cmath>
+#include <csetjmp>
 #include <cstdint>
+#include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
@@ -18,6 +20,8 @@
 
 #include <unistd.h>
 
+// jpeglib.h needs FILE and size_t declared first.
+#include <jpeglib.h>
 #include <stb/stb_image.h>
 #include <stb/stb_image_write.h>
 
@@ -62,43 +66,127 @@ inline std::vector<unsigned char> read_file_bytes(const std::filesystem::path& p
   return bytes;
 }
 
-// stb 2.27 (Debian 12) writes past a JPEG Huffman table whose 16 code counts sum above 256, before it checks the
-// segment: such tables are refused here. Marker segments are walked as stb reads them (entropy-coded data is
-// scanned for the next marker byte by byte).
-inline void check_jpeg_huffman_tables(const std::filesystem::path& path, const unsigned char* p, std::size_t n) {
-  auto byte = [&](std::size_t i) -> std::size_t { return i < n ? p[i] : 0; };  // stb reads 0 past the end
-  std::size_t pos = 2;
-  while (pos + 4 <= n) {
-    const std::size_t marker = p[pos + 1];
-    if (p[pos] != 0xFF || marker == 0xFF || marker == 0x00 || marker == 0x01 || (marker >= 0xD0 && marker <= 0xD7)) {
-      ++pos;
-      continue;
-    }
-    if (marker == 0xD9) return;
-    const std::size_t length = (std::size_t(p[pos + 2]) << 8) | p[pos + 3];
-    if (marker == 0xC4) {
-      std::size_t q = pos + 4;
-      for (long left = static_cast<long>(length) - 2; left > 0;) {
-        std::size_t codes = 0;
-        for (std::size_t i = 1; i <= 16; ++i) codes += byte(q + i);
-        if (codes > 256)
-          image_error(path, "JPEG Huffman table at byte ", q, " declares ", codes, " codes (at most 256)");
-        q += 17 + codes;
-        left -= static_cast<long>(17 + codes);
-      }
-    }
-    pos += 2 + length;
-  }
+// JPEG through libjpeg-turbo (Pillow's decoder, so JPEG input matches the VGGT preprocessing): stb 2.27's JPEG
+// decoder asserts, shifts out of range and writes past its Huffman tables on corrupt files (docs/reliability.md).
+// Progressive files may chain scans without end; no encoder writes more than a few dozen.
+inline constexpr int max_jpeg_scans = 100;
+
+// Everything libjpeg touches, in one block the caller owns: longjmp then skips only libjpeg's C frames.
+struct JpegReader {
+  jpeg_decompress_struct cinfo{};
+  jpeg_error_mgr err{};
+  jpeg_progress_mgr progress{};
+  std::jmp_buf jump{};
+  char message[JMSG_LENGTH_MAX + 64] = {};
+};
+
+inline JpegReader& jpeg_reader(j_common_ptr c) { return *reinterpret_cast<JpegReader*>(c->client_data); }
+
+inline void jpeg_fail(j_common_ptr c) {
+  c->err->format_message(c, jpeg_reader(c).message);
+  std::longjmp(jpeg_reader(c).jump, 1);
 }
 
-// Refused before stb runs: anything but PNG and JPEG (stb would also decode GIF, PSD, BMP, TGA, HDR, PIC and PNM),
+// Level -1 is corrupt data, which libjpeg would decode on as grey blocks; trace messages (level >= 0) are dropped.
+inline void jpeg_message(j_common_ptr c, int level) {
+  if (level < 0) jpeg_fail(c);
+}
+
+inline void jpeg_scan_limit(j_common_ptr c) {
+  auto& r = jpeg_reader(c);
+  if (r.cinfo.input_scan_number <= max_jpeg_scans) return;
+  std::snprintf(r.message, sizeof r.message, "more than %d progressive scans", max_jpeg_scans);
+  std::longjmp(r.jump, 1);
+}
+
+// Reads the header (and, with `pixels`, the image as grey or RGB rows) of a JPEG; false with r.message on an error.
+// No C++ object with a destructor lives in this frame, so longjmp back to it is well defined.
+inline bool jpeg_run(JpegReader& r, const unsigned char* p, std::size_t n, std::vector<unsigned char>* pixels) {
+  r.cinfo.err = jpeg_std_error(&r.err);
+  r.err.error_exit = jpeg_fail;
+  r.err.emit_message = jpeg_message;
+  r.progress.progress_monitor = jpeg_scan_limit;
+  r.cinfo.client_data = &r;  // kept by jpeg_create_decompress, which may already fail
+  if (setjmp(r.jump)) {
+    jpeg_destroy_decompress(&r.cinfo);
+    return false;
+  }
+  jpeg_create_decompress(&r.cinfo);
+  r.cinfo.progress = &r.progress;
+  jpeg_mem_src(&r.cinfo, p, static_cast<unsigned long>(n));
+  jpeg_read_header(&r.cinfo, TRUE);
+  const auto space = r.cinfo.jpeg_color_space;
+  if (space != JCS_GRAYSCALE && space != JCS_YCbCr && space != JCS_RGB) {
+    std::snprintf(r.message, sizeof r.message, "%d-component CMYK/YCCK JPEG is not supported (save it as RGB)",
+                  r.cinfo.num_components);
+    jpeg_destroy_decompress(&r.cinfo);
+    return false;
+  }
+  if (pixels) {
+    r.cinfo.out_color_space = space == JCS_GRAYSCALE ? JCS_GRAYSCALE : JCS_RGB;
+    jpeg_start_decompress(&r.cinfo);
+    const std::size_t row = std::size_t(r.cinfo.output_width) * std::size_t(r.cinfo.output_components);
+    pixels->resize(row * r.cinfo.output_height);
+    while (r.cinfo.output_scanline < r.cinfo.output_height) {
+      JSAMPROW out = pixels->data() + row * r.cinfo.output_scanline;
+      jpeg_read_scanlines(&r.cinfo, &out, 1);
+    }
+    jpeg_finish_decompress(&r.cinfo);
+  }
+  jpeg_destroy_decompress(&r.cinfo);
+  return true;
+}
+
+struct JpegHeader {
+  int width = 0, height = 0, channels = 0;
+};
+
+inline JpegHeader jpeg_header(const std::filesystem::path& path, const unsigned char* p, std::size_t n) {
+  JpegReader r;
+  if (!jpeg_run(r, p, n, nullptr)) image_error(path, "cannot decode JPEG (", r.message, ")");
+  return {static_cast<int>(r.cinfo.image_width), static_cast<int>(r.cinfo.image_height),
+          r.cinfo.jpeg_color_space == JCS_GRAYSCALE ? 1 : 3};
+}
+
+// stb's conversions, so PNG and JPEG give the same result: grey = (77 r + 150 g + 29 b) >> 8, alpha opaque,
+// 16-bit = 257 x 8-bit.
+template <class S>
+Tensor<S, 3> convert_channels(const std::vector<unsigned char>& in, int h, int w, int stored, int channels) {
+  const int c = channels ? channels : stored;
+  Tensor<S, 3> out(Shape<3>{h, w, c});
+  const S scale = std::is_same_v<S, std::uint8_t> ? S(1) : S(257);
+  const S opaque = std::numeric_limits<S>::max();
+  const std::size_t count = std::size_t(h) * std::size_t(w);
+  for (std::size_t i = 0; i < count; ++i) {
+    const unsigned char* q = in.data() + i * stored;
+    const unsigned r = q[0], g = stored == 3 ? q[1] : q[0], b = stored == 3 ? q[2] : q[0];
+    const unsigned grey = stored == 3 ? (r * 77 + g * 150 + b * 29) >> 8 : r;
+    S* o = out.data() + i * c;
+    if (c <= 2) {
+      o[0] = static_cast<S>(grey * scale);
+      if (c == 2) o[1] = opaque;
+    } else {
+      o[0] = static_cast<S>(r * scale);
+      o[1] = static_cast<S>(g * scale);
+      o[2] = static_cast<S>(b * scale);
+      if (c == 4) o[3] = opaque;
+    }
+  }
+  return out;
+}
+
+inline bool is_jpeg(const std::vector<unsigned char>& bytes) {
+  return bytes.size() >= 3 && bytes[0] == 0xFF && bytes[1] == 0xD8 && bytes[2] == 0xFF;
+}
+
+// Refused before decoding: anything but PNG and JPEG (stb would also decode GIF, PSD, BMP, TGA, HDR, PIC and PNM),
 // PNG chunks longer than the rest of the file (stb grows its IDAT buffer to a chunk's declared length before
-// reading it), the JPEG tables above, and declared sizes beyond max_image_pixels.
+// reading it), and declared sizes beyond max_image_pixels.
 inline void check_declared_size(const std::filesystem::path& path, const std::vector<unsigned char>& bytes) {
   const unsigned char* p = bytes.data();
   const std::size_t n = bytes.size();
   static const unsigned char png_magic[8] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
-  const bool jpeg = n >= 3 && p[0] == 0xFF && p[1] == 0xD8 && p[2] == 0xFF;
+  const bool jpeg = is_jpeg(bytes);
   if (n >= 8 && std::memcmp(p, png_magic, 8) == 0) {
     bool image_data = false;
     for (std::size_t pos = 8; pos + 8 <= n;) {
@@ -115,18 +203,22 @@ inline void check_declared_size(const std::filesystem::path& path, const std::ve
       }
       pos += 12 + len;
     }
-  } else if (jpeg) {
-    check_jpeg_huffman_tables(path, p, n);
-  } else {
+  } else if (!jpeg) {
     image_error(path, "cannot decode: not a readable PNG/JPEG image (no PNG signature or JPEG SOI marker)");
   }
   int w = 0, h = 0, c = 0;
-  if (!stbi_info_from_memory(p, static_cast<int>(n), &w, &h, &c)) return;  // stb names the problem when decoding
+  if (jpeg) {
+    const JpegHeader header = jpeg_header(path, p, n);
+    w = header.width;
+    h = header.height;
+  } else if (!stbi_info_from_memory(p, static_cast<int>(n), &w, &h, &c)) {
+    return;  // stb names the problem when decoding
+  }
   const std::int64_t pixels = static_cast<std::int64_t>(w) * h;
   if (pixels > max_image_pixels)
     image_error(path, "declares ", w, " x ", h, " pixels, more than the limit of ", max_image_pixels);
   // Every 8x8 block of a JPEG costs at least one bit (its DC code): a file with under 1 byte per 1024 pixels is
-  // mostly missing, and stb would spend seconds decoding the missing blocks from padding.
+  // mostly missing, and a decoder would spend seconds decoding the missing blocks from padding.
   if (jpeg && pixels > 1024 * static_cast<std::int64_t>(n))
     image_error(path, "JPEG declares ", w, " x ", h, " pixels but holds only ", n, " bytes (truncated?)");
 }
@@ -134,6 +226,10 @@ inline void check_declared_size(const std::filesystem::path& path, const std::ve
 inline ImageInfo probe_bytes(const std::filesystem::path& path, const std::vector<unsigned char>& bytes) {
   check_declared_size(path, bytes);
   ImageInfo info;
+  if (is_jpeg(bytes)) {
+    const JpegHeader header = jpeg_header(path, bytes.data(), bytes.size());
+    return {header.width, header.height, header.channels, 8};
+  }
   const int len = static_cast<int>(bytes.size());
   if (!stbi_info_from_memory(bytes.data(), len, &info.width, &info.height, &info.channels))
     image_error(path, "not a readable PNG/JPEG image (", stbi_failure_reason(), ")");
@@ -150,6 +246,13 @@ template <class S>
 Tensor<S, 3> decode(const std::filesystem::path& path, const std::vector<unsigned char>& bytes, int channels) {
   check_channels(path, channels);
   check_declared_size(path, bytes);
+  if (is_jpeg(bytes)) {
+    JpegReader r;
+    std::vector<unsigned char> rows;
+    if (!jpeg_run(r, bytes.data(), bytes.size(), &rows)) image_error(path, "cannot decode JPEG (", r.message, ")");
+    return convert_channels<S>(rows, static_cast<int>(r.cinfo.output_height), static_cast<int>(r.cinfo.output_width),
+                               r.cinfo.output_components, channels);
+  }
   int w = 0, h = 0, stored = 0;
   S* pixels = nullptr;
   if constexpr (std::is_same_v<S, std::uint8_t>)
