@@ -72,6 +72,7 @@ struct Experiment {
   double rotation_noise_deg = 0;  // 0: none
   std::uint64_t seed = 0;         // rotation noise and the posed fit's initialisation (per object: model::object_seed)
   bool posed_fit = false;
+  index_t gaussians = 0;          // 0: the model's budget for the view count
 };
 
 // The refinement's own numbers (steps, loss on the input views before and after, Gaussians pruned).
@@ -109,7 +110,7 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
     noise = [&](model::GeometryResult<float>& g) {
       model::rotation_noise(g.extrinsics.data(), g.views, x.rotation_noise_deg, seed);
     };
-  model::Prediction<float> p = model::predict<float>(ws, w, TensorView<const float, 4>(images.view()), 0, noise);
+  model::Prediction<float> p = model::predict<float>(ws, w, TensorView<const float, 4>(images.view()), x.gaussians, noise);
   double seconds = since(t0);
   const index_t n_model = p.gaussians.size();
   const int degree = p.gaussians.sh_degree();
@@ -244,7 +245,7 @@ nlohmann::json refine_json(const RefineInfo& r, const Scores& refined, const Sco
 
 int eval_command(Args args) {
   std::string model_path, views_text, json_path, grid_path, lpips_path, max_targets_text, grid_cols_text;
-  std::string refine_text, noise_text, seed_text, baseline;
+  std::string refine_text, noise_text, seed_text, baseline, gaussians_text, attention_text;
   std::vector<std::string> baselines;
   take_option(args, "--model", model_path);
   take_option(args, "--views", views_text);
@@ -260,6 +261,8 @@ int eval_command(Args args) {
   take_option(args, "--refine", refine_text);
   take_option(args, "--rotation-noise", noise_text);
   take_option(args, "--seed", seed_text);
+  take_option(args, "--gaussians", gaussians_text);
+  take_option(args, "--self-attention", attention_text);
   const bool quiet = take_flag(args, "--quiet");
   for (const auto& a : args) require(a.empty() || a[0] != '-', "eval: unknown option '", a, "'");
   require(!args.empty(), "eval needs at least one OBJECT_DIR (a folder with cameras.json, or a folder of them)");
@@ -303,9 +306,21 @@ int eval_command(Args args) {
     require(used == seed_text.size() && seed_text[0] != '-', "--seed '", seed_text, "' must be a non-negative integer");
   }
 
+  if (!gaussians_text.empty()) x.gaussians = parse_count(gaussians_text, "--gaussians", 0);
+  // --self-attention full | local | local:WINDOW (the decoder's self-attention has no parameters of its own).
+  std::optional<std::pair<bool, index_t>> attention;
+  if (!attention_text.empty()) {
+    const bool local = attention_text.rfind("local", 0) == 0;
+    require(attention_text == "full" || attention_text == "local" || attention_text.rfind("local:", 0) == 0,
+            "eval: --self-attention '", attention_text, "' must be full, local or local:WINDOW");
+    const index_t window = attention_text.size() > 6 ? parse_count(attention_text.substr(6), "--self-attention local:", 0) : 512;
+    attention = std::pair<bool, index_t>(local, window);
+  }
+
   model_path = model_or_default(model_path);
   require(fs::is_regular_file(model_path), "eval: model file '", model_path, "' does not exist");
   const auto w = model::load_flexsplat<float>(model_path);
+  if (attention) w->set_self_attention(attention->first, attention->second);
   std::optional<loss::LpipsWeights<float>> lpips;
   if (!lpips_path.empty()) lpips = loss::lpips_load_weights<float>(safetensors::File::open(lpips_path));
 
@@ -333,6 +348,9 @@ int eval_command(Args args) {
   }
   std::string title = "model " + model_path;
   char buf[96];
+  if (attention) title += attention->first ? ", local self-attention (windows of " + std::to_string(attention->second) + ")"
+                                           : std::string(", full self-attention");
+  if (x.gaussians > 0) title += ", " + std::to_string(x.gaussians) + " Gaussians";
   if (x.rotation_noise_deg > 0) {
     std::snprintf(buf, sizeof buf, ", rotation noise %g deg (seed %llu)", x.rotation_noise_deg,
                   static_cast<unsigned long long>(x.seed));
@@ -361,6 +379,8 @@ int eval_command(Args args) {
     j["refine_seconds"] = x.refine_seconds;
     j["rotation_noise_deg"] = x.rotation_noise_deg;
     j["seed"] = x.seed;
+    const auto& dc = w->config().appearance.decoder;
+    j["self_attention"] = dc.local_attention ? "local:" + std::to_string(dc.window) : std::string("full");
     j["objects"] = nlohmann::json::array();
     for (std::size_t i = 0; i < rows.size(); ++i) {
       nlohmann::json o = scores_json(names[i], rows[i]);
@@ -397,7 +417,8 @@ const RegisterCommand registered_cmd_eval(
     "eval", {"evaluate a model on object folders: predicted cameras aligned to the ground truth, held-out views scored",
              "OBJECT_DIR... [--model M.safetensors] [--views N|i,j,k] [--max-targets N]\n"
              "  [--baseline white|posed-fit|white,posed-fit] [--refine SECONDS] [--rotation-noise DEG] [--seed N]\n"
-             "  [--lpips LPIPS.safetensors] [--json out.json] [--grid out.png [--grid-targets 4]] [--quiet]\n"
+             "  [--gaussians N] [--self-attention full|local[:WINDOW]] [--lpips LPIPS.safetensors] [--json out.json]\n"
+             "  [--grid out.png [--grid-targets 4]] [--quiet]\n"
              "  OBJECT_DIR: a folder in the layout of ../shared/data/objects/<name> or a folder of them\n"
              "  inputs: the folder's input_views (--views N: those when it lists N, else N evenly spaced frames;\n"
              "  --views i,j,k: these frames); targets: every other frame (the first N with --max-targets)\n"
@@ -410,7 +431,9 @@ const RegisterCommand registered_cmd_eval(
              "  feed-forward scores and the PSNR change are reported too); --rotation-noise DEG: each predicted\n"
              "  input camera turned by DEG degrees about a random axis before the decoder (seeded by --seed and the\n"
              "  object's name); --baseline posed-fit: a per-scene fit from the input views with their ground-truth\n"
-             "  cameras for the model's seconds (docs/app.md)",
+             "  cameras for the model's seconds; --gaussians: default the model's budget for the view count;\n"
+             "  --self-attention: the decoder's, whatever the model was trained with (local: windows of 512)\n"
+             "  (docs/app.md)",
              eval_command});
 
 }  // namespace flexsplat::cli::eval_cmd

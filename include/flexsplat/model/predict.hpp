@@ -200,6 +200,13 @@ Tensor<T, 4> model_input(const std::vector<Tensor<float, 3>>& rgba, const FlexSp
   if (mappings) mappings->clear();
   for (index_t v = 0; v < V; ++v) {
     try {
+      // A window smaller than one patch is less than one token of picture (a one-pixel "photo"): nothing to see.
+      const auto& im = rgba[static_cast<std::size_t>(v)];
+      const index_t p = c.geometry.aggregator.patch_size;
+      const ViewMapping window = view_mapping(im.shape(1), im.shape(0), c.image_h, c.image_w);
+      require(window.width >= p && window.height >= p, "its ", window.width, " x ", window.height,
+              " pixel window (of ", im.shape(1), " x ", im.shape(0), ") is smaller than one ", p, " x ", p,
+              " patch of the model");
       const ViewMapping m = model_view<T>(out.data() + v * 3 * c.image_h * c.image_w,
                                           TensorView<const float, 3>(rgba[static_cast<std::size_t>(v)].view()),
                                           c.image_h, c.image_w, background);

@@ -88,6 +88,16 @@ public:
     train::save_model(path, store_, to_json(config_), step);
   }
 
+  // The decoder's self-attention, full or local (Morton windows of `window` queries): it has no parameters of its own,
+  // so a loaded model runs either way (eval --self-attention); save() then records the choice.
+  void set_self_attention(bool local, index_t window) {
+    FlexSplatConfig c = config_;
+    c.appearance.decoder.local_attention = local;
+    c.appearance.decoder.window = window;
+    c.validate();
+    config_ = c;
+  }
+
   const FlexSplatConfig& config() const noexcept { return config_; }
   train::ParamStore<T>& store() noexcept { return store_; }
   const train::ParamStore<T>& store() const noexcept { return store_; }
