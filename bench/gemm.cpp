@@ -1,6 +1,7 @@
 // GEMM throughput of flexsplat::gemm on its two backends (the BLAS when the build has one, Eigen's kernels) against a
 // naive triple loop, float; then the reference SGEMM 2048x2048x1024 (C = A B^T) the other benchmarks divide by, and
-// the per-call time of small products on one thread (where gemm_blas_min_madds comes from).
+// the per-call time of small products on one thread (where gemm_blas_min_madds comes from); with oneDNN, the bf16
+// backend on the reference shape and per call (where gemm_bf16_min_madds comes from).
 // Usage: build/bench/gemm [max_size] [rounds]   (sizes 256, 512, ... up to max_size, default 2048; rounds default 3)
 // Backends and thread counts run interleaved, `rounds` times each, and the best time is kept: the machine is shared.
 #include <sys/resource.h>
@@ -177,6 +178,51 @@ int main(int argc, char** argv) {
     std::snprintf(label, sizeof label, "%lldx%lldx%lld", (long long)M, (long long)N, (long long)K);
     std::printf("%16s  %10lld  %9.2f  %9.2f  %8.2f\n", label, static_cast<long long>(M * N * K), t_eigen * 1e6,
                 t_blas * 1e6, t_eigen / t_blas);
+  }
+#endif
+#if defined(FLEXSPLAT_HAVE_DNNL)
+  {
+    // The reference shape in bf16 (operands rounded, fp32 accumulation) next to fp32, interleaved, 2 threads.
+    const index_t M = 2048, N = 2048, K = 1024;
+    const auto A = random_floats(M * K, 3), B = random_floats(N * K, 4);
+    std::vector<float> C(M * N);
+    const GemmBackend fp32 = bench::best_gemm_backend();
+    double t32 = 1e300, t16 = 1e300;
+    for (int r = 0; r < 2 * std::max(rounds, 3); ++r) {
+      t32 = std::min(t32, seconds_per_call([&] {
+        gemm(fp32, Trans::no, Trans::yes, M, N, K, 1.0f, A.data(), K, B.data(), K, 0.0f, C.data(), N, two);
+      }, 0.0));
+      t16 = std::min(t16, seconds_per_call([&] {
+        gemm(GemmBackend::bf16, Trans::no, Trans::yes, M, N, K, 1.0f, A.data(), K, B.data(), K, 0.0f, C.data(), N, two);
+      }, 0.0));
+    }
+    const double flops = 2.0 * double(M) * double(N) * double(K);
+    std::printf("\nbf16: %s\nSGEMM shape 2048x2048x1024, 2 threads: fp32 %.1f GFLOP/s, bf16 %.1f GFLOP/s (%.2fx)\n",
+                gemm_backend_name(GemmBackend::bf16).c_str(), flops / t32 * 1e-9, flops / t16 * 1e-9, t32 / t16);
+    std::printf("\nC = A B^T on one thread, microseconds per call (best of %d rounds); gemm uses bf16 from M N K >= "
+                "%lld\n", rounds, static_cast<long long>(gemm_bf16_min_madds));
+    std::printf("%16s  %10s  %9s  %9s  %8s\n", "M x N x K", "M N K", "fp32 us", "bf16 us", "fp32/bf16");
+    const index_t shapes[][3] = {{32, 32, 32},    {64, 64, 64},    {96, 96, 96},     {128, 128, 128},
+                                 {256, 64, 64},   {256, 256, 64},  {256, 256, 256},  {512, 256, 256},
+                                 {512, 512, 512}, {329, 1024, 1024}, {1316, 4096, 1024}};
+    for (const auto& shape : shapes) {
+      const index_t m = shape[0], n = shape[1], k = shape[2];
+      const auto a = random_floats(m * k, 1), b = random_floats(n * k, 2);
+      std::vector<float> c(m * n);
+      double s32 = 1e300, s16 = 1e300;
+      for (int r = 0; r < rounds; ++r) {
+        s32 = std::min(s32, seconds_per_call([&] {
+          detail::gemm_block(fp32, Trans::no, Trans::yes, m, n, k, 1.0f, a.data(), k, b.data(), k, 0.0f, c.data(), n);
+        }, 0.05));
+        s16 = std::min(s16, seconds_per_call([&] {
+          detail::bf16_gemm(Trans::no, Trans::yes, m, n, k, 1.0f, a.data(), k, b.data(), k, 0.0f, c.data(), n);
+        }, 0.05));
+      }
+      char label[32];
+      std::snprintf(label, sizeof label, "%lldx%lldx%lld", (long long)m, (long long)n, (long long)k);
+      std::printf("%16s  %10lld  %9.1f  %9.1f  %8.2f\n", label, static_cast<long long>(m * n * k), s32 * 1e6,
+                  s16 * 1e6, s32 / s16);
+    }
   }
 #endif
   std::printf("\nagreement within 1e-5 relative: %s\n", all_agree ? "yes" : "NO");

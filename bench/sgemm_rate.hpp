@@ -37,9 +37,12 @@ inline std::string build_label() {
 #else
   const char* kind = "portable";
 #endif
-  const bool blas = default_gemm_backend() == GemmBackend::blas;
+  const GemmBackend b = default_gemm_backend();
   return concat(kind, " (", simd::compiled_arch_name(), " batches), gemm on ",
-                blas ? "BLAS" : (have_blas ? "Eigen (FLEXSPLAT_GEMM=eigen)" : "Eigen (no BLAS in this build)"));
+                b == GemmBackend::blas   ? "BLAS"
+                : b == GemmBackend::bf16 ? "oneDNN bf16 (FLEXSPLAT_GEMM=bf16)"
+                : have_blas              ? "Eigen (FLEXSPLAT_GEMM=eigen)"
+                                         : "Eigen (no BLAS in this build)");
 }
 
 // The SGEMM line every such benchmark prints: which backend gave the reference rate, and the build.

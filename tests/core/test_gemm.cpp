@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "flexsplat/core/gemm.hpp"
+#include "flexsplat/core/half.hpp"
 
 using namespace flexsplat;
 
@@ -184,4 +185,67 @@ TEST_CASE("gemm is bitwise deterministic for a thread count, and the backends ag
       INFO("result " << r << " element " << i);
       REQUIRE(std::abs(double(results[r][i]) - double(results[0][i])) <= 2.0 * double(K) * eps * bound[i]);
     }
+}
+
+TEST_CASE("bf16 gemm is the fp32-accumulated product of the bf16-rounded operands", "[gemm]") {
+  if constexpr (!have_bf16_gemm) {
+    WARN("this build has no oneDNN: GemmBackend::bf16 is not available");
+    return;
+  }
+  // Every transpose, padded strides, alpha and beta, above gemm_bf16_min_madds so that oneDNN runs.
+  const index_t M = 130, N = 110, K = 96, pad = 3;
+  REQUIRE(M * N * K >= gemm_bf16_min_madds);
+  const double eps = std::numeric_limits<float>::epsilon();
+  ThreadPool one(1), two(2);
+  for (Trans ta : {Trans::no, Trans::yes})
+    for (Trans tb : {Trans::no, Trans::yes}) {
+      const index_t lda = (ta == Trans::no ? K : M) + pad, ldb = (tb == Trans::no ? N : K) + pad, ldc = N + pad;
+      const auto A = random_vector<float>((ta == Trans::no ? M : K) * lda, 41);
+      const auto B = random_vector<float>((tb == Trans::no ? K : N) * ldb, 42);
+      const auto C0 = random_vector<float>(M * ldc, 43);
+      std::vector<float> Ar(A.size()), Br(B.size());
+      for (std::size_t i = 0; i < A.size(); ++i) Ar[i] = float(bf16(A[i]));
+      for (std::size_t i = 0; i < B.size(); ++i) Br[i] = float(bf16(B[i]));
+      const float alpha = 0.5f, beta = 0.75f;
+      std::vector<float> exact = C0, rounded = C0;
+      naive_gemm(ta, tb, M, N, K, alpha, A.data(), lda, B.data(), ldb, beta, exact.data(), ldc);
+      naive_gemm(ta, tb, M, N, K, alpha, Ar.data(), lda, Br.data(), ldb, beta, rounded.data(), ldc);
+      double worst_vs_exact = 0, fp32_bound = 0;
+      for (ThreadPool* pool : {&one, &two}) {
+        INFO("ta " << int(ta) << " tb " << int(tb) << " threads " << pool->size());
+        std::vector<float> c = C0;
+        gemm(GemmBackend::bf16, ta, tb, M, N, K, alpha, A.data(), lda, B.data(), ldb, beta, c.data(), ldc, *pool);
+        for (index_t i = 0; i < M; ++i)
+          for (index_t j = 0; j < N; ++j) {
+            double s = 0;  // sum_k |a| |b| of the rounded operands
+            for (index_t k = 0; k < K; ++k)
+              s += std::abs(double(ta == Trans::no ? Ar[i * lda + k] : Ar[k * lda + i])) *
+                   std::abs(double(tb == Trans::no ? Br[k * ldb + j] : Br[j * ldb + k]));
+            const std::size_t e = i * ldc + j;
+            REQUIRE(std::abs(double(c[e]) - double(rounded[e])) <=
+                    2.0 * double(K) * eps * alpha * s + 2.0 * eps * std::abs(double(beta) * C0[e]));
+            worst_vs_exact = std::max(worst_vs_exact, std::abs(double(c[e]) - double(exact[e])));
+            fp32_bound = std::max(fp32_bound, 2.0 * double(K) * eps * alpha * s);
+          }
+        for (index_t i = 0; i < M; ++i)
+          for (index_t j = N; j < ldc; ++j) REQUIRE(c[i * ldc + j] == C0[i * ldc + j]);  // padding untouched
+      }
+      // The operands were rounded (8-bit significands): further from the exact product than any fp32 summation order.
+      CHECK(worst_vs_exact > fp32_bound);
+    }
+}
+
+TEST_CASE("bf16 gemm: double products and small float ones keep full precision", "[gemm]") {
+  if constexpr (!have_bf16_gemm) return;
+  const index_t M = 8, N = 8, K = 8;  // far below gemm_bf16_min_madds
+  const auto A = random_vector<float>(M * K, 51), B = random_vector<float>(K * N, 52);
+  std::vector<float> c(M * N), ref(M * N);
+  gemm(GemmBackend::bf16, Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, c.data(), N);
+  naive_gemm(Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, ref.data(), N);
+  CHECK(max_abs_diff(c, ref) <= 2.0 * K * std::numeric_limits<float>::epsilon());
+  const auto Ad = random_vector<double>(64 * 64, 53), Bd = random_vector<double>(64 * 64, 54);
+  std::vector<double> cd(64 * 64), refd(64 * 64);
+  gemm(GemmBackend::bf16, Trans::no, Trans::yes, 64, 64, 64, 1.0, Ad.data(), 64, Bd.data(), 64, 0.0, cd.data(), 64);
+  naive_gemm(Trans::no, Trans::yes, 64, 64, 64, 1.0, Ad.data(), 64, Bd.data(), 64, 0.0, refd.data(), 64);
+  CHECK(max_abs_diff(cd, refd) <= 2.0 * 64 * std::numeric_limits<double>::epsilon());
 }

@@ -1,9 +1,11 @@
 #pragma once
 // Row-major GEMM C = alpha * op(A) * op(B) + beta * C on a CBLAS (OpenBLAS) when the build links one
 // (FLEXSPLAT_HAVE_CBLAS, set by the flexsplat CMake target), else on Eigen's kernels; rows of C split over the pool.
+// With oneDNN (FLEXSPLAT_HAVE_DNNL) float products may run in bf16 with fp32 accumulation: GemmBackend::bf16.
 #include <Eigen/Core>
 
 #include <algorithm>
+#include <atomic>
 #include <climits>
 #include <cstdlib>
 #include <string>
@@ -12,6 +14,11 @@
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/tensor.hpp"
 
+#if defined(FLEXSPLAT_HAVE_DNNL)
+#include <oneapi/dnnl/dnnl.hpp>
+// The OpenMP runtime oneDNN runs on (libgomp): declared here so that no compiler's omp.h is needed.
+extern "C" void omp_set_num_threads(int);
+#endif
 #if defined(FLEXSPLAT_HAVE_CBLAS)
 #include <cblas.h>
 #endif
@@ -20,7 +27,9 @@ namespace flexsplat {
 inline namespace v0 {
 
 enum class Trans { no, yes };
-enum class GemmBackend { eigen, blas };
+// bf16: float products with both operands rounded to bf16, accumulated and returned in fp32 (oneDNN); double
+// products and float ones below gemm_bf16_min_madds run on the BLAS (or Eigen) as with `blas`.
+enum class GemmBackend { eigen, blas, bf16 };
 
 template <class T>
 using RowMatrix = Eigen::Matrix<T, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
@@ -34,25 +43,54 @@ inline constexpr bool have_blas = true;
 #else
 inline constexpr bool have_blas = false;
 #endif
+#if defined(FLEXSPLAT_HAVE_DNNL)
+inline constexpr bool have_bf16_gemm = true;
+#else
+inline constexpr bool have_bf16_gemm = false;
+#endif
 
 // Products below this many multiply-adds stay on Eigen even with a BLAS: there a CBLAS call's fixed cost loses to
 // Eigen's inlined kernels (bench/gemm's small-shape table: Eigen 2-4x faster at 4^3, even at 8^3 = 512, OpenBLAS
 // faster from 12^3 = 1728 on).
 inline constexpr index_t gemm_blas_min_madds = index_t(1) << 10;
 
-// The BLAS when the build has one, Eigen otherwise; FLEXSPLAT_GEMM=eigen|blas overrides it (read once).
+namespace detail {
+inline std::atomic<int>& gemm_backend_override() {
+  static std::atomic<int> choice{-1};
+  return choice;
+}
+}  // namespace detail
+
+// What gemm() without a backend uses: set_default_gemm_backend's choice, else FLEXSPLAT_GEMM=eigen|blas|bf16 (read
+// once), else the BLAS when the build has one and Eigen otherwise.
 inline GemmBackend default_gemm_backend() {
+  if (const int choice = detail::gemm_backend_override().load(std::memory_order_relaxed); choice >= 0)
+    return static_cast<GemmBackend>(choice);
   static const GemmBackend backend = [] {
     const char* env = std::getenv("FLEXSPLAT_GEMM");
     if (!env || !*env) return have_blas ? GemmBackend::blas : GemmBackend::eigen;
     const std::string v = env;
-    require(v == "eigen" || v == "blas", "FLEXSPLAT_GEMM='", v, "' is neither 'eigen' nor 'blas'");
-    require(v == "eigen" || have_blas, "FLEXSPLAT_GEMM=blas but this build has no BLAS (FLEXSPLAT_USE_BLAS=OFF or "
-                                       "OpenBLAS not found at configure time)");
-    return v == "blas" ? GemmBackend::blas : GemmBackend::eigen;
+    require(v == "eigen" || v == "blas" || v == "bf16", "FLEXSPLAT_GEMM='", v, "' is not 'eigen', 'blas' or 'bf16'");
+    require(v != "blas" || have_blas, "FLEXSPLAT_GEMM=blas but this build has no BLAS (FLEXSPLAT_USE_BLAS=OFF or "
+                                      "OpenBLAS not found at configure time)");
+    require(v != "bf16" || have_bf16_gemm, "FLEXSPLAT_GEMM=bf16 but this build has no oneDNN (FLEXSPLAT_USE_DNNL=OFF "
+                                           "or libdnnl-dev not found at configure time)");
+    return v == "blas" ? GemmBackend::blas : v == "bf16" ? GemmBackend::bf16 : GemmBackend::eigen;
   }();
   return backend;
 }
+
+// Selects the backend of every later gemm() call without one (e.g. bf16 for a whole forward pass); call it between
+// passes, not while other threads multiply.
+inline void set_default_gemm_backend(GemmBackend backend) {
+  require(backend != GemmBackend::blas || have_blas, "set_default_gemm_backend: this build has no BLAS");
+  require(backend != GemmBackend::bf16 || have_bf16_gemm, "set_default_gemm_backend: this build has no oneDNN (bf16)");
+  detail::gemm_backend_override().store(static_cast<int>(backend), std::memory_order_relaxed);
+}
+
+// Float products below this many multiply-adds stay in fp32 under GemmBackend::bf16: oneDNN's per-call set-up
+// (primitive look-up, two reorders) costs tens of microseconds.
+inline constexpr index_t gemm_bf16_min_madds = index_t(1) << 20;
 
 namespace detail {
 
@@ -92,6 +130,43 @@ void blas_gemm(Trans ta, Trans tb, index_t M, index_t N, index_t K, T alpha, con
 }
 #endif
 
+#if defined(FLEXSPLAT_HAVE_DNNL)
+// C[:M, :N] = alpha op(A) op(B) + beta C on the calling thread: oneDNN reorders A and B to bf16 (round to nearest
+// even) in the layouts its matmul prefers, which accumulates in fp32 (AVX-512 BF16 kernels where the CPU has them).
+inline void bf16_gemm(Trans ta, Trans tb, index_t M, index_t N, index_t K, float alpha, const float* A, index_t lda,
+                      const float* B, index_t ldb, float beta, float* C, index_t ldc) {
+  using dims = dnnl::memory::dims;
+  using dt = dnnl::memory::data_type;
+  try {
+    static const dnnl::engine engine(dnnl::engine::kind::cpu, 0);
+    thread_local dnnl::stream stream(engine);
+    omp_set_num_threads(1);  // the pool splits the work, as with OpenBLAS: no OpenMP team per worker
+    const dnnl::memory::desc a_f32({M, K}, dt::f32, ta == Trans::no ? dims{lda, 1} : dims{1, lda});
+    const dnnl::memory::desc b_f32({K, N}, dt::f32, tb == Trans::no ? dims{ldb, 1} : dims{1, ldb});
+    const dnnl::memory::desc c_f32({M, N}, dt::f32, dims{ldc, 1});
+    const auto any = dnnl::memory::format_tag::any;
+    dnnl::primitive_attr attr;
+    if (alpha != 1.0f) attr.set_output_scales(0, {alpha});
+    if (beta != 0.0f) {
+      dnnl::post_ops ops;
+      ops.append_sum(beta);
+      attr.set_post_ops(ops);
+    }
+    const dnnl::matmul::desc desc(dnnl::memory::desc({M, K}, dt::bf16, any), dnnl::memory::desc({K, N}, dt::bf16, any),
+                                  c_f32);
+    const dnnl::matmul::primitive_desc pd(desc, attr, engine);
+    dnnl::memory a_in(a_f32, engine, const_cast<float*>(A)), b_in(b_f32, engine, const_cast<float*>(B));
+    dnnl::memory a(pd.src_desc(), engine), b(pd.weights_desc(), engine), c(c_f32, engine, C);
+    dnnl::reorder(a_in, a).execute(stream, a_in, a);
+    dnnl::reorder(b_in, b).execute(stream, b_in, b);
+    dnnl::matmul(pd).execute(stream, {{DNNL_ARG_SRC, a}, {DNNL_ARG_WEIGHTS, b}, {DNNL_ARG_DST, c}});
+    stream.wait();
+  } catch (const dnnl::error& e) {
+    fail("gemm (bf16, oneDNN): M ", M, " N ", N, " K ", K, " lda ", lda, " ldb ", ldb, " ldc ", ldc, ": ", e.what());
+  }
+}
+#endif
+
 // One block on one thread: C[:M, :N] = alpha op(A) op(B) + beta C, A/B/C already offset to the block.
 template <class T>
 void gemm_block(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, index_t K, T alpha, const T* A,
@@ -102,6 +177,15 @@ void gemm_block(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, i
     else if (beta != T(1)) c *= beta;
     return;
   }
+#if defined(FLEXSPLAT_HAVE_DNNL)
+  if constexpr (std::is_same_v<T, float>) {
+    if (backend == GemmBackend::bf16) {
+      bf16_gemm(ta, tb, M, N, K, alpha, A, lda, B, ldb, beta, C, ldc);
+      return;
+    }
+  }
+#endif
+  if (backend == GemmBackend::bf16) backend = have_blas ? GemmBackend::blas : GemmBackend::eigen;
 #if defined(FLEXSPLAT_HAVE_CBLAS)
   if constexpr (std::is_same_v<T, float> || std::is_same_v<T, double>) {
     if (backend == GemmBackend::blas && M * N * K >= gemm_blas_min_madds) {
@@ -128,6 +212,13 @@ void gemm_block(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, i
 inline std::string gemm_backend_name(GemmBackend backend = default_gemm_backend()) {
   if (backend == GemmBackend::eigen)
     return concat("Eigen ", EIGEN_WORLD_VERSION, '.', EIGEN_MAJOR_VERSION, '.', EIGEN_MINOR_VERSION);
+#if defined(FLEXSPLAT_HAVE_DNNL)
+  if (backend == GemmBackend::bf16) {
+    const dnnl_version_t* v = dnnl_version();
+    return concat("oneDNN ", v->major, '.', v->minor, '.', v->patch, " bf16 matmul (fp32 accumulation), single-threaded "
+                  "calls; small products on ", gemm_backend_name(have_blas ? GemmBackend::blas : GemmBackend::eigen));
+  }
+#endif
 #if defined(FLEXSPLAT_HAVE_OPENBLAS)
   detail::openblas_single_threaded();
   std::string config = openblas_get_config();  // names the kernels in use
@@ -144,8 +235,12 @@ template <class T>
 void gemm(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, index_t K, T alpha, const T* A, index_t lda,
           const T* B, index_t ldb, T beta, T* C, index_t ldc, ThreadPool& pool = global_pool()) {
   if (M <= 0 || N <= 0) return;
-  require(backend == GemmBackend::eigen || have_blas, "gemm: the BLAS backend was requested but this build has none");
-  if (backend == GemmBackend::blas) {
+  require(backend != GemmBackend::blas || have_blas, "gemm: the BLAS backend was requested but this build has none");
+  require(backend != GemmBackend::bf16 || have_bf16_gemm, "gemm: bf16 was requested but this build has no oneDNN");
+  // Decided for the whole product, so that the pool's split never changes the precision.
+  if (backend == GemmBackend::bf16 && (!std::is_same_v<T, float> || M * N * K < gemm_bf16_min_madds))
+    backend = have_blas ? GemmBackend::blas : GemmBackend::eigen;
+  if (backend != GemmBackend::eigen) {
     const index_t a_cols = ta == Trans::no ? K : M, b_cols = tb == Trans::no ? N : K;
     const index_t a_rows = ta == Trans::no ? M : K, b_rows = tb == Trans::no ? K : N;
     if (std::max({M, N, K, lda, ldb, ldc}) > index_t(INT_MAX) || (a_rows > 1 && lda < a_cols) ||
