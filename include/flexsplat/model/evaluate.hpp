@@ -11,6 +11,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <numbers>
 #include <random>
 #include <string>
 #include <vector>
@@ -21,6 +22,7 @@
 #include "flexsplat/core/gaussians.hpp"
 #include "flexsplat/data/dataset.hpp"
 #include "flexsplat/image/image_io.hpp"
+#include "flexsplat/image/layout.hpp"
 #include "flexsplat/loss/image.hpp"
 #include "flexsplat/loss/lpips.hpp"
 #include "flexsplat/loss/ssim.hpp"
@@ -135,8 +137,8 @@ inline void add_scores(EvalScores& s, EvalWorkspace& ws, const EvalOptions& o, c
   s.ssim += loss::ssim_forward(a, b, loss::ImageShape{1, 3, h, w, loss::Layout::nhwc}, loss::SsimConfig{}, ws.ssim);
   if (!o.lpips) return;
   ws.a_chw.resize(static_cast<std::size_t>(3 * h * w)), ws.b_chw.resize(ws.a_chw.size());
-  hwc_to_chw(ws.a_chw.data(), a, h, w);
-  hwc_to_chw(ws.b_chw.data(), b, h, w);
+  image::hwc_to_chw(ws.a_chw.data(), a, h, w);
+  image::hwc_to_chw(ws.b_chw.data(), b, h, w);
   float value = 0;
   loss::lpips_forward(&value, static_cast<float*>(nullptr), ws.a_chw.data(), ws.b_chw.data(), 1, h, w,
                       o.lpips->params.data(), o.lpips->layout, ws.lpips, true);
@@ -188,8 +190,7 @@ inline EvalResult score_prediction(const data::ObjectRecord& rec, const std::vec
     const data::FrameRecord& fr = rec.frames[static_cast<std::size_t>(targets[m])];
     const Tensor<float, 3> rgba = image::read_float<float>(fr.image, 4);
     const ViewMapping map = model_view<float>(ws.target_chw.data(), TensorView<const float, 3>(rgba.view()), h, w);
-    for (index_t p = 0; p < px; ++p)
-      for (int c = 0; c < 3; ++c) ws.target[static_cast<std::size_t>(3 * p + c)] = ws.target_chw[static_cast<std::size_t>(c * px + p)];
+    image::chw_to_hwc(ws.target.data(), ws.target_chw.data(), h, w);
     double K[9], E[12];
     detail::camera_arrays(fr.camera, K, E);
     map.intrinsics(K);
@@ -233,7 +234,7 @@ void rotation_noise(T* w2c, index_t views, double deg, std::uint64_t seed) {
     Eigen::Vector3d axis;
     do axis = Eigen::Vector3d(normal(rng), normal(rng), normal(rng));
     while (axis.norm() < 1e-9);
-    const Eigen::Matrix3d Rn = Eigen::AngleAxisd(deg * 3.14159265358979323846 / 180.0, axis.normalized()).toRotationMatrix();
+    const Eigen::Matrix3d Rn = Eigen::AngleAxisd(deg * std::numbers::pi / 180.0, axis.normalized()).toRotationMatrix();
     Eigen::Matrix<double, 3, 4> m;
     for (int r = 0; r < 3; ++r)
       for (int c = 0; c < 4; ++c) m(r, c) = static_cast<double>(w2c[12 * v + 4 * r + c]);
@@ -263,8 +264,7 @@ inline PosedViews posed_views(const data::ObjectRecord& rec, const std::vector<i
     const Tensor<float, 3> rgba = image::read_float<float>(fr.image, 4);
     const ViewMapping map = model_view<float>(chw.data(), TensorView<const float, 3>(rgba.view()), h, w,
                                               {1.0f, 1.0f, 1.0f}, p.alpha.data() + v * px);
-    for (index_t q = 0; q < px; ++q)
-      for (int c = 0; c < 3; ++c) p.images[static_cast<std::size_t>((v * px + q) * 3 + c)] = chw[static_cast<std::size_t>(c * px + q)];
+    image::chw_to_hwc(p.images.data() + v * px * 3, chw.data(), h, w);
     double K[9], E[12];
     detail::camera_arrays(fr.camera, K, E);
     map.intrinsics(K);

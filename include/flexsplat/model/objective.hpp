@@ -16,6 +16,7 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gaussians.hpp"
 #include "flexsplat/decoder/model.hpp"
+#include "flexsplat/image/layout.hpp"
 #include "flexsplat/loss/image.hpp"
 #include "flexsplat/loss/lpips.hpp"
 #include "flexsplat/model/cameras.hpp"
@@ -121,19 +122,6 @@ struct ObjectiveWorkspace {
   std::vector<T> render_chw, target_chw, d_render_chw;
 };
 
-namespace detail {
-template <class T>
-void hwc_to_chw(T* out, const T* in, index_t h, index_t w) {
-  for (index_t p = 0; p < h * w; ++p)
-    for (int c = 0; c < 3; ++c) out[c * h * w + p] = in[3 * p + c];
-}
-template <class T>
-void add_chw_to_hwc(T* out, const T* in, index_t h, index_t w) {
-  for (index_t p = 0; p < h * w; ++p)
-    for (int c = 0; c < 3; ++c) out[3 * p + c] += in[c * h * w + p];
-}
-}  // namespace detail
-
 // Forward, loss and backward of the appearance side for one scene. images [V, 3, h, w] in [0, 1]; params/d_params:
 // the decoder::ModelParamLayout block and its gradient (added into); d_geometry (may be null: geometry frozen) is
 // added into and must be shaped like g (GeometryResult::zero_like). lpips may be null when weights.lpips is 0.
@@ -206,8 +194,8 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
         ws.render_chw.resize(static_cast<std::size_t>(3 * pixels));
         ws.target_chw.resize(ws.render_chw.size());
         ws.d_render_chw.assign(ws.render_chw.size(), T(0));
-        detail::hwc_to_chw(ws.render_chw.data(), img, H, W);
-        detail::hwc_to_chw(ws.target_chw.data(), view.target, H, W);
+        image::hwc_to_chw(ws.render_chw.data(), img, H, W);
+        image::hwc_to_chw(ws.target_chw.data(), view.target, H, W);
         T value = 0;
         // Every layer of a view meets the same target: its trunk runs once per view.
         loss::lpips_forward(&value, static_cast<T*>(nullptr), ws.render_chw.data(), ws.target_chw.data(), 1, H, W,
@@ -216,7 +204,7 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
         const T d_value = static_cast<T>(scale);
         loss::lpips_backward(ws.d_render_chw.data(), static_cast<T*>(nullptr), &d_value, static_cast<const T*>(nullptr),
                              lpips->params.data(), lpips->layout, ws.lpips);
-        detail::add_chw_to_hwc(ws.d_image.data(), ws.d_render_chw.data(), H, W);
+        image::add_chw_to_hwc(ws.d_image.data(), ws.d_render_chw.data(), H, W);
       }
       if (predicted && weights.depth > 0) {
         // U is the depth head's confidence normalised to mean 1 over the compared pixels, held constant.

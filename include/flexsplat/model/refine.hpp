@@ -30,6 +30,7 @@
 #include "flexsplat/core/gaussians.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/init.hpp"
+#include "flexsplat/image/layout.hpp"
 #include "flexsplat/loss/image.hpp"
 #include "flexsplat/loss/ssim.hpp"
 #include "flexsplat/model/cameras.hpp"
@@ -99,10 +100,7 @@ struct RefineWorkspace {
 template <class T>
 std::vector<T> views_hwc(const T* chw, index_t views, index_t h, index_t w) {
   std::vector<T> out(static_cast<std::size_t>(views * h * w * 3));
-  for (index_t v = 0; v < views; ++v)
-    for (index_t c = 0; c < 3; ++c)
-      for (index_t p = 0; p < h * w; ++p)
-        out[static_cast<std::size_t>((v * h * w + p) * 3 + c)] = chw[(v * 3 + c) * h * w + p];
+  for (index_t v = 0; v < views; ++v) image::chw_to_hwc(out.data() + v * h * w * 3, chw + v * 3 * h * w, h, w);
   return out;
 }
 
