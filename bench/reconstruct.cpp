@@ -4,6 +4,7 @@
 // the same process and interleaved. The weights are made in memory (a 5 GB file would time the disk, not the model).
 //   bench/reconstruct IMAGE... [--size 252] [--gaussians N]... [--self-attention full|local|both] [--repeats R]
 #include <chrono>
+#include <ctime>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
@@ -20,6 +21,13 @@ using namespace flexsplat;
 using Clock = std::chrono::steady_clock;
 
 static double ms_since(Clock::time_point t) { return std::chrono::duration<double, std::milli>(Clock::now() - t).count(); }
+
+// CPU seconds of every thread of the process: on a loaded machine the steadier number (wall ~ CPU / threads when idle).
+static double process_cpu_seconds() {
+  timespec ts{};
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
+}
 
 int main(int argc, char** argv) try {
   index_t size = 252;
@@ -54,8 +62,8 @@ int main(int argc, char** argv) try {
   std::printf("paper-size model, random weights: %.0f M parameters in %.1f s; %zu views at %lldx%lld, %d threads, "
               "arch %s\n", double(w->store().tensor_elements()) / 1e6, ms_since(t0) / 1e3, files.size(),
               (long long)size, (long long)size, global_pool().size(), simd::compiled_arch_name());
-  std::printf("%-10s %-6s %9s %11s %10s %9s %8s %9s\n", "gaussians", "attn", "decode ms", "preproc ms", "geometry ms",
-              "decoder ms", "export ms", "total ms");
+  std::printf("%-10s %-6s %9s %11s %10s %9s %8s %9s %8s\n", "gaussians", "attn", "decode ms", "preproc ms", "geometry ms",
+              "decoder ms", "export ms", "total ms", "CPU s");
   const std::filesystem::path out = std::filesystem::temp_directory_path() / "flexsplat_bench_reconstruct.glb";
   model::PredictWorkspace<float> ws;
   std::vector<bool> modes;
@@ -65,6 +73,7 @@ int main(int argc, char** argv) try {
     for (index_t n : budgets)
       for (bool local : modes) {
         w->set_self_attention(local, 512);
+        const double cpu0 = process_cpu_seconds();
         auto t = Clock::now();
         std::vector<Tensor<float, 3>> rgba;
         for (const auto& f : files) rgba.push_back(image::read_float<float>(f, 4));
@@ -76,9 +85,9 @@ int main(int argc, char** argv) try {
         t = Clock::now();
         gaussians::write_gaussians(p.gaussians, out);
         const double write = ms_since(t);
-        std::printf("%-10lld %-6s %9.0f %11.0f %10.0f %9.0f %8.0f %9.0f\n", (long long)n, local ? "local" : "full",
+        std::printf("%-10lld %-6s %9.0f %11.0f %10.0f %9.0f %8.0f %9.0f %8.1f\n", (long long)n, local ? "local" : "full",
                     decode, preprocess, p.geometry_ms, p.decoder_ms, write,
-                    decode + preprocess + p.geometry_ms + p.decoder_ms + write);
+                    decode + preprocess + p.geometry_ms + p.decoder_ms + write, process_cpu_seconds() - cpu0);
         std::fflush(stdout);
       }
   std::filesystem::remove(out);
