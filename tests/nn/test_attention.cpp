@@ -160,8 +160,8 @@ struct FusedCase {
 };
 
 // whole_heads: scratch large enough for the per-(batch, head) copies of K and V.
-template <class T, bool Simd>
-void run_fused(const FusedCase& c, std::vector<T>& out, std::vector<T>& lse, std::vector<T>& d_qkv,
+template <class T>
+void run_fused(const FusedCase& c, simd::Lanes lanes, std::vector<T>& out, std::vector<T>& lse, std::vector<T>& d_qkv,
                ThreadPool& pool = global_pool(), bool whole_heads = false) {
   const auto qkv = cast_to<T>(c.qkv), d_out = cast_to<T>(c.d_out);
   const index_t C = c.C();
@@ -171,11 +171,11 @@ void run_fused(const FusedCase& c, std::vector<T>& out, std::vector<T>& lse, std
   std::vector<T> scratch((whole_heads ? nn::attention_scratch_per_worker(c.L.head_dim, c.L.n_kv)
                                       : nn::attention_scratch_per_worker(c.L.head_dim)) * pool.size());
   const T scale = static_cast<T>(c.scale);
-  nn::attention_forward_impl<T, Simd>(out.data(), lse.data(), qkv.data(), qkv.data() + C, qkv.data() + 2 * C, c.L, scale,
-                                      std::span<T>(scratch), pool);
-  nn::attention_backward_impl<T, Simd>(d_qkv.data(), d_qkv.data() + C, d_qkv.data() + 2 * C, d_out.data(), out.data(),
-                                       lse.data(), qkv.data(), qkv.data() + C, qkv.data() + 2 * C, c.L, scale,
-                                       std::span<T>(scratch), pool);
+  nn::attention_forward_impl<T>(out.data(), lse.data(), qkv.data(), qkv.data() + C, qkv.data() + 2 * C, c.L, scale,
+                                std::span<T>(scratch), lanes, pool);
+  nn::attention_backward_impl<T>(d_qkv.data(), d_qkv.data() + C, d_qkv.data() + 2 * C, d_out.data(), out.data(),
+                                 lse.data(), qkv.data(), qkv.data() + C, qkv.data() + 2 * C, c.L, scale,
+                                 std::span<T>(scratch), lanes, pool);
 }
 }  // namespace
 
@@ -209,26 +209,34 @@ TEST_CASE("attention over several key blocks, fused q|k|v rows: scalar and SIMD 
       }
 
     std::vector<double> out_s, lse_s, g_s, out_v, lse_v, g_v;
-    run_fused<double, false>(c, out_s, lse_s, g_s);
-    run_fused<double, true>(c, out_v, lse_v, g_v, global_pool(), true);
+    run_fused<double>(c, simd::Lanes::scalar, out_s, lse_s, g_s);
+    run_fused<double>(c, simd::Lanes::compiled, out_v, lse_v, g_v, global_pool(), true);
     CHECK(max_abs_diff(out_s, expect_out) < 1e-12);
     CHECK(max_abs_diff(out_v, expect_out) < 1e-12);
     CHECK(max_abs_diff(g_s, expect_grad) < 1e-11);
     CHECK(max_abs_diff(g_v, expect_grad) < 1e-11);
     CHECK(max_abs_diff(lse_v, std::vector<double>(lse_s.begin(), lse_s.end())) < 1e-12);
 
-    std::vector<float> out_fs, lse_fs, g_fs, out_fv, lse_fv, g_fv;
-    run_fused<float, false>(c, out_fs, lse_fs, g_fs, global_pool(), true);
-    run_fused<float, true>(c, out_fv, lse_fv, g_fv);
+    // float: scalar, the build's batches, and each run-time dispatched width this CPU has.
+    std::vector<float> out_fs, lse_fs, g_fs;
+    run_fused<float>(c, simd::Lanes::scalar, out_fs, lse_fs, g_fs, global_pool(), true);
     CHECK(max_abs_diff(out_fs, expect_out) < 1e-4);
-    CHECK(max_abs_diff(out_fv, expect_out) < 1e-4);
     CHECK(max_abs_diff(g_fs, expect_grad) < 2e-4);
-    CHECK(max_abs_diff(g_fv, expect_grad) < 2e-4);
-    CHECK(max_abs_diff(lse_fv, std::vector<double>(lse_fs.begin(), lse_fs.end())) < 1e-4);
+    std::vector<simd::Lanes> lanes{simd::Lanes::compiled};
+    if (simd::best_lanes<float>(simd::DispatchLevel::avx2) == simd::Lanes::avx2) lanes.push_back(simd::Lanes::avx2);
+    if (simd::best_lanes<float>() == simd::Lanes::avx512) lanes.push_back(simd::Lanes::avx512);
+    for (simd::Lanes l : lanes) {
+      CAPTURE(simd::lanes_name(l));
+      std::vector<float> out_fv, lse_fv, g_fv;
+      run_fused<float>(c, l, out_fv, lse_fv, g_fv);
+      CHECK(max_abs_diff(out_fv, expect_out) < 1e-4);
+      CHECK(max_abs_diff(g_fv, expect_grad) < 2e-4);
+      CHECK(max_abs_diff(lse_fv, std::vector<double>(lse_fs.begin(), lse_fs.end())) < 1e-4);
+    }
   }
 }
 
-TEST_CASE("attention over several key blocks: float64 gradient check, 1 and 2 threads bit-identical on both paths",
+TEST_CASE("attention over several key blocks: float64 gradient check, 1 and 2 threads bit-identical on every path",
           "[nn][attention]") {
   auto L = nn::packed_attention_layout(1, 1, 70, 270, 3);
   auto q = random_vector(70 * 3, 41, 2.0), k = random_vector(270 * 3, 42, 2.0), v = random_vector(270 * 3, 43);
@@ -250,32 +258,32 @@ TEST_CASE("attention over several key blocks: float64 gradient check, 1 and 2 th
   ThreadPool one(1), two(2);
   std::vector<float> o1, l1, g1, o2, l2, g2;
   std::vector<double> o1d, l1d, g1d, o2d, l2d, g2d;
-  run_fused<float, true>(c, o1, l1, g1, one);
-  run_fused<float, true>(c, o2, l2, g2, two);
+  run_fused<float>(c, simd::best_lanes<float>(), o1, l1, g1, one);
+  run_fused<float>(c, simd::best_lanes<float>(), o2, l2, g2, two);
   CHECK(o1 == o2);
   CHECK(l1 == l2);
   CHECK(g1 == g2);
-  run_fused<float, false>(c, o1, l1, g1, one);
-  run_fused<float, false>(c, o2, l2, g2, two);
+  run_fused<float>(c, simd::Lanes::scalar, o1, l1, g1, one);
+  run_fused<float>(c, simd::Lanes::scalar, o2, l2, g2, two);
   CHECK(o1 == o2);
   CHECK(g1 == g2);
   // Copying whole heads of K and V instead of one key block at a time changes no bit, and neither does the backward
   // schedule: 3 heads on 1 worker run in one pass per head, on 2 workers as key-block then query-block passes.
-  run_fused<float, true>(c, o1, l1, g1, two, false);
-  run_fused<float, true>(c, o2, l2, g2, two, true);
+  run_fused<float>(c, simd::best_lanes<float>(), o1, l1, g1, two, false);
+  run_fused<float>(c, simd::best_lanes<float>(), o2, l2, g2, two, true);
   CHECK(o1 == o2);
   CHECK(l1 == l2);
   CHECK(g1 == g2);
-  run_fused<float, true>(c, o1, l1, g1, one, true);
+  run_fused<float>(c, simd::best_lanes<float>(), o1, l1, g1, one, true);
   CHECK(o1 == o2);
   CHECK(g1 == g2);
   FusedCase even(2, 2, 200, 24, 52);  // 4 heads: one pass on 2 workers too
-  run_fused<double, true>(even, o1d, l1d, g1d, two, true);
-  run_fused<double, true>(even, o2d, l2d, g2d, two, false);
+  run_fused<double>(even, simd::Lanes::compiled, o1d, l1d, g1d, two, true);
+  run_fused<double>(even, simd::Lanes::compiled, o2d, l2d, g2d, two, false);
   CHECK(o1d == o2d);
   CHECK(g1d == g2d);
-  run_fused<double, false>(even, o1d, l1d, g1d, one, true);
-  run_fused<double, false>(even, o2d, l2d, g2d, two, false);
+  run_fused<double>(even, simd::Lanes::scalar, o1d, l1d, g1d, one, true);
+  run_fused<double>(even, simd::Lanes::scalar, o2d, l2d, g2d, two, false);
   CHECK(g1d == g2d);
 }
 

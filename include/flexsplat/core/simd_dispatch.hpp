@@ -4,6 +4,7 @@
 // vector with the lane-helper interface; a kernel instantiated with it and inlined (flatten) into a function
 // compiled for the wider target gets that target's instructions. The compile-time path (xsimd batches) and the
 // scalar path stay; tests compare all of them.
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
@@ -508,7 +509,55 @@ __attribute__((target("avx2,fma"), flatten)) FLEXSPLAT_SCALAR_ROUNDING void run_
 }
 #undef FLEXSPLAT_SCALAR_ROUNDING
 
+// The same without the rounding constraint: the wider target may fuse multiply-adds.
+template <class Body>
+__attribute__((target("avx512f,avx512bw,avx512dq,avx512vl,avx2,fma"), flatten)) void run_avx512(Body& body) {
+  body(static_cast<wide<float, 16>*>(nullptr));
+}
+template <class Body>
+__attribute__((target("avx2,fma"), flatten)) void run_avx2(Body& body) {
+  body(static_cast<wide<float, 8>*>(nullptr));
+}
+
 #endif  // FLEXSPLAT_SIMD_DISPATCH
+
+// Which lanes a kernel written against the lane helpers runs with: scalar, the build's compiled batches, or a wider
+// run-time dispatched vector (float only: the dispatch vectors' exp is accurate to float precision).
+enum class Lanes { scalar, compiled, avx2, avx512 };
+
+inline const char* lanes_name(Lanes lanes) {
+  return lanes == Lanes::scalar ? "scalar" : lanes == Lanes::compiled ? "compiled" : lanes == Lanes::avx2 ? "avx2" : "avx512";
+}
+
+// The widest lanes for T on this CPU, at most `cap` (FLEXSPLAT_SIMD=scalar / avx2 apply through dispatch_level).
+template <class T>
+Lanes best_lanes(DispatchLevel cap = DispatchLevel::avx512) {
+  if (!enabled()) return Lanes::scalar;
+#if FLEXSPLAT_SIMD_DISPATCH
+  const DispatchLevel level = std::min(dispatch_level(), cap);
+  const std::size_t compiled_bytes = width<T> * sizeof(T);
+  if (sizeof(T) == 4 && level == DispatchLevel::avx512 && compiled_bytes < 64) return Lanes::avx512;
+  if (sizeof(T) == 4 && level != DispatchLevel::none && compiled_bytes < 32) return Lanes::avx2;
+#else
+  (void)cap;
+#endif
+  return Lanes::compiled;
+}
+
+// Calls body(V*) with the lane type V of `lanes` (the pointer only carries the type): T, batch<T>, or a dispatch
+// vector inlined into a function compiled for its target. Call it inside a parallel_for body, not around one: a
+// worker's lambda is not inlined, so it would not get the target.
+template <class T, class Body>
+void with_lanes(Lanes lanes, Body&& body) {
+#if FLEXSPLAT_SIMD_DISPATCH
+  if constexpr (sizeof(T) == 4) {
+    if (lanes == Lanes::avx512) return run_avx512(body);
+    if (lanes == Lanes::avx2) return run_avx2(body);
+  }
+#endif
+  if (lanes == Lanes::scalar) body(static_cast<T*>(nullptr));
+  else body(static_cast<batch<T>*>(nullptr));
+}
 
 template <class V>
 struct is_avx512_float_batch : std::false_type {};

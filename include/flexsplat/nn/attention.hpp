@@ -4,7 +4,8 @@
 // rescale and exp are vectorised across query rows and K, V are read in place as broadcast operands (no packing);
 // only the query block is packed, transposed and pre-scaled, once per task. Backward recomputes score tiles from the
 // saved log-sum-exp, in two race-free passes (key blocks own dK/dV, query blocks own dQ), so results do not depend on
-// the thread count. Each entry point has a scalar path (the reference) and a simd::batch path.
+// the thread count. Each entry point has a scalar path (the reference), the build's simd::batch path and, for float,
+// run-time dispatched AVX2 / AVX-512 lanes (simd::Lanes), which a portable build takes on CPUs that have them.
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -14,6 +15,7 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/simd.hpp"
+#include "flexsplat/core/simd_dispatch.hpp"  // its lane overloads must be visible where the lane templates are used
 #include "flexsplat/core/tensor.hpp"
 
 namespace flexsplat {
@@ -246,12 +248,11 @@ void softmax_grad_t(T* st, T* dst, index_t cols, const T* lse, const T* delta, T
 }  // namespace detail
 
 // out = softmax(scale * q k^T) v per (batch, head). lse [batch*heads*n_q] (may be null) receives log-sum-exp rows,
-// which backward needs. With n_kv == 0 the output is zero and lse is -inf. Simd selects the simd::batch path.
-template <class T, bool Simd>
+// which backward needs. With n_kv == 0 the output is zero and lse is -inf. `lanes` selects the kernels' lane type.
+template <class T>
 void attention_forward_impl(T* out, T* lse, const T* q, const T* k, const T* v, const AttentionLayout& L, T scale,
-                            std::span<T> scratch, ThreadPool& pool = global_pool()) {
+                            std::span<T> scratch, simd::Lanes lanes, ThreadPool& pool = global_pool()) {
   using namespace detail;
-  using V = std::conditional_t<Simd, simd::batch<T>, T>;
   constexpr index_t Bq = attention_q_block, Bk = attention_kv_block;
   const index_t d = L.head_dim;
   const index_t q_blocks = (L.n_q + Bq - 1) / Bq;
@@ -261,6 +262,8 @@ void attention_forward_impl(T* out, T* lse, const T* q, const T* k, const T* v, 
   const bool whole_heads = static_cast<index_t>(scratch.size()) >= (base + 2 * L.n_kv * d) * pool.size();
   const index_t per_worker = base + (whole_heads ? 2 * L.n_kv * d : 0);
   parallel_for(tasks, [&](index_t t0, index_t t1, int worker) {
+   simd::with_lanes<T>(lanes, [&](auto* lane_type) {
+    using V = std::remove_pointer_t<decltype(lane_type)>;
     T* qt = scratch.data() + worker * per_worker;  // [d][Bq] scale * Q^T
     T* ot = qt + d * Bq;                                                 // [d][Bq] unnormalised output^T
     T* st = ot + d * Bq;                                                 // [Bk][Bq] scores^T, then exp
@@ -302,16 +305,16 @@ void attention_forward_impl(T* out, T* lse, const T* q, const T* k, const T* v, 
         if (lse) lse[bh * L.n_q + r0 + r] = row_max[r] + std::log(sum);
       }
     }
+   });
   }, pool);
 }
 
-// Adds into d_q, d_k, d_v (each may be null). Needs the forward's out and lse. Simd selects the simd::batch path.
-template <class T, bool Simd>
+// Adds into d_q, d_k, d_v (each may be null). Needs the forward's out and lse. `lanes` selects the kernels' lane type.
+template <class T>
 void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* out, const T* lse, const T* q, const T* k,
-                             const T* v, const AttentionLayout& L, T scale, std::span<T> scratch,
+                             const T* v, const AttentionLayout& L, T scale, std::span<T> scratch, simd::Lanes lanes,
                              ThreadPool& pool = global_pool()) {
   using namespace detail;
-  using V = std::conditional_t<Simd, simd::batch<T>, T>;
   constexpr index_t Bq = attention_q_block, Bk = attention_kv_block;
   const index_t d = L.head_dim;
   const index_t q_blocks = (L.n_q + Bq - 1) / Bq;
@@ -371,7 +374,8 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
     pack_rows(s.vp, v + b * L.v.batch + h * L.v.head + c0 * L.v.row, L.v.row, count, d);
   };
   // P^T and scale * dS^T of packed keys / values kp, vp (cols rows) against the packed query block.
-  auto tile = [&](const Buffers& s, const T* kp, const T* vp, index_t cols) {
+  auto tile = [&](auto* lane_type, const Buffers& s, const T* kp, const T* vp, index_t cols) {
+    using V = std::remove_pointer_t<decltype(lane_type)>;
     dot_t_block<V>(s.st, Bq, kp, d, cols, s.qt, d);
     dot_t_block<V>(s.dst, Bq, vp, d, cols, s.dot, d);
     softmax_grad_t<V>(s.st, s.dst, cols, s.lse, s.delta, scale);
@@ -387,6 +391,8 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
 
   if (one_pass) {
     parallel_for(heads_total, [&](index_t t0, index_t t1, int worker) {
+     simd::with_lanes<T>(lanes, [&](auto* lane_type) {
+      using V = std::remove_pointer_t<decltype(lane_type)>;
       const Buffers s = buffers(worker);
       for (index_t bh = t0; bh < t1; ++bh) {
         const index_t b = bh / L.heads, h = bh % L.heads;
@@ -396,7 +402,7 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
           load_keys(s, b, h, c0, cols);
           for (index_t qb = 0; qb < q_blocks; ++qb) {
             const index_t rows = load_queries(s, b, h, qb);
-            tile(s, s.kp, s.vp, cols);
+            tile(lane_type, s, s.kp, s.vp, cols);
             if (d_v) outer_block<V>(d_v + b * L.v.batch + h * L.v.head + c0 * L.v.row, L.v.row, cols, s.st, Bq, s.dop, d, rows, d);
             if (d_k) outer_block<V>(d_k + b * L.k.batch + h * L.k.head + c0 * L.k.row, L.k.row, cols, s.dst, Bq, s.qp, d, rows, d);
             axpy_t_block<V>(s.dq_head + qb * d * Bq, Bq, static_cast<const T*>(nullptr), s.kp, d, s.dst, cols, d);
@@ -404,11 +410,14 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
         }
         for (index_t qb = 0; qb < q_blocks; ++qb) add_dq(s.dq_head + qb * d * Bq, b, h, qb);
       }
+     });
     }, pool);
     return;
   }
   if (d_k || d_v) {
     parallel_for(L.batch * L.heads * kv_blocks, [&](index_t t0, index_t t1, int worker) {
+     simd::with_lanes<T>(lanes, [&](auto* lane_type) {
+      using V = std::remove_pointer_t<decltype(lane_type)>;
       const Buffers s = buffers(worker);
       for (index_t t = t0; t < t1; ++t) {
         const index_t bh = t / kv_blocks, kb = t % kv_blocks, b = bh / L.heads, h = bh % L.heads;
@@ -416,15 +425,18 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
         load_keys(s, b, h, c0, cols);
         for (index_t qb = 0; qb < q_blocks; ++qb) {
           const index_t rows = load_queries(s, b, h, qb);
-          tile(s, s.kp, s.vp, cols);
+          tile(lane_type, s, s.kp, s.vp, cols);
           if (d_v) outer_block<V>(d_v + b * L.v.batch + h * L.v.head + c0 * L.v.row, L.v.row, cols, s.st, Bq, s.dop, d, rows, d);
           if (d_k) outer_block<V>(d_k + b * L.k.batch + h * L.k.head + c0 * L.k.row, L.k.row, cols, s.dst, Bq, s.qp, d, rows, d);
         }
       }
+     });
     }, pool);
   }
   if (d_q) {
     parallel_for(L.batch * L.heads * q_blocks, [&](index_t t0, index_t t1, int worker) {
+     simd::with_lanes<T>(lanes, [&](auto* lane_type) {
+      using V = std::remove_pointer_t<decltype(lane_type)>;
       const Buffers s = buffers(worker);
       index_t packed_bh = -1;
       for (index_t t = t0; t < t1; ++t) {
@@ -438,11 +450,12 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
         for (index_t kb = 0; kb < kv_blocks; ++kb) {
           const index_t c0 = kb * Bk, cols = std::min(Bk, L.n_kv - c0), at = whole_heads ? c0 * d : 0;
           if (!whole_heads) load_keys(s, b, h, c0, cols);
-          tile(s, s.kp + at, s.vp + at, cols);
+          tile(lane_type, s, s.kp + at, s.vp + at, cols);
           axpy_t_block<V>(s.dqt, Bq, static_cast<const T*>(nullptr), s.kp + at, d, s.dst, cols, d);
         }
         add_dq(s.dqt, b, h, qb);
       }
+     });
     }, pool);
   }
 }
@@ -450,16 +463,14 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
 template <class T>
 void attention_forward(T* out, T* lse, const T* q, const T* k, const T* v, const AttentionLayout& L, T scale,
                        std::span<T> scratch, ThreadPool& pool = global_pool()) {
-  if (simd::enabled()) attention_forward_impl<T, true>(out, lse, q, k, v, L, scale, scratch, pool);
-  else attention_forward_impl<T, false>(out, lse, q, k, v, L, scale, scratch, pool);
+  attention_forward_impl<T>(out, lse, q, k, v, L, scale, scratch, simd::best_lanes<T>(), pool);
 }
 
 template <class T>
 void attention_backward(T* d_q, T* d_k, T* d_v, const T* d_out, const T* out, const T* lse, const T* q, const T* k,
                         const T* v, const AttentionLayout& L, T scale, std::span<T> scratch,
                         ThreadPool& pool = global_pool()) {
-  if (simd::enabled()) attention_backward_impl<T, true>(d_q, d_k, d_v, d_out, out, lse, q, k, v, L, scale, scratch, pool);
-  else attention_backward_impl<T, false>(d_q, d_k, d_v, d_out, out, lse, q, k, v, L, scale, scratch, pool);
+  attention_backward_impl<T>(d_q, d_k, d_v, d_out, out, lse, q, k, v, L, scale, scratch, simd::best_lanes<T>(), pool);
 }
 
 // Layout of the usual packed [batch, tokens, heads, head_dim] tensors (PyTorch's "b n (h d)").

@@ -420,19 +420,6 @@ BlendKernel choose_blend_kernel(const RasterSkips& skips) {
   return BlendKernel::compiled;
 }
 
-#if FLEXSPLAT_SIMD_DISPATCH
-// body(V*) compiled for AVX-512 / AVX2 inside an otherwise portable build: flatten inlines the kernel into these
-// functions, so it gets their instruction set.
-template <class Body>
-__attribute__((target("avx512f,avx512bw,avx512dq,avx512vl,avx2,fma"), flatten)) void run_avx512(Body& body) {
-  body(static_cast<simd::wide<float, 16>*>(nullptr));
-}
-template <class Body>
-__attribute__((target("avx2,fma"), flatten)) void run_avx2(Body& body) {
-  body(static_cast<simd::wide<float, 8>*>(nullptr));
-}
-#endif
-
 // Lanes per vector of a (non-scalar) kernel's float lanes.
 template <class T>
 index_t blend_lane_count(BlendKernel kernel) {
@@ -458,8 +445,8 @@ template <class T, class Body>
 void with_blend_lanes(BlendKernel kernel, Body&& body) {
 #if FLEXSPLAT_SIMD_DISPATCH
   if constexpr (sizeof(T) == 4) {
-    if (kernel == BlendKernel::avx512) return run_avx512(body);
-    if (kernel == BlendKernel::avx2) return run_avx2(body);
+    if (kernel == BlendKernel::avx512) return simd::run_avx512(body);
+    if (kernel == BlendKernel::avx2) return simd::run_avx2(body);
   }
 #endif
   if (kernel == BlendKernel::compiled) body(static_cast<simd::batch<T>*>(nullptr));
