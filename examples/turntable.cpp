@@ -55,6 +55,7 @@ int main(int argc, char** argv) try {
     distance.push_back(glm::length(glm::dvec3(set.means(i, 0), set.means(i, 1), set.means(i, 2)) - centre));
   std::nth_element(distance.begin(), distance.begin() + static_cast<std::ptrdiff_t>(distance.size() * 9 / 10), distance.end());
   const double radius = distance[distance.size() * 9 / 10];
+  require(radius > 0 || !cameras.empty(), "'", input, "': the Gaussians sit at one point; no orbit to choose");
   const double half_fov = 22.5 * std::numbers::pi / 180, elevation = 20 * std::numbers::pi / 180;
   glm::dvec3 up(0, 0, 1), eye = centre + radius / std::sin(half_fov) * glm::dvec3(std::cos(elevation), 0, std::sin(elevation));
   if (!cameras.empty()) {
