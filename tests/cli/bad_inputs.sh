@@ -47,6 +47,15 @@ cp "$model" "$work/missing.safetensors"
 printf 'X' | dd of="$work/missing.safetensors" bs=1 seek=$((at + ${#name})) conv=notrunc status=none
 expect_error "lacks 1 of the" reconstruct "$spot" --model "$work/missing.safetensors" "${out[@]}"
 
+# The run-time flags those refusals guard: local self-attention with its window, a smaller Gaussian budget.
+if "$flexsplat" eval "$object" --model "$model" --quiet --max-targets 2 --self-attention local:256 --gaussians 600 \
+     --json "$work/local.json" >/dev/null 2>"$work/local.err" && grep -q '"self_attention": "local:256"' "$work/local.json"; then
+  echo "eval --self-attention local:256 --gaussians 600: recorded in $work/local.json"
+else
+  echo "FAIL: eval --self-attention local:256 --gaussians 600:"
+  cat "$work/local.err"
+  failures=$((failures + 1))
+fi
 if "$flexsplat" reconstruct "$data/gray_40x30.png" "$data/gray_alpha_30x40.png" "$data/rgb_64x48.png" "$spot" \
      --model "$model" -o "$work/mixed.glb" 2>"$work/mixed.err" | grep -q "4 camera(s)"; then
   echo "mixed channel counts: $work/mixed.glb with 4 cameras"
