@@ -55,6 +55,23 @@ std::vector<float> random_floats(index_t n, unsigned seed) {
   return v;
 }
 
+// One row of a per-call table: C = A B^T of M x N x K on one thread through `first` and `second` (each called as
+// f(M, N, K, A, B, C)), best of `rounds`, in microseconds, and their ratio.
+template <class F, class G>
+void per_call_row(index_t M, index_t N, index_t K, int rounds, F&& first, G&& second) {
+  const auto A = random_floats(M * K, 1), B = random_floats(N * K, 2);
+  std::vector<float> C(M * N);
+  double t_first = 1e300, t_second = 1e300;
+  for (int r = 0; r < rounds; ++r) {
+    t_first = std::min(t_first, seconds_per_call([&] { first(M, N, K, A.data(), B.data(), C.data()); }, 0.05));
+    t_second = std::min(t_second, seconds_per_call([&] { second(M, N, K, A.data(), B.data(), C.data()); }, 0.05));
+  }
+  char label[32];
+  std::snprintf(label, sizeof label, "%lldx%lldx%lld", (long long)M, (long long)N, (long long)K);
+  std::printf("%16s  %10lld  %9.2f  %9.2f  %8.2f\n", label, static_cast<long long>(M * N * K), t_first * 1e6,
+              t_second * 1e6, t_first / t_second);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -162,22 +179,13 @@ int main(int argc, char** argv) {
                                {256, 64, 64}, {1024, 64, 16}};
   for (const auto& s : shapes) {
     const index_t M = s[0], N = s[1], K = s[2];
-    const auto A = random_floats(M * K, 1), B = random_floats(N * K, 2);
-    std::vector<float> C(M * N);
-    double t_eigen = 1e300, t_blas = 1e300;
-    for (int r = 0; r < rounds; ++r) {
-      t_eigen = std::min(t_eigen, seconds_per_call([&] {
-        detail::gemm_block(GemmBackend::eigen, Trans::no, Trans::yes, M, N, K, 1.0f, A.data(), K, B.data(), K, 0.0f,
-                           C.data(), N);
-      }, 0.05));
-      t_blas = std::min(t_blas, seconds_per_call([&] {
-        detail::blas_gemm(Trans::no, Trans::yes, M, N, K, 1.0f, A.data(), K, B.data(), K, 0.0f, C.data(), N);
-      }, 0.05));
-    }
-    char label[32];
-    std::snprintf(label, sizeof label, "%lldx%lldx%lld", (long long)M, (long long)N, (long long)K);
-    std::printf("%16s  %10lld  %9.2f  %9.2f  %8.2f\n", label, static_cast<long long>(M * N * K), t_eigen * 1e6,
-                t_blas * 1e6, t_eigen / t_blas);
+    per_call_row(M, N, K, rounds,
+                 [](index_t m, index_t n, index_t k, const float* a, const float* b, float* c) {
+                   detail::gemm_block(GemmBackend::eigen, Trans::no, Trans::yes, m, n, k, 1.0f, a, k, b, k, 0.0f, c, n);
+                 },
+                 [](index_t m, index_t n, index_t k, const float* a, const float* b, float* c) {
+                   detail::blas_gemm(Trans::no, Trans::yes, m, n, k, 1.0f, a, k, b, k, 0.0f, c, n);
+                 });
   }
 #endif
 #if defined(FLEXSPLAT_HAVE_DNNL)
@@ -206,22 +214,13 @@ int main(int argc, char** argv) {
                                  {256, 64, 64},   {256, 256, 64},  {256, 256, 256},  {512, 256, 256},
                                  {512, 512, 512}, {329, 1024, 1024}, {1316, 4096, 1024}};
     for (const auto& shape : shapes) {
-      const index_t m = shape[0], n = shape[1], k = shape[2];
-      const auto a = random_floats(m * k, 1), b = random_floats(n * k, 2);
-      std::vector<float> c(m * n);
-      double s32 = 1e300, s16 = 1e300;
-      for (int r = 0; r < rounds; ++r) {
-        s32 = std::min(s32, seconds_per_call([&] {
-          detail::gemm_block(fp32, Trans::no, Trans::yes, m, n, k, 1.0f, a.data(), k, b.data(), k, 0.0f, c.data(), n);
-        }, 0.05));
-        s16 = std::min(s16, seconds_per_call([&] {
-          detail::bf16_gemm(Trans::no, Trans::yes, m, n, k, 1.0f, a.data(), k, b.data(), k, 0.0f, c.data(), n);
-        }, 0.05));
-      }
-      char label[32];
-      std::snprintf(label, sizeof label, "%lldx%lldx%lld", (long long)m, (long long)n, (long long)k);
-      std::printf("%16s  %10lld  %9.1f  %9.1f  %8.2f\n", label, static_cast<long long>(m * n * k), s32 * 1e6,
-                  s16 * 1e6, s32 / s16);
+      per_call_row(shape[0], shape[1], shape[2], rounds,
+                   [&](index_t m, index_t n, index_t k, const float* a, const float* b, float* c) {
+                     detail::gemm_block(fp32, Trans::no, Trans::yes, m, n, k, 1.0f, a, k, b, k, 0.0f, c, n);
+                   },
+                   [](index_t m, index_t n, index_t k, const float* a, const float* b, float* c) {
+                     detail::bf16_gemm(Trans::no, Trans::yes, m, n, k, 1.0f, a, k, b, k, 0.0f, c, n);
+                   });
     }
   }
 #endif
