@@ -219,20 +219,6 @@ void write_grid(const fs::path& path, const std::vector<ObjectResult>& results, 
   image::write_png(path, image::image_grid(cells, static_cast<int>(cols), 112));
 }
 
-// A positive (or, with allow_zero, non-negative) finite number.
-double parse_number(const std::string& text, const char* flag, bool allow_zero) {
-  std::size_t used = 0;
-  double v = NAN;
-  try {
-    v = std::stod(text, &used);
-  } catch (const std::exception&) {
-    used = 0;
-  }
-  require(used == text.size() && std::isfinite(v) && (v > 0 || (allow_zero && v == 0)), flag, " '", text,
-          "' must be a ", allow_zero ? "non-negative" : "positive", " number");
-  return v;
-}
-
 nlohmann::json refine_json(const RefineInfo& r, const Scores& refined, const Scores& before) {
   nlohmann::json j;
   j["steps"] = value_or_null(r.steps);
@@ -270,16 +256,7 @@ int eval_command(Args args) {
   for (const auto& b : baselines)
     require(b == "white" || b == "posed-fit", "eval: --baseline '", b, "' is not known (available: white, posed-fit)");
   auto parse_count = [](const std::string& text, const char* flag, int fallback) {
-    if (text.empty()) return fallback;
-    std::size_t used = 0;
-    int v = -1;
-    try {
-      v = std::stoi(text, &used);
-    } catch (const std::exception&) {
-      used = 0;
-    }
-    require(used == text.size() && v >= 1, flag, " '", text, "' must be a positive integer");
-    return v;
+    return text.empty() ? fallback : static_cast<int>(parse_integer(text, flag, 1, std::numeric_limits<int>::max()));
   };
   model::EvalOptions eo;
   if (!views_text.empty()) {
@@ -296,15 +273,7 @@ int eval_command(Args args) {
     x.rotation_noise_deg = parse_number(noise_text, "--rotation-noise", true);
     require(x.rotation_noise_deg <= 180, "--rotation-noise ", x.rotation_noise_deg, " must be at most 180 degrees");
   }
-  if (!seed_text.empty()) {
-    std::size_t used = 0;
-    try {
-      x.seed = std::stoull(seed_text, &used);
-    } catch (const std::exception&) {
-      used = 0;
-    }
-    require(used == seed_text.size() && seed_text[0] != '-', "--seed '", seed_text, "' must be a non-negative integer");
-  }
+  if (!seed_text.empty()) x.seed = parse_seed(seed_text, "--seed");
 
   if (!gaussians_text.empty()) x.gaussians = parse_count(gaussians_text, "--gaussians", 0);
   // --self-attention full | local | local:WINDOW (the decoder's self-attention has no parameters of its own).

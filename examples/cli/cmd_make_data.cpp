@@ -14,19 +14,6 @@
 namespace flexsplat::cli {
 namespace {
 
-long long make_data_integer(const std::string& flag, const std::string& text, long long lo, long long hi) {
-  std::size_t used = 0;
-  long long v = 0;
-  try {
-    v = std::stoll(text, &used);
-  } catch (const std::exception&) {
-    used = 0;
-  }
-  require(used == text.size() && !text.empty() && v >= lo && v <= hi, flag, " '", text, "': expected an integer in [",
-          lo, ", ", hi, "]");
-  return v;
-}
-
 // A picture for docs/data.md: rows of generated objects over a row of the shared Blender renders, all seen from
 // elevation 20, azimuth 45 (shared view 9), composited on white, tiles of 128 pixels with 4-pixel gaps.
 void write_make_data_grid(const std::string& path, const std::string& shared, int count, std::uint64_t seed,
@@ -95,19 +82,13 @@ int make_data_command(Args args) {
   const bool quiet = take_flag(args, "--quiet");
   require(args.empty(), "make-data: unexpected argument '", args.empty() ? "" : args[0], "'");
   data::MakeDataOptions opt;
-  opt.count = static_cast<int>(make_data_integer("--count", count, 1, 100000000));
-  opt.generator.views = static_cast<int>(make_data_integer("--views", views, 1, 1000));
-  opt.generator.size = static_cast<int>(make_data_integer("--size", size, 8, 4096));
-  opt.generator.supersample = static_cast<int>(make_data_integer("--supersample", supersample, 1, 8));
-  opt.generator.object.segments = static_cast<int>(make_data_integer("--segments", segments, 3, 4096));
+  opt.count = static_cast<int>(parse_integer(count, "--count", 1, 100000000));
+  opt.generator.views = static_cast<int>(parse_integer(views, "--views", 1, 1000));
+  opt.generator.size = static_cast<int>(parse_integer(size, "--size", 8, 4096));
+  opt.generator.supersample = static_cast<int>(parse_integer(supersample, "--supersample", 1, 8));
+  opt.generator.object.segments = static_cast<int>(parse_integer(segments, "--segments", 3, 4096));
   opt.generator.structured = !unstructured;
-  std::size_t used = 0;
-  try {
-    opt.seed = std::stoull(seed, &used);
-  } catch (const std::exception&) {
-    used = 0;
-  }
-  require(used == seed.size() && !seed.empty() && seed[0] != '-', "--seed '", seed, "': expected an integer in [0, 2^64)");
+  opt.seed = parse_seed(seed, "--seed");
 
   if (want_grid) {
     write_make_data_grid(grid, shared, opt.count, opt.seed, opt.generator);

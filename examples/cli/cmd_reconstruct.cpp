@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -92,27 +93,10 @@ int reconstruct_command(Args args) {
   const gaussians::FileFormat format = gaussians::format_of(output);
   index_t n_gaussians = 0;
   if (!gaussians_text.empty()) {
-    std::size_t used = 0;
-    long long v = -1;
-    try {
-      v = std::stoll(gaussians_text, &used);
-    } catch (const std::exception&) {
-      used = 0;
-    }
-    require(used == gaussians_text.size() && v >= 1, "--gaussians '", gaussians_text, "' must be a positive integer");
-    n_gaussians = static_cast<index_t>(v);
+    n_gaussians = static_cast<index_t>(parse_integer(gaussians_text, "--gaussians", 1, std::numeric_limits<int>::max()));
   }
   double refine_seconds = 0;
-  if (!refine_text.empty()) {
-    std::size_t used = 0;
-    try {
-      refine_seconds = std::stod(refine_text, &used);
-    } catch (const std::exception&) {
-      used = 0;
-    }
-    require(used == refine_text.size() && std::isfinite(refine_seconds) && refine_seconds > 0, "--refine '",
-            refine_text, "' must be a positive number of seconds");
-  }
+  if (!refine_text.empty()) refine_seconds = parse_number(refine_text, "--refine", false);
   model_path = model_or_default(model_path);
   require(fs::is_regular_file(model_path), "reconstruct: model file '", model_path, "' does not exist");
 

@@ -39,8 +39,8 @@ int render(Args args) {
   if (!camera_spec.empty()) cameras = gaussians::load_camera_spec(camera_spec);
   require(!cameras.empty(), "render: no camera (pass --camera cameras.json[:index]; '", args[0], "' has none)");
   if (!index_text.empty()) {
-    const std::size_t index = std::stoul(index_text);
-    require(index < cameras.size(), "render: --index ", index, " out of range (", cameras.size(), " cameras)");
+    const auto index = static_cast<std::size_t>(
+        parse_integer(index_text, "--index", 0, static_cast<long long>(cameras.size()) - 1));
     cameras = {cameras[index]};
   }
   raster::RenderWorkspace<float> workspace;

@@ -5,6 +5,7 @@
 #include <deque>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <map>
 #include <memory>
 #include <random>
@@ -264,28 +265,11 @@ int train_command(Args args) {
   const std::uint64_t total = cfg.total_steps();
   std::uint64_t stop_at = total;
   if (has_steps) {
-    std::size_t used = 0;
-    unsigned long long v = 0;
-    try {
-      v = std::stoull(steps_text, &used);
-    } catch (const std::exception&) {
-      used = 0;
-    }
-    require(used == steps_text.size() && !steps_text.empty() && steps_text[0] != '-' && v >= 1, "--steps '", steps_text,
-            "': expected an integer >= 1");
-    stop_at = std::min<std::uint64_t>(v, total);
+    const long long v = parse_integer(steps_text, "--steps", 1, std::numeric_limits<long long>::max());
+    stop_at = std::min<std::uint64_t>(static_cast<std::uint64_t>(v), total);
   }
   double budget = 0;
-  if (has_seconds) {
-    std::size_t used = 0;
-    try {
-      budget = std::stod(seconds_text, &used);
-    } catch (const std::exception&) {
-      used = 0;
-    }
-    require(used == seconds_text.size() && std::isfinite(budget) && budget > 0, "--seconds '", seconds_text,
-            "': expected a number > 0");
-  }
+  if (has_seconds) budget = parse_number(seconds_text, "--seconds", false);
   TrainData data;
   if (data_args.size() == 1 && data_args[0] == "procedural") {
     data.generator.size = static_cast<int>(cfg.model.image_h);

@@ -1,5 +1,7 @@
 #pragma once
 // Subcommands and reference-bundle checkers register themselves from their own .cpp files.
+#include <cmath>
+#include <cstdint>
 #include <filesystem>
 #include <functional>
 #include <map>
@@ -59,6 +61,48 @@ inline bool take_option(Args& args, const std::string& flag, std::string& value)
       return true;
     }
   return false;
+}
+
+// Numeric option values: the whole text must parse, and a bad one names the option and the text.
+inline long long parse_integer(const std::string& text, const std::string& flag, long long lo, long long hi) {
+  std::size_t used = 0;
+  long long v = 0;
+  try {
+    v = std::stoll(text, &used);
+  } catch (const std::exception&) {
+    used = 0;
+  }
+  require(used == text.size() && !text.empty() && v >= lo && v <= hi, flag, " '", text, "': expected an integer in [",
+          lo, ", ", hi, "]");
+  return v;
+}
+
+inline std::uint64_t parse_seed(const std::string& text, const std::string& flag) {
+  std::size_t used = 0;
+  unsigned long long v = 0;
+  try {
+    v = std::stoull(text, &used);
+  } catch (const std::exception&) {
+    used = 0;
+  }
+  // stoull accepts "-1" as 2^64 - 1.
+  require(used == text.size() && !text.empty() && text[0] != '-', flag, " '", text,
+          "': expected an integer in [0, 2^64)");
+  return v;
+}
+
+// A positive (or, with allow_zero, non-negative) finite number.
+inline double parse_number(const std::string& text, const std::string& flag, bool allow_zero) {
+  std::size_t used = 0;
+  double v = NAN;
+  try {
+    v = std::stod(text, &used);
+  } catch (const std::exception&) {
+    used = 0;
+  }
+  require(used == text.size() && std::isfinite(v) && (v > 0 || (allow_zero && v == 0)), flag, " '", text,
+          "' must be a ", allow_zero ? "non-negative" : "positive", " number");
+  return v;
 }
 
 // --model when given, else the shipped model (FLEXSPLAT_DEFAULT_MODEL, set by examples/CMakeLists.txt), which must exist.

@@ -31,6 +31,10 @@ expect_error "cannot decode" reconstruct "$spot" "$work/text.png" --model "$mode
 expect_error "smaller than one 7 x 7 patch" reconstruct "$spot" "$data/one_pixel.png" --model "$model" "${out[@]}"
 expect_error "must be full, local or local:WINDOW" eval "$object" --model "$model" --self-attention windowed
 expect_error "5000 Gaussians requested; the decoder has 4096 queries" eval "$object" --model "$model" --gaussians 5000
+# Numeric options: the whole value must parse (no "1e3" read as 1), and the message names the option.
+expect_error "\-\-gaussians '1e3': expected an integer" reconstruct "$spot" --model "$model" --gaussians 1e3 "${out[@]}"
+expect_error "\-\-refine 'nan' must be a positive number" reconstruct "$spot" --model "$model" --refine nan "${out[@]}"
+expect_error "\-\-seed '-1': expected an integer in \[0, 2^64)" eval "$object" --model "$model" --seed -1
 mkdir -p "$work/no_cameras/images" && cp "$spot" "$work/no_cameras/images/000.png"
 expect_error "cameras.json': missing" eval "$work/no_cameras" --model "$model"
 
@@ -64,4 +68,5 @@ else
   cat "$work/mixed.err"
   failures=$((failures + 1))
 fi
+expect_error "\-\-index '7x': expected an integer in \[0, 3\]" render "$work/mixed.glb" --index 7x -o "$work/r.png"
 exit $((failures > 0))

@@ -4,6 +4,7 @@
 
 #include "decoder_test_util.hpp"
 #include "flexsplat/decoder/splat_head.hpp"
+#include "flexsplat/nn/activations.hpp"
 #include "flexsplat/testing/gradcheck.hpp"
 
 using namespace flexsplat;
@@ -48,22 +49,22 @@ TEST_CASE("quaternion normalisation passes the gradient check and survives zero"
 TEST_CASE("activations are finite at the extremes and pass the gradient check", "[decoder][splat_head]") {
   for (double x : {-1e4, -50.0, 0.0, 50.0, 1e4}) {
     CHECK(std::isfinite(decoder::scale_activation(x)));
-    const double o = decoder::opacity_activation(x);
+    const double o = nn::sigmoid(x);
     CHECK((std::isfinite(o) && o >= 0.0 && o <= 1.0));
-    CHECK(std::isfinite(decoder::opacity_activation_vjp(x, 1.0)));
+    CHECK(std::isfinite(nn::sigmoid_vjp(x, 1.0)));
   }
-  CHECK(decoder::opacity_activation(-2.0) == Approx(1.0 / (1.0 + std::exp(2.0))));
+  CHECK(nn::sigmoid(-2.0) == Approx(1.0 / (1.0 + std::exp(2.0))));
   auto x = random_normal(6, 4, 2.0);
   std::vector<double> dx(6);
   auto result = testing::check_gradients(
       {{"x", x, dx}}, 6,
       [&](std::span<double> o) {
         for (int i = 0; i < 3; ++i) o[i] = decoder::scale_activation(x[i]);
-        for (int i = 3; i < 6; ++i) o[i] = decoder::opacity_activation(x[i]);
+        for (int i = 3; i < 6; ++i) o[i] = nn::sigmoid(x[i]);
       },
       [&](std::span<const double> g) {
         for (int i = 0; i < 3; ++i) dx[i] += decoder::scale_activation_vjp(x[i], g[i]);
-        for (int i = 3; i < 6; ++i) dx[i] += decoder::opacity_activation_vjp(x[i], g[i]);
+        for (int i = 3; i < 6; ++i) dx[i] += nn::sigmoid_vjp(x[i], g[i]);
       });
   INFO(result.summary());
   CHECK(result.ok());

@@ -77,3 +77,27 @@ TEST_CASE("gelu and silu backward pass the float64 gradient check", "[nn][activa
   CHECK(out[0] == 0.0);
   CHECK(out[1] == 800.0);
 }
+
+TEST_CASE("sigmoid is finite and in [0, 1] at the extremes, logit inverts it and clamps", "[nn][activations]") {
+  for (double x : {-1e4, -745.0, -50.0, 0.0, 50.0, 745.0, 1e4}) {
+    const double s = nn::sigmoid(x);
+    CHECK((std::isfinite(s) && s >= 0.0 && s <= 1.0));
+    CHECK(std::isfinite(nn::sigmoid_vjp(x, 1.0)));
+  }
+  for (float x : {-1e4f, -100.0f, 100.0f, 1e4f}) CHECK(std::isfinite(nn::sigmoid(x)));
+  CHECK(nn::sigmoid(-2.0) == Approx(1.0 / (1.0 + std::exp(2.0))));
+  CHECK(nn::sigmoid(0.0) == 0.5);
+  for (double x : {-30.0, -3.0, -0.25, 0.0, 0.5, 4.0, 12.0}) CHECK(nn::logit(nn::sigmoid(x), 40.0) == Approx(x).margin(1e-9));
+  CHECK(nn::logit(0.0, 40.0) == -40.0);
+  CHECK(nn::logit(-1.0, 40.0) == -40.0);
+  CHECK(nn::logit(1.0, 40.0) == 40.0);
+  CHECK(nn::logit(1e-30, 40.0) == -40.0);
+  CHECK(std::isnan(nn::logit(std::nan(""), 40.0)));
+  auto x = random_vector(8, 11, 3.0);
+  std::vector<double> dx(x.size());
+  auto result = testing::check_gradients(
+      {{"x", x, dx}}, x.size(), [&](std::span<double> o) { for (std::size_t i = 0; i < x.size(); ++i) o[i] = nn::sigmoid(x[i]); },
+      [&](std::span<const double> d) { for (std::size_t i = 0; i < x.size(); ++i) dx[i] += nn::sigmoid_vjp(x[i], d[i]); });
+  INFO(result.summary());
+  CHECK(result.ok());
+}

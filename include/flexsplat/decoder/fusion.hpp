@@ -88,7 +88,7 @@ void fusion_forward(T* fused, T* rgb, FusionCache<T>& k, const T* depth_features
   if (!rgb) return;
   k.rgb_logit.resize(static_cast<std::size_t>(views * 3 * hw));
   nn::conv2d_forward(k.rgb_logit.data(), fused, params + L.rgb_w, params + L.rgb_b, head, std::span<T>(k.scratch));
-  for (std::size_t i = 0; i < k.rgb_logit.size(); ++i) rgb[i] = opacity_activation(k.rgb_logit[i]);
+  for (std::size_t i = 0; i < k.rgb_logit.size(); ++i) rgb[i] = nn::sigmoid(k.rgb_logit[i]);
 }
 
 // Adds into d_depth_features, d_unet (either may be null) and d_params. d_rgb may be null.
@@ -104,7 +104,7 @@ void fusion_backward(T* d_depth_features, T* d_unet, T* d_params, const T* d_fus
   std::vector<T> d_f(d_fused, d_fused + views * c.out_channels * hw);
   if (d_rgb) {
     std::vector<T> d_logit(k.rgb_logit.size());
-    for (std::size_t i = 0; i < d_logit.size(); ++i) d_logit[i] = opacity_activation_vjp(k.rgb_logit[i], d_rgb[i]);
+    for (std::size_t i = 0; i < d_logit.size(); ++i) d_logit[i] = nn::sigmoid_vjp(k.rgb_logit[i], d_rgb[i]);
     nn::conv2d_backward(d_f.data(), d_params + L.rgb_w, d_params + L.rgb_b, d_logit.data(), k.fused.data(), params + L.rgb_w,
                         head, std::span<T>(k.scratch));
   }

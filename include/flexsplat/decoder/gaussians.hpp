@@ -11,6 +11,7 @@
 #include "flexsplat/core/gaussians.hpp"
 #include "flexsplat/decoder/constants.hpp"
 #include "flexsplat/decoder/splat_head.hpp"
+#include "flexsplat/nn/activations.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -176,7 +177,7 @@ void gaussians_forward(GaussianSet<T>& out, const T* state, const T* base_depth,
     for (int j = 0; j < 3; ++j) means[3 * i + j] = E[j] * rel[0] + E[4 + j] * rel[1] + E[8 + j] * rel[2];
     quat_normalize(s + splat_quat, quats + 4 * i);
     for (int j = 0; j < 3; ++j) scales[3 * i + j] = scale_activation(s[splat_log_scale + j]);
-    opacities[i] = opacity_activation(s[splat_opacity]);
+    opacities[i] = nn::sigmoid(s[splat_opacity]);
     for (int j = 0; j < 12; ++j) sh[12 * i + j] = s[splat_sh + j];
   }
 }
@@ -193,7 +194,7 @@ void gaussians_backward(T* d_state, const ViewGeometryGrad<T>& d_geometry, const
     if (d_out.quats) quat_normalize_vjp(s + splat_quat, d_out.quats + 4 * i, ds + splat_quat);
     for (int j = 0; j < 3 && d_out.scales; ++j)
       ds[splat_log_scale + j] += scale_activation_vjp(s[splat_log_scale + j], d_out.scales[3 * i + j]);
-    if (d_out.opacities) ds[splat_opacity] += opacity_activation_vjp(s[splat_opacity], d_out.opacities[i]);
+    if (d_out.opacities) ds[splat_opacity] += nn::sigmoid_vjp(s[splat_opacity], d_out.opacities[i]);
     for (int j = 0; j < 12 && d_out.sh; ++j) ds[splat_sh + j] += d_out.sh[12 * i + j];
     if (!d_out.means) continue;
     const index_t v = a.view[i];

@@ -76,18 +76,6 @@ T scale_activation_vjp(T log_scale, T d_scale) {
   return d_scale * std::exp(log_scale);
 }
 
-// Sigmoid in the form that never overflows.
-template <class T>
-T opacity_activation(T logit) {
-  if (logit >= T(0)) return T(1) / (T(1) + std::exp(-logit));
-  const T e = std::exp(logit);
-  return e / (T(1) + e);
-}
-template <class T>
-T opacity_activation_vjp(T logit, T d_opacity) {
-  const T s = opacity_activation(logit);
-  return d_opacity * s * (T(1) - s);
-}
 
 // ---- composition of the running estimate ----
 

@@ -20,6 +20,7 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/export/gaussian_set.hpp"
+#include "flexsplat/nn/activations.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -33,12 +34,6 @@ struct WriteReport {
   std::size_t bytes = 0;
 };
 
-inline double logit(double p) {
-  if (p <= 0) return -kMaxLogMagnitude;
-  if (p >= 1) return kMaxLogMagnitude;
-  return std::clamp(std::log(p) - std::log1p(-p), -kMaxLogMagnitude, kMaxLogMagnitude);
-}
-inline double sigmoid(double x) { return x >= 0 ? 1.0 / (1.0 + std::exp(-x)) : std::exp(x) / (1.0 + std::exp(x)); }
 
 inline std::vector<std::string> property_names(int sh_degree) {
   std::vector<std::string> names = {"x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"};
@@ -72,7 +67,7 @@ std::vector<unsigned char> encode_ply(const GaussianSet<T>& input, WriteReport* 
     for (int c = 0; c < 3; ++c) values[k++] = static_cast<float>(set.sh(i, 0, c));
     for (int c = 0; c < 3; ++c)
       for (int j = 1; j <= rest; ++j) values[k++] = static_cast<float>(set.sh(i, j, c));
-    values[k++] = static_cast<float>(logit(set.opacities(i)));
+    values[k++] = static_cast<float>(nn::logit(static_cast<double>(set.opacities(i)), kMaxLogMagnitude));
     for (int c = 0; c < 3; ++c)
       values[k++] = static_cast<float>(std::max(std::log(set.scales(i, c)), -kMaxLogMagnitude));
     for (int c = 0; c < 4; ++c) values[k++] = static_cast<float>(set.quats(i, c));
@@ -266,7 +261,7 @@ inline GaussianSet<float> decode_ply(const unsigned char* data, std::size_t size
     for (int c = 0; c < 3; ++c) set.sh(i, 0, c) = static_cast<float>(r[k++]);
     for (int c = 0; c < 3; ++c)
       for (int j = 1; j <= rest; ++j) set.sh(i, j, c) = static_cast<float>(r[k++]);
-    set.opacities(i) = static_cast<float>(sigmoid(r[k++]));
+    set.opacities(i) = static_cast<float>(nn::sigmoid(r[k++]));
     for (int c = 0; c < 3; ++c) set.scales(i, c) = static_cast<float>(std::exp(r[k++]));
     double norm = 0;
     for (int c = 0; c < 4; ++c) norm += r[k + c] * r[k + c];

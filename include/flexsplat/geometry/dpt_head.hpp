@@ -21,6 +21,7 @@
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/geometry/param_check.hpp"
 #include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/nn/activations.hpp"
 #include "flexsplat/nn/conv.hpp"
 #include "flexsplat/nn/interpolate.hpp"
 #include "flexsplat/nn/layernorm.hpp"
@@ -459,7 +460,7 @@ T dpt_activate(T v, DptActivation a) {
     case DptActivation::linear: return v;
     case DptActivation::relu: return v > T(0) ? v : T(0);
     case DptActivation::inv_log: return v < T(0) ? -std::expm1(-v) : std::expm1(v);
-    case DptActivation::sigmoid: return T(1) / (T(1) + std::exp(-v));
+    case DptActivation::sigmoid: return nn::sigmoid(v);
   }
   return v;
 }
@@ -473,8 +474,7 @@ T dpt_activate_grad(T v, DptActivation a) {
     case DptActivation::relu: return v > T(0) ? T(1) : T(0);
     case DptActivation::inv_log: return std::exp(std::abs(v));
     case DptActivation::sigmoid: {
-      const T s = T(1) / (T(1) + std::exp(-v));
-      return s * (T(1) - s);
+      return nn::sigmoid_vjp(v, T(1));
     }
   }
   return T(1);
@@ -486,8 +486,7 @@ T dpt_conf_activate_grad(T v, DptConfActivation a) {
     case DptConfActivation::expp1:
     case DptConfActivation::expp0: return std::exp(v);
     case DptConfActivation::sigmoid: {
-      const T s = T(1) / (T(1) + std::exp(-v));
-      return s * (T(1) - s);
+      return nn::sigmoid_vjp(v, T(1));
     }
   }
   return T(1);
@@ -498,7 +497,7 @@ T dpt_conf_activate(T v, DptConfActivation a) {
   switch (a) {
     case DptConfActivation::expp1: return T(1) + std::exp(v);
     case DptConfActivation::expp0: return std::exp(v);
-    case DptConfActivation::sigmoid: return T(1) / (T(1) + std::exp(-v));
+    case DptConfActivation::sigmoid: return nn::sigmoid(v);
   }
   return v;
 }

@@ -47,6 +47,17 @@ double mask_sum(const T* mask, index_t pixels, const char* what) {
   }
   return s;
 }
+
+// Calls f(i, m) for every element index i of s with the mask weight m of its pixel (1 without a mask).
+template <class T, class F>
+void for_each_weighted(const T* mask, const ImageShape& s, F&& f) {
+  for (index_t n = 0; n < s.batch; ++n)
+    for (index_t y = 0; y < s.height; ++y)
+      for (index_t x = 0; x < s.width; ++x) {
+        const double m = mask ? static_cast<double>(mask[(n * s.height + y) * s.width + x]) : 1.0;
+        for (index_t c = 0; c < s.channels; ++c) f(s.index(n, c, y, x), m);
+      }
+}
 }  // namespace detail
 
 // Mean of (pred - target)^2 over pixels and channels; mask (may be null) [batch, height, width] weights each pixel:
@@ -58,16 +69,10 @@ double mse_forward(const T* pred, const T* target, const T* mask, const ImageSha
   const double weight = detail::mask_sum(mask, s.pixels(), "mse");
   if (weight == 0) return 0.0;
   double sum = 0;
-  for (index_t n = 0; n < s.batch; ++n)
-    for (index_t y = 0; y < s.height; ++y)
-      for (index_t x = 0; x < s.width; ++x) {
-        const double m = mask ? static_cast<double>(mask[(n * s.height + y) * s.width + x]) : 1.0;
-        for (index_t c = 0; c < s.channels; ++c) {
-          const index_t i = s.index(n, c, y, x);
-          const double d = static_cast<double>(pred[i]) - static_cast<double>(target[i]);
-          sum += m * d * d;
-        }
-      }
+  detail::for_each_weighted(mask, s, [&](index_t i, double m) {
+    const double d = static_cast<double>(pred[i]) - static_cast<double>(target[i]);
+    sum += m * d * d;
+  });
   return sum / (weight * static_cast<double>(s.channels));
 }
 
@@ -79,17 +84,11 @@ void mse_backward(T* d_pred, T* d_target, double d_loss, const T* pred, const T*
   const double weight = detail::mask_sum(mask, s.pixels(), "mse");
   if (weight == 0) return;
   const double scale = 2.0 * d_loss / (weight * static_cast<double>(s.channels));
-  for (index_t n = 0; n < s.batch; ++n)
-    for (index_t y = 0; y < s.height; ++y)
-      for (index_t x = 0; x < s.width; ++x) {
-        const double m = mask ? static_cast<double>(mask[(n * s.height + y) * s.width + x]) : 1.0;
-        for (index_t c = 0; c < s.channels; ++c) {
-          const index_t i = s.index(n, c, y, x);
-          const double g = scale * m * (static_cast<double>(pred[i]) - static_cast<double>(target[i]));
-          if (d_pred) d_pred[i] += static_cast<T>(g);
-          if (d_target) d_target[i] -= static_cast<T>(g);
-        }
-      }
+  detail::for_each_weighted(mask, s, [&](index_t i, double m) {
+    const double g = scale * m * (static_cast<double>(pred[i]) - static_cast<double>(target[i]));
+    if (d_pred) d_pred[i] += static_cast<T>(g);
+    if (d_target) d_target[i] -= static_cast<T>(g);
+  });
 }
 
 // Mean of |pred - target| over pixels and channels with the same mask convention as mse_forward (3DGS's L1 term).
@@ -100,15 +99,9 @@ double l1_forward(const T* pred, const T* target, const T* mask, const ImageShap
   const double weight = detail::mask_sum(mask, s.pixels(), "l1");
   if (weight == 0) return 0.0;
   double sum = 0;
-  for (index_t n = 0; n < s.batch; ++n)
-    for (index_t y = 0; y < s.height; ++y)
-      for (index_t x = 0; x < s.width; ++x) {
-        const double m = mask ? static_cast<double>(mask[(n * s.height + y) * s.width + x]) : 1.0;
-        for (index_t c = 0; c < s.channels; ++c) {
-          const index_t i = s.index(n, c, y, x);
-          sum += m * std::abs(static_cast<double>(pred[i]) - static_cast<double>(target[i]));
-        }
-      }
+  detail::for_each_weighted(mask, s, [&](index_t i, double m) {
+    sum += m * std::abs(static_cast<double>(pred[i]) - static_cast<double>(target[i]));
+  });
   return sum / (weight * static_cast<double>(s.channels));
 }
 
@@ -120,18 +113,12 @@ void l1_backward(T* d_pred, T* d_target, double d_loss, const T* pred, const T* 
   const double weight = detail::mask_sum(mask, s.pixels(), "l1");
   if (weight == 0) return;
   const double scale = d_loss / (weight * static_cast<double>(s.channels));
-  for (index_t n = 0; n < s.batch; ++n)
-    for (index_t y = 0; y < s.height; ++y)
-      for (index_t x = 0; x < s.width; ++x) {
-        const double m = mask ? static_cast<double>(mask[(n * s.height + y) * s.width + x]) : 1.0;
-        for (index_t c = 0; c < s.channels; ++c) {
-          const index_t i = s.index(n, c, y, x);
-          const double d = static_cast<double>(pred[i]) - static_cast<double>(target[i]);
-          const double g = scale * m * ((d > 0) - (d < 0));
-          if (d_pred) d_pred[i] += static_cast<T>(g);
-          if (d_target) d_target[i] -= static_cast<T>(g);
-        }
-      }
+  detail::for_each_weighted(mask, s, [&](index_t i, double m) {
+    const double d = static_cast<double>(pred[i]) - static_cast<double>(target[i]);
+    const double g = scale * m * ((d > 0) - (d < 0));
+    if (d_pred) d_pred[i] += static_cast<T>(g);
+    if (d_target) d_target[i] -= static_cast<T>(g);
+  });
 }
 
 // 10 log10(max_value^2 / MSE) over n values; +infinity for identical images.

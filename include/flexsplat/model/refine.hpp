@@ -33,6 +33,7 @@
 #include "flexsplat/image/layout.hpp"
 #include "flexsplat/loss/image.hpp"
 #include "flexsplat/loss/ssim.hpp"
+#include "flexsplat/nn/activations.hpp"
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/raster/render.hpp"
 #include "flexsplat/train/optimizer.hpp"
@@ -221,7 +222,7 @@ void activate(RefineWorkspace<T>& ws, index_t n, index_t K) {
   const auto ls = st.param("log_scales");
   for (index_t i = 0; i < n * 3; ++i) ws.set.scales.data()[i] = std::exp(ls[static_cast<std::size_t>(i)]);
   const auto lo = st.param("opacity_logits");
-  for (index_t i = 0; i < n; ++i) ws.set.opacities(i) = T(1) / (T(1) + std::exp(-lo[static_cast<std::size_t>(i)]));
+  for (index_t i = 0; i < n; ++i) ws.set.opacities(i) = nn::sigmoid(lo[static_cast<std::size_t>(i)]);
   const auto dc = st.param("sh_dc"), rest = st.param("sh_rest");
   for (index_t i = 0; i < n; ++i) {
     std::copy_n(dc.data() + i * 3, 3, ws.set.sh.data() + i * K * 3);
@@ -361,7 +362,7 @@ RefineResult refine(GaussianSet<T>& set, const RefineViews<T>& v, const RefineCo
     for (index_t i = 0; i < n * 3; ++i) st.param("log_scales")[static_cast<std::size_t>(i)] = std::log(set.scales.data()[i]);
     for (index_t i = 0; i < n; ++i) {
       const double o = std::clamp(static_cast<double>(set.opacities(i)), refine_opacity_floor, 1 - refine_opacity_floor);
-      st.param("opacity_logits")[static_cast<std::size_t>(i)] = static_cast<T>(std::log(o / (1 - o)));
+      st.param("opacity_logits")[static_cast<std::size_t>(i)] = static_cast<T>(nn::logit(o, 40.0));
       std::copy_n(set.sh.data() + i * K * 3, 3, st.param("sh_dc").data() + i * 3);
       std::copy_n(set.sh.data() + (i * K + 1) * 3, (K - 1) * 3, st.param("sh_rest").data() + i * (K - 1) * 3);
     }

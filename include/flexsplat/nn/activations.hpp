@@ -87,6 +87,28 @@ void relu_backward(T* d_in, const T* d_out, const T* in, index_t n) {
   for (index_t i = 0; i < n; ++i) d_in[i] += in[i] > T(0) ? d_out[i] : T(0);
 }
 
+// Logistic sigmoid in the form that never overflows (exp of a non-positive argument only).
+template <class T>
+T sigmoid(T x) {
+  if (x >= T(0)) return T(1) / (T(1) + std::exp(-x));
+  const T e = std::exp(x);
+  return e / (T(1) + e);
+}
+
+template <class T>
+T sigmoid_vjp(T x, T d_out) {
+  const T s = sigmoid(x);
+  return d_out * s * (T(1) - s);
+}
+
+// Inverse of sigmoid; p at or beyond 0 or 1 (infinite logits) maps to -max_magnitude or +max_magnitude.
+template <class T>
+T logit(T p, T max_magnitude) {
+  if (p <= T(0)) return -max_magnitude;
+  if (p >= T(1)) return max_magnitude;
+  return std::clamp(std::log(p) - std::log1p(-p), -max_magnitude, max_magnitude);
+}
+
 // SiLU x * sigmoid(x), written to stay finite for large |x|.
 template <class T>
 void silu_forward(T* out, const T* in, index_t n) {
