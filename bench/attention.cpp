@@ -172,7 +172,8 @@ int main(int argc, char** argv) {
               simd::describe(simd::cpu_features()).c_str());
   accuracy_check();
   // The compute-bound reference bench/geometry uses, for comparison with its "of SGEMM" column.
-  std::printf("%s: %.1f GFLOP/s\n", bench::sgemm_label().c_str(), bench::sgemm_gflops(bench::best_gemm_backend(), reps));
+  const bench::SgemmRate sgemm_rate = bench::best_sgemm(reps);
+  std::printf("%s: %.1f GFLOP/s\n", bench::sgemm_label(sgemm_rate.backend).c_str(), sgemm_rate.gflops);
 
   const index_t heads = 16, d = 64, C = heads * d;
   std::printf("%-14s %9s %10s %10s %9s %10s %9s %10s\n", "batch x tokens", "fwd s", "fwd GF/s", "SGEMM GF/s",

@@ -1,7 +1,8 @@
-// GEMM throughput of flexsplat::gemm on its two backends (the BLAS when the build has one, Eigen's kernels) against a
-// naive triple loop, float; then the reference SGEMM 2048x2048x1024 (C = A B^T) the other benchmarks divide by, and
-// the per-call time of small products on one thread (where gemm_blas_min_madds comes from); with oneDNN, the bf16
-// backend on the reference shape and per call (where gemm_bf16_min_madds comes from).
+// GEMM throughput of flexsplat::gemm on its fp32 backends (Eigen's kernels, the BLAS and oneDNN's matmul when the
+// build has them) against a naive triple loop, float; then the reference SGEMM 2048x2048x1024 (C = A B^T) the other
+// benchmarks divide by (the fastest backend), and the per-call time of small products on one thread (where
+// gemm_blas_min_madds comes from); with oneDNN, its fp32 matmul per call against the BLAS (gemm_onednn_min_madds)
+// and the bf16 backend on the reference shape and per call (gemm_bf16_min_madds).
 // Usage: build/bench/gemm [max_size] [rounds]   (sizes 256, 512, ... up to max_size, default 2048; rounds default 3)
 // Backends and thread counts run interleaved, `rounds` times each, and the best time is kept: the machine is shared.
 #include <sys/resource.h>
@@ -81,15 +82,20 @@ int main(int argc, char** argv) {
               simd::describe(simd::cpu_features()).c_str());
   std::vector<GemmBackend> backends{GemmBackend::eigen};
   if (have_blas) backends.push_back(GemmBackend::blas);
-  for (GemmBackend b : backends) std::printf("backend %s: %s\n", b == GemmBackend::blas ? "blas " : "eigen",
-                                             gemm_backend_name(b).c_str());
+  if (have_onednn_gemm) backends.push_back(GemmBackend::onednn);
+  auto short_name = [](GemmBackend b) {
+    return b == GemmBackend::blas ? "blas" : b == GemmBackend::onednn ? "onednn" : "eigen";
+  };
+  for (GemmBackend b : backends) std::printf("backend %-6s: %s\n", short_name(b), gemm_backend_name(b).c_str());
+  std::printf("default fp32 backend: %s\n", short_name(fastest_fp32_gemm_backend()));
   ThreadPool one(1), two(2);
   ThreadPool* pools[] = {&one, &two};
 
   std::printf("\nC = A B, n x n x n, GFLOP/s (best of %d interleaved rounds); max rel diff = max |gemm - naive| / "
               "max |naive| over all runs\n", rounds);
-  std::printf("%6s  %8s  %9s  %9s  %9s  %9s  %12s\n", "n", "naive", "eigen 1T", "eigen 2T", "blas 1T", "blas 2T",
-              "max rel diff");
+  std::printf("%6s  %8s", "n", "naive");
+  for (GemmBackend b : backends) std::printf("  %7s 1T  %7s 2T", short_name(b), short_name(b));
+  std::printf("  %12s\n", "max rel diff");
   bool all_agree = true;
   for (index_t n = 256; n <= max_size; n *= 2) {
     const auto A = random_floats(n * n, 7), B = random_floats(n * n, 8);
@@ -100,7 +106,7 @@ int main(int argc, char** argv) {
     const double t_naive = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     double max_ref = 0;
     for (float v : Cn) max_ref = std::max(max_ref, double(std::abs(v)));
-    double best[2][2] = {{1e300, 1e300}, {1e300, 1e300}}, max_diff = 0;
+    double best[3][2] = {{1e300, 1e300}, {1e300, 1e300}, {1e300, 1e300}}, max_diff = 0;
     for (int r = 0; r < rounds; ++r)
       for (std::size_t b = 0; b < backends.size(); ++b)
         for (int p = 0; p < 2; ++p) {
@@ -114,20 +120,21 @@ int main(int argc, char** argv) {
         }
     const double rel = max_diff / max_ref;
     all_agree = all_agree && rel <= 1e-5;
-    auto rate = [&](std::size_t b, int p) { return b < backends.size() ? flops / best[b][p] * 1e-9 : 0.0; };
-    std::printf("%6lld  %8.2f  %9.2f  %9.2f  %9.2f  %9.2f  %12.2e\n", static_cast<long long>(n), flops / t_naive * 1e-9,
-                rate(0, 0), rate(0, 1), rate(1, 0), rate(1, 1), rel);
+    std::printf("%6lld  %8.2f", static_cast<long long>(n), flops / t_naive * 1e-9);
+    for (std::size_t b = 0; b < backends.size(); ++b)
+      std::printf("  %10.2f  %10.2f", flops / best[b][0] * 1e-9, flops / best[b][1] * 1e-9);
+    std::printf("  %12.2e\n", rel);
     std::fflush(stdout);
   }
 
   // The reference the "of SGEMM" columns use, with 2 threads, backends interleaved.
-  double ref[2] = {0, 0};
+  double ref[3] = {0, 0, 0};
   for (int r = 0; r < std::max(rounds, 3); ++r)
     for (std::size_t b = 0; b < backends.size(); ++b)
       ref[b] = std::max(ref[b], bench::sgemm_gflops(backends[b], 2, two));
-  std::printf("\nSGEMM 2048x2048x1024 (C = A B^T), 2 threads, best of %d rounds: eigen %.1f GFLOP/s", 2 * std::max(rounds, 3),
-              ref[0]);
-  if (have_blas) std::printf(", blas %.1f GFLOP/s (%.2fx)", ref[1], ref[1] / ref[0]);
+  std::printf("\nSGEMM 2048x2048x1024 (C = A B^T), 2 threads, best of %d rounds:", 2 * std::max(rounds, 3));
+  for (std::size_t b = 0; b < backends.size(); ++b)
+    std::printf("%s %s %.1f GFLOP/s (%.2fx eigen)", b ? "," : "", short_name(backends[b]), ref[b], ref[b] / ref[0]);
   std::printf("\n");
 #if defined(FLEXSPLAT_HAVE_OPENBLAS)
   {
@@ -189,6 +196,61 @@ int main(int argc, char** argv) {
   }
 #endif
 #if defined(FLEXSPLAT_HAVE_DNNL)
+  {
+    // oneDNN's fp32 matmul against the fp32 fallback, called directly (bypassing gemm_onednn_min_madds).
+    const GemmBackend fallback = have_blas ? GemmBackend::blas : GemmBackend::eigen;
+    std::printf("\nC = A B^T on one thread, microseconds per call (best of %d rounds); gemm's onednn backend uses "
+                "oneDNN from M N K >= %lld\n", rounds, static_cast<long long>(gemm_onednn_min_madds));
+    std::printf("%16s  %10s  %9s  %9s  %8s\n", "M x N x K", "M N K", have_blas ? "blas us" : "eigen us", "onednn us",
+                "ratio");
+    const index_t shapes[][3] = {{16, 16, 16},    {32, 32, 32},     {48, 48, 48},      {64, 64, 64},
+                                 {96, 96, 96},    {128, 128, 128},  {256, 64, 64},     {64, 256, 64},
+                                 {256, 256, 256}, {512, 512, 512},  {658, 3072, 1024}, {658, 1024, 4096},
+                                 {128, 16384, 1152}};
+    for (const auto& shape : shapes) {
+      per_call_row(shape[0], shape[1], shape[2], rounds,
+                   [&](index_t m, index_t n, index_t k, const float* a, const float* b, float* c) {
+                     detail::gemm_block(fallback, Trans::no, Trans::yes, m, n, k, 1.0f, a, k, b, k, 0.0f, c, n);
+                   },
+                   [](index_t m, index_t n, index_t k, const float* a, const float* b, float* c) {
+                     detail::onednn_gemm(false, Trans::no, Trans::yes, m, n, k, 1.0f, a, k, b, k, 0.0f, c, n);
+                   });
+    }
+  }
+  {
+    // How gemm splits C over 2 threads: rows or columns, C = W X (NN) as in the DPT convolutions (weights x im2col),
+    // each part one single-threaded oneDNN call; gemm splits columns from N >= 4 M.
+    std::printf("\nC = W X (no transposes) on 2 threads, oneDNN fp32, GFLOP/s by how C is split (best of %d rounds)\n",
+                2 * rounds);
+    std::printf("%18s  %9s  %9s  %8s\n", "M x N x K", "rows", "columns", "cols/rows");
+    const index_t split_shapes[][3] = {{256, 1296, 2304}, {256, 1800, 2304}, {256, 5184, 256}, {32, 5000, 1152},
+                                       {1024, 1316, 1024}, {3072, 1316, 1024}};
+    for (const auto& shape : split_shapes) {
+      const index_t M = shape[0], N = shape[1], K = shape[2];
+      const auto A = random_floats(M * K, 5), B = random_floats(K * N, 6);
+      std::vector<float> C(M * N);
+      double t[2] = {1e300, 1e300};
+      for (int r = 0; r < 2 * rounds; ++r)
+        for (int cols = 0; cols < 2; ++cols)
+          t[cols] = std::min(t[cols], seconds_per_call([&] {
+            parallel_for(2, [&](index_t k0, index_t k1, int) {
+              for (index_t k = k0; k < k1; ++k) {
+                const index_t e = cols ? N : M, lo = e * k / 2, hi = e * (k + 1) / 2;
+                if (cols)
+                  detail::onednn_gemm(false, Trans::no, Trans::no, M, hi - lo, K, 1.0f, A.data(), K, B.data() + lo, N,
+                                      0.0f, C.data() + lo, N);
+                else
+                  detail::onednn_gemm(false, Trans::no, Trans::no, hi - lo, N, K, 1.0f, A.data() + lo * K, K, B.data(),
+                                      N, 0.0f, C.data() + lo * N, N);
+              }
+            }, two);
+          }, 0.0));
+      const double flops = 2.0 * double(M) * double(N) * double(K);
+      char label[40];
+      std::snprintf(label, sizeof label, "%lldx%lldx%lld", (long long)M, (long long)N, (long long)K);
+      std::printf("%18s  %9.1f  %9.1f  %8.2f\n", label, flops / t[0] * 1e-9, flops / t[1] * 1e-9, t[0] / t[1]);
+    }
+  }
   {
     // The reference shape in bf16 (operands rounded, fp32 accumulation) next to fp32, interleaved, 2 threads.
     const index_t M = 2048, N = 2048, K = 1024;

@@ -1,7 +1,8 @@
 // VGGT-1B (trunk, camera head, depth head) with random in-process weights: time per stage, achieved GFLOP/s next to
-// the machine's SGEMM rate (the BLAS when the build has one) measured in the same run before and after each image
-// size, and peak RSS.
-//   bench/geometry [--frames S] [--size N]... [--depth D]   (default: 4 frames at 252 and 518, full depth)
+// the machine's SGEMM rate (the fastest fp32 backend of the build) measured in the same run before and after each
+// image size, and peak RSS. --gemm runs the forward once per listed backend in turn (same weights, same process).
+//   bench/geometry [--frames S] [--size N]... [--depth D] [--gemm onednn,blas,eigen,bf16]
+//   (default: 4 frames at 252 and 518, full depth, gemm's default backend)
 #include <sys/resource.h>
 
 #include <algorithm>
@@ -34,16 +35,35 @@ static double peak_rss_gb() {
 int main(int argc, char** argv) {
   index_t frames = 4, depth_override = -1;
   std::vector<index_t> sizes;
+  std::vector<GemmBackend> backends;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--frames" && i + 1 < argc) frames = std::atol(argv[++i]);
     else if (a == "--size" && i + 1 < argc) sizes.push_back(std::atol(argv[++i]));
     else if (a == "--depth" && i + 1 < argc) depth_override = std::atol(argv[++i]);
-    else {
-      std::fprintf(stderr, "usage: %s [--frames S] [--size N]... [--depth D]\n", argv[0]);
+    else if (a == "--gemm" && i + 1 < argc) {
+      std::string list = argv[++i];
+      for (std::size_t pos = 0; pos <= list.size();) {
+        const std::size_t end = std::min(list.find(',', pos), list.size());
+        const std::string name = list.substr(pos, end - pos);
+        pos = end + 1;
+        if (name == "onednn" && have_onednn_gemm) backends.push_back(GemmBackend::onednn);
+        else if (name == "blas" && have_blas) backends.push_back(GemmBackend::blas);
+        else if (name == "bf16" && have_bf16_gemm) backends.push_back(GemmBackend::bf16);
+        else if (name == "eigen") backends.push_back(GemmBackend::eigen);
+        else {
+          std::fprintf(stderr, "--gemm: '%s' is not a backend of this build\n", name.c_str());
+          return 2;
+        }
+      }
+    } else {
+      std::fprintf(stderr, "usage: %s [--frames S] [--size N]... [--depth D] [--gemm onednn,blas,eigen,bf16]\n",
+                   argv[0]);
       return 2;
     }
   }
+  const GemmBackend initial_backend = default_gemm_backend();
+  if (backends.empty()) backends.push_back(initial_backend);
   if (sizes.empty()) sizes = {252, 518};
   simd::require_cpu_supports_build();
   VggtConfig cfg;  // VGGT-1B
@@ -72,26 +92,43 @@ int main(int argc, char** argv) {
   std::fflush(stdout);
 
   for (index_t size : sizes) {
-    const double sgemm_before = bench::sgemm_gflops(bench::best_gemm_backend(), 3);
+    const bench::SgemmRate sgemm_before = bench::best_sgemm();
     const index_t H = size, W = size, p = cfg.aggregator.patch_size, gh = H / p, gw = W / p, P = gh * gw;
     std::vector<float> images(frames * 3 * H * W);
     for (std::size_t i = 0; i < images.size(); ++i) images[i] = float((i * 2654435761u) % 1000) / 1000.0f;
     // Random weights can give a degenerate camera; clamp instead of failing the timing run.
     VggtConfig run_cfg = cfg;
     run_cfg.pose_decode.policy = DegeneratePosePolicy::clamp;
-    VggtWorkspace<float> ws;
-    VggtOptions options;
-    std::map<std::string, Clock::time_point> begin, end;
-    options.progress = [&](const std::string& stage, index_t step, index_t steps) {
-      if (step == 0 || (stage == "aggregator" && step == 1 && !begin.count(stage))) begin[stage] = Clock::now();
-      if (step == steps) end[stage] = Clock::now();
+    const char* stages[] = {"dino", "aggregator", "camera_head", "depth_head", "unproject"};
+    struct Run {
+      std::map<std::string, double> seconds;
+      double total = 0, depth_min = 0, depth_max = 0;
     };
-    const auto t_start = Clock::now();
-    const auto out = vggt_forward<float>(images.data(), frames, H, W, run_cfg, weights, ws, options);
-    const double t_total = seconds_since(t_start);
-    const double sgemm_after = bench::sgemm_gflops(bench::best_gemm_backend(), 3);
-    const double sgemm = std::max(sgemm_before, sgemm_after);
-    begin["aggregator"] = end["dino"];
+    std::vector<Run> runs;
+    for (GemmBackend backend : backends) {
+      set_default_gemm_backend(backend);
+      VggtWorkspace<float> ws;
+      VggtOptions options;
+      std::map<std::string, Clock::time_point> begin, end;
+      options.progress = [&](const std::string& stage, index_t step, index_t steps) {
+        if (step == 0 || (stage == "aggregator" && step == 1 && !begin.count(stage))) begin[stage] = Clock::now();
+        if (step == steps) end[stage] = Clock::now();
+      };
+      const auto t_start = Clock::now();
+      const auto out = vggt_forward<float>(images.data(), frames, H, W, run_cfg, weights, ws, options);
+      Run r;
+      r.total = seconds_since(t_start);
+      begin["aggregator"] = end["dino"];
+      for (const char* stage : stages)
+        r.seconds[stage] = std::chrono::duration<double>(end[stage] - begin[stage]).count();
+      r.depth_min = double(*std::min_element(out.depth.data(), out.depth.data() + out.depth.size()));
+      r.depth_max = double(*std::max_element(out.depth.data(), out.depth.data() + out.depth.size()));
+      runs.push_back(std::move(r));
+    }
+    set_default_gemm_backend(initial_backend);  // the build label names gemm's own choice
+    const bench::SgemmRate sgemm_after = bench::best_sgemm();
+    const bench::SgemmRate best = sgemm_before.gflops >= sgemm_after.gflops ? sgemm_before : sgemm_after;
+    const double sgemm = best.gflops;
 
     const auto vf = vggt_forward_flops(cfg, frames, H, W);
     std::map<std::string, double> flops{{"dino", vf.dino}, {"aggregator", vf.aggregator},
@@ -99,19 +136,24 @@ int main(int argc, char** argv) {
                                         {"unproject", 0.0}};
 
     std::printf("\n%lld x %lldx%lld (%lld patches/frame); %s: %.1f GFLOP/s before, %.1f after\n", (long long)frames,
-                (long long)H, (long long)W, (long long)P, bench::sgemm_label().c_str(), sgemm_before, sgemm_after);
-    double f_total = 0;
-    for (const char* stage : {"dino", "aggregator", "camera_head", "depth_head", "unproject"}) {
-      const double t = std::chrono::duration<double>(end[stage] - begin[stage]).count();
-      f_total += flops[stage];
-      std::printf("  %-12s %8.2f s  %9.1f GFLOP  %7.1f GFLOP/s  (%.2f of SGEMM)\n", stage, t, flops[stage] / 1e9,
-                  t > 0 ? flops[stage] / t / 1e9 : 0.0, t > 0 ? flops[stage] / t / 1e9 / sgemm : 0.0);
+                (long long)H, (long long)W, (long long)P, bench::sgemm_label(best.backend).c_str(), sgemm_before.gflops,
+                sgemm_after.gflops);
+    for (std::size_t b = 0; b < backends.size(); ++b) {
+      const Run& r = runs[b];
+      std::printf(" forward with gemm on %s\n", gemm_backend_name(backends[b]).c_str());
+      double f_total = 0;
+      for (const char* stage : stages) {
+        const double t = r.seconds.at(stage), gf = t > 0 ? flops[stage] / t / 1e9 : 0.0;
+        f_total += flops[stage];
+        std::printf("  %-12s %8.2f s  %9.1f GFLOP  %7.1f GFLOP/s  (%.2f of SGEMM)\n", stage, t, flops[stage] / 1e9, gf,
+                    gf / sgemm);
+      }
+      std::printf("  %-12s %8.2f s  %9.1f GFLOP  %7.1f GFLOP/s  (%.2f of the better SGEMM rate)\n", "end to end",
+                  r.total, f_total / 1e9, f_total / r.total / 1e9, f_total / r.total / 1e9 / sgemm);
+      std::printf("  depth range [%.3g, %.3g]\n", r.depth_min, r.depth_max);
     }
-    std::printf("  %-12s %8.2f s  %9.1f GFLOP  %7.1f GFLOP/s  (%.2f of the better SGEMM rate)\n", "end to end", t_total,
-                f_total / 1e9, f_total / t_total / 1e9, f_total / t_total / 1e9 / sgemm);
-    std::printf("  peak RSS %.2f GB = weights %.2f GB + %.2f GB\n", peak_rss_gb(), weight_gb, peak_rss_gb() - weight_gb);
-    std::printf("  depth range [%.3g, %.3g]\n", double(*std::min_element(out.depth.data(), out.depth.data() + out.depth.size())),
-                double(*std::max_element(out.depth.data(), out.depth.data() + out.depth.size())));
+    std::printf("  peak RSS %.2f GB = weights %.2f GB + %.2f GB\n", peak_rss_gb(), weight_gb,
+                peak_rss_gb() - weight_gb);
     std::fflush(stdout);
   }
   return 0;

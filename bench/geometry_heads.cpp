@@ -79,8 +79,9 @@ int main(int argc, char** argv) {
   if (sizes.empty()) sizes = {518, 252};
   const auto cpu = simd::cpu_features();
   std::printf("threads %d, simd arch %s, avx512f %d\n", global_pool().size(), simd::arch::name(), int(cpu.avx512f));
-  const double sgemm = bench::sgemm_gflops();
-  std::printf("%s: %.1f GFLOP/s\n", bench::sgemm_label().c_str(), sgemm);
+  const bench::SgemmRate sgemm_rate = bench::best_sgemm();
+  const double sgemm = sgemm_rate.gflops;
+  std::printf("%s: %.1f GFLOP/s\n", bench::sgemm_label(sgemm_rate.backend).c_str(), sgemm);
 
   const CameraHeadConfig cam_cfg;  // VGGT-1B
   const DptHeadConfig dpt_cfg;

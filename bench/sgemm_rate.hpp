@@ -1,7 +1,8 @@
 #pragma once
 // The machine's SGEMM rate for the benchmarks' "of SGEMM" columns, and a label naming the build that produced a row.
 // The rate is 2048x2048x1024, C = A B^T (nn::linear's form), float, on the pool's threads, best of `reps` after a
-// warm-up, through the BLAS when the build has one: the machine's rate, not this build's Eigen rate.
+// warm-up, the fastest of every fp32 backend the build has (oneDNN's matmul, the BLAS, Eigen): the machine's rate,
+// not one backend's.
 #include <algorithm>
 #include <chrono>
 #include <string>
@@ -12,7 +13,17 @@
 
 namespace flexsplat::bench {
 
-inline GemmBackend best_gemm_backend() { return have_blas ? GemmBackend::blas : GemmBackend::eigen; }
+// The fp32 backend gemm() picks by default (the backend of the benchmarks' fp32 rows).
+inline GemmBackend best_gemm_backend() { return fastest_fp32_gemm_backend(); }
+
+// Every fp32 backend of this build; Eigen only where it is the sole one (it is never the fastest next to the others).
+inline std::vector<GemmBackend> fp32_gemm_backends() {
+  std::vector<GemmBackend> all;
+  if (have_onednn_gemm) all.push_back(GemmBackend::onednn);
+  if (have_blas) all.push_back(GemmBackend::blas);
+  if (all.empty()) all.push_back(GemmBackend::eigen);
+  return all;
+}
 
 inline double sgemm_gflops(GemmBackend backend = best_gemm_backend(), int reps = 5, ThreadPool& pool = global_pool()) {
   const index_t M = 2048, N = 2048, K = 1024;
@@ -30,7 +41,21 @@ inline double sgemm_gflops(GemmBackend backend = best_gemm_backend(), int reps =
   return 2.0 * double(M) * double(N) * double(K) / best * 1e-9;
 }
 
-// e.g. "portable (sse2 batches), gemm on OpenBLAS" or "native (avx512bw batches), gemm on Eigen (no BLAS)".
+struct SgemmRate {
+  double gflops = 0;
+  GemmBackend backend = GemmBackend::eigen;
+};
+
+// The machine's SGEMM rate: the best over every fp32 backend, measured interleaved (`rounds` x `reps` calls each).
+inline SgemmRate best_sgemm(int reps = 3, ThreadPool& pool = global_pool(), int rounds = 2) {
+  SgemmRate best;
+  for (int r = 0; r < rounds; ++r)
+    for (GemmBackend b : fp32_gemm_backends())
+      if (const double g = sgemm_gflops(b, reps, pool); g > best.gflops) best = {g, b};
+  return best;
+}
+
+// e.g. "portable (sse2 batches), gemm on oneDNN fp32" or "native (avx512bw batches), gemm on Eigen (no BLAS ...)".
 inline std::string build_label() {
 #if defined(__AVX2__)
   const char* kind = "native";
@@ -39,15 +64,17 @@ inline std::string build_label() {
 #endif
   const GemmBackend b = default_gemm_backend();
   return concat(kind, " (", simd::compiled_arch_name(), " batches), gemm on ",
-                b == GemmBackend::blas   ? "BLAS"
-                : b == GemmBackend::bf16 ? "oneDNN bf16 (FLEXSPLAT_GEMM=bf16)"
-                : have_blas              ? "Eigen (FLEXSPLAT_GEMM=eigen)"
-                                         : "Eigen (no BLAS in this build)");
+                b == GemmBackend::onednn        ? "oneDNN fp32"
+                : b == GemmBackend::blas        ? "BLAS"
+                : b == GemmBackend::bf16        ? "oneDNN bf16 (FLEXSPLAT_GEMM=bf16)"
+                : have_blas || have_onednn_gemm ? "Eigen (FLEXSPLAT_GEMM=eigen)"
+                                                : "Eigen (no BLAS in this build)");
 }
 
 // The SGEMM line every such benchmark prints: which backend gave the reference rate, and the build.
-inline std::string sgemm_label() {
-  return concat("SGEMM 2048x2048x1024 on ", gemm_backend_name(best_gemm_backend()), "; build: ", build_label());
+inline std::string sgemm_label(GemmBackend rate_backend = best_gemm_backend()) {
+  return concat("SGEMM 2048x2048x1024, fastest of ", fp32_gemm_backends().size(), " fp32 backend(s): ",
+                gemm_backend_name(rate_backend), "; build: ", build_label());
 }
 
 }  // namespace flexsplat::bench

@@ -76,7 +76,7 @@ int main(int argc, char** argv) {
     c.appearance.decoder.max_views = std::max(c.appearance.decoder.max_views, views);
     c.geometry.pose_decode.policy = geometry::DegeneratePosePolicy::clamp;  // random weights may give a bad camera
     c.validate();
-    const double sgemm_before = bench::sgemm_gflops(bench::best_gemm_backend(), 3);
+    const bench::SgemmRate sgemm_before = bench::best_sgemm();
     auto t0 = std::chrono::steady_clock::now();
     auto w = model::FlexSplatWeights<float>::create(c, true);
     w->init(1);
@@ -109,13 +109,14 @@ int main(int argc, char** argv) {
       std::printf("step %lld: %.1f ms, loss %.4f\n", (long long)s, t.total(), r.loss);
       if (t.total() < best_total) best_total = t.total(), best = t;
     }
-    const double sgemm_after = bench::sgemm_gflops(bench::best_gemm_backend(), 3);
-    const double sgemm = std::max(sgemm_before, sgemm_after);
+    const bench::SgemmRate sgemm_after = bench::best_sgemm();
+    const bench::SgemmRate sgemm_best = sgemm_before.gflops >= sgemm_after.gflops ? sgemm_before : sgemm_after;
+    const double sgemm = sgemm_best.gflops;
     const auto gf = geometry::vggt_forward_flops(c.geometry, views, c.image_h, c.image_w);
     const double df = decoder_flops(c.appearance.decoder, double(c.gaussians_for(views)), double(views),
                                     double(c.image_h), double(c.image_w));
     std::printf("\nbest of %lld steps; %s: %.1f GFLOP/s (best of before/after)\n", (long long)steps,
-                bench::sgemm_label().c_str(), sgemm);
+                bench::sgemm_label(sgemm_best.backend).c_str(), sgemm);
     std::printf("data generation (not in the step): %.1f ms for %lld views\n", t_data * 1e3, (long long)(views + targets));
     auto row = [&](const char* name, double ms, double flops) {
       if (flops > 0)

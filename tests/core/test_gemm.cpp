@@ -50,8 +50,10 @@ struct Case {
 };
 
 std::vector<GemmBackend> available_backends() {
-  if (have_blas) return {GemmBackend::eigen, GemmBackend::blas};
-  return {GemmBackend::eigen};
+  std::vector<GemmBackend> all{GemmBackend::eigen};
+  if (have_blas) all.push_back(GemmBackend::blas);
+  if (have_onednn_gemm) all.push_back(GemmBackend::onednn);
+  return all;
 }
 
 // Per element, sum_k |op(A)_ik| |op(B)_kj|: any two summation orders differ by at most 2 K eps times this.
@@ -248,4 +250,80 @@ TEST_CASE("bf16 gemm: double products and small float ones keep full precision",
   gemm(GemmBackend::bf16, Trans::no, Trans::yes, 64, 64, 64, 1.0, Ad.data(), 64, Bd.data(), 64, 0.0, cd.data(), 64);
   naive_gemm(Trans::no, Trans::yes, 64, 64, 64, 1.0, Ad.data(), 64, Bd.data(), 64, 0.0, refd.data(), 64);
   CHECK(max_abs_diff(cd, refd) <= 2.0 * 64 * std::numeric_limits<double>::epsilon());
+}
+
+TEST_CASE("onednn gemm is within 2 K eps of the float64 product: every transpose, stride, alpha, beta, 1 and 2 threads",
+          "[gemm]") {
+  if constexpr (!have_onednn_gemm) {
+    WARN("this build has no oneDNN: GemmBackend::onednn is not available");
+    return;
+  }
+  const double eps = std::numeric_limits<float>::epsilon();
+  ThreadPool one(1), two(2);
+  // Above gemm_onednn_min_madds, so that oneDNN runs (also for each part of the 2-thread split: rows, then columns
+  // of a wide C); the last case is a single row with lda = ldc = 0 (never read for one row).
+  const Case cases[] = {{130, 110, 96, 3}, {40, 400, 48, 1}, {1, 1100, 512, 0}};
+  for (const auto& cs : cases)
+    for (Trans ta : {Trans::no, Trans::yes})
+      for (Trans tb : {Trans::no, Trans::yes}) {
+        const index_t M = cs.M, N = cs.N, K = cs.K;
+        REQUIRE(M * N * K >= gemm_onednn_min_madds);
+        const bool row = M == 1;
+        const index_t lda = row && ta == Trans::no ? 0 : (ta == Trans::no ? K : M) + cs.pad;
+        const index_t ldb = (tb == Trans::no ? N : K) + cs.pad, ldc = row ? 0 : N + cs.pad;
+        const auto A = random_vector<float>((ta == Trans::no ? M : K) * std::max(lda, K), 61);
+        const auto B = random_vector<float>((tb == Trans::no ? K : N) * ldb, 62);
+        const auto C0 = random_vector<float>(M * std::max(ldc, N), 63);
+        std::vector<double> exact(M * N, 0.0), abs_sum(M * N, 0.0);  // float64 product and sum_k |a| |b|
+        for (index_t i = 0; i < M; ++i)
+          for (index_t k = 0; k < K; ++k) {
+            const double a = ta == Trans::no ? A[i * lda + k] : A[k * lda + i];
+            for (index_t j = 0; j < N; ++j) {
+              const double p = a * double(tb == Trans::no ? B[k * ldb + j] : B[j * ldb + k]);
+              exact[i * N + j] += p;
+              abs_sum[i * N + j] += std::abs(p);
+            }
+          }
+        for (const auto& [alpha, beta] : {std::pair{1.0f, 0.0f}, std::pair{0.5f, 0.75f}, std::pair{-1.25f, 1.0f}}) {
+          std::vector<std::vector<float>> results;
+          for (ThreadPool* pool : {&one, &one, &two, &two}) {
+            INFO("M " << M << " ta " << int(ta) << " tb " << int(tb) << " alpha " << alpha << " beta " << beta
+                      << " threads " << pool->size());
+            std::vector<float> c = C0;
+            gemm(GemmBackend::onednn, ta, tb, M, N, K, alpha, A.data(), lda, B.data(), ldb, beta, c.data(), ldc, *pool);
+            for (index_t i = 0; i < M; ++i)
+              for (index_t j = 0; j < N; ++j) {
+                const std::size_t e = i * ldc + j;
+                const double expected = double(alpha) * exact[i * N + j] + double(beta) * C0[e];
+                const double bound = 2.0 * double(K) * eps * std::abs(alpha) * abs_sum[i * N + j] +
+                                     2.0 * eps * std::abs(double(beta) * C0[e]) + eps * std::abs(expected);
+                REQUIRE(std::abs(double(c[e]) - expected) <= bound);
+              }
+            if (!row)
+              for (index_t i = 0; i < M; ++i)
+                for (index_t j = N; j < ldc; ++j) REQUIRE(c[i * ldc + j] == C0[i * ldc + j]);  // padding untouched
+            results.push_back(std::move(c));
+          }
+          // Bitwise the same for a given thread count.
+          CHECK(std::memcmp(results[0].data(), results[1].data(), results[0].size() * sizeof(float)) == 0);
+          CHECK(std::memcmp(results[2].data(), results[3].data(), results[2].size() * sizeof(float)) == 0);
+        }
+      }
+}
+
+TEST_CASE("onednn gemm: double products and small float ones stay on the fp32 fallback", "[gemm]") {
+  if constexpr (!have_onednn_gemm) return;
+  const index_t n = 16;  // n^3 far below gemm_onednn_min_madds
+  const auto A = random_vector<float>(n * n, 71), B = random_vector<float>(n * n, 72);
+  std::vector<float> c(n * n), fallback(n * n);
+  const GemmBackend fp32 = have_blas ? GemmBackend::blas : GemmBackend::eigen;
+  gemm(GemmBackend::onednn, Trans::no, Trans::yes, n, n, n, 1.0f, A.data(), n, B.data(), n, 0.0f, c.data(), n);
+  gemm(fp32, Trans::no, Trans::yes, n, n, n, 1.0f, A.data(), n, B.data(), n, 0.0f, fallback.data(), n);
+  CHECK(std::memcmp(c.data(), fallback.data(), c.size() * sizeof(float)) == 0);
+  const auto Ad = random_vector<double>(80 * 80, 73), Bd = random_vector<double>(80 * 80, 74);
+  std::vector<double> cd(80 * 80), refd(80 * 80);
+  gemm(GemmBackend::onednn, Trans::no, Trans::no, 80, 80, 80, 1.0, Ad.data(), 80, Bd.data(), 80, 0.0, cd.data(), 80);
+  naive_gemm(Trans::no, Trans::no, 80, 80, 80, 1.0, Ad.data(), 80, Bd.data(), 80, 0.0, refd.data(), 80);
+  CHECK(max_abs_diff(cd, refd) <= 2.0 * 80 * std::numeric_limits<double>::epsilon() * 80);
+  CHECK(gemm_backend_name(GemmBackend::onednn).find("oneDNN") == 0);
 }

@@ -1,7 +1,8 @@
 #pragma once
 // Row-major GEMM C = alpha * op(A) * op(B) + beta * C on a CBLAS (OpenBLAS) when the build links one
-// (FLEXSPLAT_HAVE_CBLAS, set by the flexsplat CMake target), else on Eigen's kernels; rows of C split over the pool.
-// With oneDNN (FLEXSPLAT_HAVE_DNNL) float products may run in bf16 with fp32 accumulation: GemmBackend::bf16.
+// (FLEXSPLAT_HAVE_CBLAS, set by the flexsplat CMake target), else on Eigen's kernels; C split over the pool.
+// With oneDNN (FLEXSPLAT_HAVE_DNNL) float products may run on its fp32 matmul (GemmBackend::onednn, the default where
+// oneDNN has AVX-512 kernels for the CPU) or in bf16 with fp32 accumulation (GemmBackend::bf16).
 #include <Eigen/Core>
 
 #include <algorithm>
@@ -29,7 +30,9 @@ inline namespace v0 {
 enum class Trans { no, yes };
 // bf16: float products with both operands rounded to bf16, accumulated and returned in fp32 (oneDNN); double
 // products and float ones below gemm_bf16_min_madds run on the BLAS (or Eigen) as with `blas`.
-enum class GemmBackend { eigen, blas, bf16 };
+// onednn: float products on oneDNN's fp32 matmul; double products and float ones below gemm_onednn_min_madds run on
+// the BLAS (or Eigen).
+enum class GemmBackend { eigen, blas, bf16, onednn };
 
 template <class T>
 using RowMatrix = Eigen::Matrix<T, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
@@ -48,6 +51,7 @@ inline constexpr bool have_bf16_gemm = true;
 #else
 inline constexpr bool have_bf16_gemm = false;
 #endif
+inline constexpr bool have_onednn_gemm = have_bf16_gemm;  // the fp32 matmul comes with the same library
 
 // Products below this many multiply-adds stay on Eigen even with a BLAS: there a CBLAS call's fixed cost loses to
 // Eigen's inlined kernels (bench/gemm's small-shape table: Eigen 2-4x faster at 4^3, even at 8^3 = 512, OpenBLAS
@@ -59,23 +63,47 @@ inline std::atomic<int>& gemm_backend_override() {
   static std::atomic<int> choice{-1};
   return choice;
 }
+
+// Whether oneDNN runs its AVX-512 kernels on this CPU (its own run-time dispatch, capped by DNNL_MAX_CPU_ISA): there
+// its fp32 matmul measured 1.6-2.7x OpenBLAS's Haswell kernels from 96^3 on (bench/gemm). Without AVX-512 it was not
+// measured, so the BLAS stays the default.
+inline bool onednn_has_avx512() {
+#if defined(FLEXSPLAT_HAVE_DNNL)
+  static const bool yes = [] {
+    const int isa = static_cast<int>(dnnl::get_effective_cpu_isa());
+    return (isa & dnnl_cpu_isa_avx512_core) == dnnl_cpu_isa_avx512_core;
+  }();
+  return yes;
+#else
+  return false;
+#endif
+}
 }  // namespace detail
 
-// What gemm() without a backend uses: set_default_gemm_backend's choice, else FLEXSPLAT_GEMM=eigen|blas|bf16 (read
-// once), else the BLAS when the build has one and Eigen otherwise.
+// The fp32 backend gemm() picks without FLEXSPLAT_GEMM or set_default_gemm_backend: oneDNN's fp32 matmul where it has
+// AVX-512 kernels for the CPU, else the BLAS when the build has one, else Eigen.
+inline GemmBackend fastest_fp32_gemm_backend() {
+  if (have_onednn_gemm && detail::onednn_has_avx512()) return GemmBackend::onednn;
+  return have_blas ? GemmBackend::blas : GemmBackend::eigen;
+}
+
+// What gemm() without a backend uses: set_default_gemm_backend's choice, else FLEXSPLAT_GEMM=eigen|blas|onednn|bf16
+// (read once), else fastest_fp32_gemm_backend().
 inline GemmBackend default_gemm_backend() {
   if (const int choice = detail::gemm_backend_override().load(std::memory_order_relaxed); choice >= 0)
     return static_cast<GemmBackend>(choice);
   static const GemmBackend backend = [] {
     const char* env = std::getenv("FLEXSPLAT_GEMM");
-    if (!env || !*env) return have_blas ? GemmBackend::blas : GemmBackend::eigen;
+    if (!env || !*env) return fastest_fp32_gemm_backend();
     const std::string v = env;
-    require(v == "eigen" || v == "blas" || v == "bf16", "FLEXSPLAT_GEMM='", v, "' is not 'eigen', 'blas' or 'bf16'");
+    require(v == "eigen" || v == "blas" || v == "onednn" || v == "bf16", "FLEXSPLAT_GEMM='", v,
+            "' is not 'eigen', 'blas', 'onednn' or 'bf16'");
     require(v != "blas" || have_blas, "FLEXSPLAT_GEMM=blas but this build has no BLAS (FLEXSPLAT_USE_BLAS=OFF or "
                                       "OpenBLAS not found at configure time)");
-    require(v != "bf16" || have_bf16_gemm, "FLEXSPLAT_GEMM=bf16 but this build has no oneDNN (FLEXSPLAT_USE_DNNL=OFF "
-                                           "or libdnnl-dev not found at configure time)");
-    return v == "blas" ? GemmBackend::blas : v == "bf16" ? GemmBackend::bf16 : GemmBackend::eigen;
+    require((v != "bf16" && v != "onednn") || have_onednn_gemm, "FLEXSPLAT_GEMM=", v, " but this build has no oneDNN "
+            "(FLEXSPLAT_USE_DNNL=OFF or libdnnl-dev not found at configure time)");
+    return v == "blas" ? GemmBackend::blas : v == "bf16" ? GemmBackend::bf16 : v == "onednn" ? GemmBackend::onednn
+                                                                                               : GemmBackend::eigen;
   }();
   return backend;
 }
@@ -85,12 +113,16 @@ inline GemmBackend default_gemm_backend() {
 inline void set_default_gemm_backend(GemmBackend backend) {
   require(backend != GemmBackend::blas || have_blas, "set_default_gemm_backend: this build has no BLAS");
   require(backend != GemmBackend::bf16 || have_bf16_gemm, "set_default_gemm_backend: this build has no oneDNN (bf16)");
+  require(backend != GemmBackend::onednn || have_onednn_gemm, "set_default_gemm_backend: this build has no oneDNN");
   detail::gemm_backend_override().store(static_cast<int>(backend), std::memory_order_relaxed);
 }
 
 // Float products below this many multiply-adds stay in fp32 under GemmBackend::bf16: oneDNN's per-call set-up
 // (primitive look-up, two reorders) costs tens of microseconds.
 inline constexpr index_t gemm_bf16_min_madds = index_t(1) << 20;
+// Float products below this many multiply-adds leave GemmBackend::onednn for the BLAS (or Eigen): oneDNN's per-call
+// set-up is about 9 us; it lost at 64^3 = 2^18 (0.74-0.95x) and won from 96^3 (1.5x) in bench/gemm's fp32 table.
+inline constexpr index_t gemm_onednn_min_madds = index_t(1) << 19;
 
 namespace detail {
 
@@ -107,11 +139,12 @@ inline void openblas_single_threaded() {
 }
 #endif
 
-#if defined(FLEXSPLAT_HAVE_CBLAS)
 // A stored matrix of `rows` x `cols` with row stride ld; with one row the stride is never used, but CBLAS checks it.
 inline int blas_ld(index_t rows, index_t cols, index_t ld) {
   return static_cast<int>(rows <= 1 ? std::max<index_t>({ld, cols, 1}) : ld);
 }
+
+#if defined(FLEXSPLAT_HAVE_CBLAS)
 
 template <class T>
 void blas_gemm(Trans ta, Trans tb, index_t M, index_t N, index_t K, T alpha, const T* A, index_t lda, const T* B,
@@ -131,20 +164,22 @@ void blas_gemm(Trans ta, Trans tb, index_t M, index_t N, index_t K, T alpha, con
 #endif
 
 #if defined(FLEXSPLAT_HAVE_DNNL)
-// C[:M, :N] = alpha op(A) op(B) + beta C on the calling thread: oneDNN reorders A and B to bf16 (round to nearest
-// even) in the layouts its matmul prefers, which accumulates in fp32 (AVX-512 BF16 kernels where the CPU has them).
-inline void bf16_gemm(Trans ta, Trans tb, index_t M, index_t N, index_t K, float alpha, const float* A, index_t lda,
-                      const float* B, index_t ldb, float beta, float* C, index_t ldc) {
+// C[:M, :N] = alpha op(A) op(B) + beta C on the calling thread with oneDNN's matmul. fp32: on the operands in place.
+// bf16: oneDNN reorders A and B to bf16 (round to nearest even) in the layouts its matmul prefers, which accumulates
+// in fp32 (AVX-512 BF16 kernels where the CPU has them).
+inline void onednn_gemm(bool bf16, Trans ta, Trans tb, index_t M, index_t N, index_t K, float alpha, const float* A,
+                        index_t lda, const float* B, index_t ldb, float beta, float* C, index_t ldc) {
   using dims = dnnl::memory::dims;
   using dt = dnnl::memory::data_type;
   try {
     static const dnnl::engine engine(dnnl::engine::kind::cpu, 0);
     thread_local dnnl::stream stream(engine);
     omp_set_num_threads(1);  // the pool splits the work, as with OpenBLAS: no OpenMP team per worker
-    const dnnl::memory::desc a_f32({M, K}, dt::f32, ta == Trans::no ? dims{lda, 1} : dims{1, lda});
-    const dnnl::memory::desc b_f32({K, N}, dt::f32, tb == Trans::no ? dims{ldb, 1} : dims{1, ldb});
-    const dnnl::memory::desc c_f32({M, N}, dt::f32, dims{ldc, 1});
-    const auto any = dnnl::memory::format_tag::any;
+    const index_t a_ld = ta == Trans::no ? blas_ld(M, K, lda) : blas_ld(K, M, lda);
+    const index_t b_ld = tb == Trans::no ? blas_ld(K, N, ldb) : blas_ld(N, K, ldb);
+    const dnnl::memory::desc a_f32({M, K}, dt::f32, ta == Trans::no ? dims{a_ld, 1} : dims{1, a_ld});
+    const dnnl::memory::desc b_f32({K, N}, dt::f32, tb == Trans::no ? dims{b_ld, 1} : dims{1, b_ld});
+    const dnnl::memory::desc c_f32({M, N}, dt::f32, dims{blas_ld(M, N, ldc), 1});
     dnnl::primitive_attr attr;
     if (alpha != 1.0f) attr.set_output_scales(0, {alpha});
     if (beta != 0.0f) {
@@ -152,18 +187,32 @@ inline void bf16_gemm(Trans ta, Trans tb, index_t M, index_t N, index_t K, float
       ops.append_sum(beta);
       attr.set_post_ops(ops);
     }
+    dnnl::memory a_in(a_f32, engine, const_cast<float*>(A)), b_in(b_f32, engine, const_cast<float*>(B));
+    dnnl::memory c(c_f32, engine, C);
+    if (!bf16) {
+      const dnnl::matmul::primitive_desc pd(dnnl::matmul::desc(a_f32, b_f32, c_f32), attr, engine);
+      dnnl::matmul(pd).execute(stream, {{DNNL_ARG_SRC, a_in}, {DNNL_ARG_WEIGHTS, b_in}, {DNNL_ARG_DST, c}});
+      stream.wait();
+      return;
+    }
+    const auto any = dnnl::memory::format_tag::any;
     const dnnl::matmul::desc desc(dnnl::memory::desc({M, K}, dt::bf16, any), dnnl::memory::desc({K, N}, dt::bf16, any),
                                   c_f32);
     const dnnl::matmul::primitive_desc pd(desc, attr, engine);
-    dnnl::memory a_in(a_f32, engine, const_cast<float*>(A)), b_in(b_f32, engine, const_cast<float*>(B));
-    dnnl::memory a(pd.src_desc(), engine), b(pd.weights_desc(), engine), c(c_f32, engine, C);
+    dnnl::memory a(pd.src_desc(), engine), b(pd.weights_desc(), engine);
     dnnl::reorder(a_in, a).execute(stream, a_in, a);
     dnnl::reorder(b_in, b).execute(stream, b_in, b);
     dnnl::matmul(pd).execute(stream, {{DNNL_ARG_SRC, a}, {DNNL_ARG_WEIGHTS, b}, {DNNL_ARG_DST, c}});
     stream.wait();
   } catch (const dnnl::error& e) {
-    fail("gemm (bf16, oneDNN): M ", M, " N ", N, " K ", K, " lda ", lda, " ldb ", ldb, " ldc ", ldc, ": ", e.what());
+    fail("gemm (", bf16 ? "bf16" : "fp32", ", oneDNN): M ", M, " N ", N, " K ", K, " lda ", lda, " ldb ", ldb, " ldc ",
+         ldc, ": ", e.what());
   }
+}
+
+inline void bf16_gemm(Trans ta, Trans tb, index_t M, index_t N, index_t K, float alpha, const float* A, index_t lda,
+                      const float* B, index_t ldb, float beta, float* C, index_t ldc) {
+  onednn_gemm(true, ta, tb, M, N, K, alpha, A, lda, B, ldb, beta, C, ldc);
 }
 #endif
 
@@ -179,13 +228,14 @@ void gemm_block(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, i
   }
 #if defined(FLEXSPLAT_HAVE_DNNL)
   if constexpr (std::is_same_v<T, float>) {
-    if (backend == GemmBackend::bf16) {
-      bf16_gemm(ta, tb, M, N, K, alpha, A, lda, B, ldb, beta, C, ldc);
+    if (backend == GemmBackend::bf16 || backend == GemmBackend::onednn) {
+      onednn_gemm(backend == GemmBackend::bf16, ta, tb, M, N, K, alpha, A, lda, B, ldb, beta, C, ldc);
       return;
     }
   }
 #endif
-  if (backend == GemmBackend::bf16) backend = have_blas ? GemmBackend::blas : GemmBackend::eigen;
+  if (backend == GemmBackend::bf16 || backend == GemmBackend::onednn)
+    backend = have_blas ? GemmBackend::blas : GemmBackend::eigen;
 #if defined(FLEXSPLAT_HAVE_CBLAS)
   if constexpr (std::is_same_v<T, float> || std::is_same_v<T, double>) {
     if (backend == GemmBackend::blas && M * N * K >= gemm_blas_min_madds) {
@@ -218,6 +268,13 @@ inline std::string gemm_backend_name(GemmBackend backend = default_gemm_backend(
     return concat("oneDNN ", v->major, '.', v->minor, '.', v->patch, " bf16 matmul (fp32 accumulation), single-threaded "
                   "calls; small products on ", gemm_backend_name(have_blas ? GemmBackend::blas : GemmBackend::eigen));
   }
+  if (backend == GemmBackend::onednn) {
+    const dnnl_version_t* v = dnnl_version();
+    return concat("oneDNN ", v->major, '.', v->minor, '.', v->patch, " fp32 matmul (",
+                  detail::onednn_has_avx512() ? "AVX-512" : "no AVX-512", " kernels), single-threaded calls; products "
+                  "under ", gemm_onednn_min_madds, " multiply-adds on ",
+                  gemm_backend_name(have_blas ? GemmBackend::blas : GemmBackend::eigen));
+  }
 #endif
 #if defined(FLEXSPLAT_HAVE_OPENBLAS)
   detail::openblas_single_threaded();
@@ -237,8 +294,10 @@ void gemm(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, index_t
   if (M <= 0 || N <= 0) return;
   require(backend != GemmBackend::blas || have_blas, "gemm: the BLAS backend was requested but this build has none");
   require(backend != GemmBackend::bf16 || have_bf16_gemm, "gemm: bf16 was requested but this build has no oneDNN");
-  // Decided for the whole product, so that the pool's split never changes the precision.
-  if (backend == GemmBackend::bf16 && (!std::is_same_v<T, float> || M * N * K < gemm_bf16_min_madds))
+  require(backend != GemmBackend::onednn || have_onednn_gemm, "gemm: oneDNN was requested but this build has none");
+  // Decided for the whole product, so that the pool's split never changes the precision or the summation order.
+  if ((backend == GemmBackend::bf16 && (!std::is_same_v<T, float> || M * N * K < gemm_bf16_min_madds)) ||
+      (backend == GemmBackend::onednn && (!std::is_same_v<T, float> || M * N * K < gemm_onednn_min_madds)))
     backend = have_blas ? GemmBackend::blas : GemmBackend::eigen;
   if (backend != GemmBackend::eigen) {
     const index_t a_cols = ta == Trans::no ? K : M, b_cols = tb == Trans::no ? N : K;
@@ -260,8 +319,10 @@ void gemm(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, index_t
     block(0, M, 0, N);
     return;
   }
-  // Few rows (e.g. one token per frame): split the columns instead so every worker gets a share of B.
-  const bool by_columns = M < 4 * workers && N >= 16 * workers;
+  // Few rows (e.g. one token per frame), or C at least 4x wider than tall (the DPT convolutions' weight x im2col):
+  // split the columns, so that no worker multiplies a thin slice of rows against all of B (oneDNN on 2 threads:
+  // 1.0-2.6x faster on the DPT shapes, bench/gemm's split table).
+  const bool by_columns = (M < 4 * workers && N >= 16 * workers) || N >= 4 * M;
   const index_t extent = by_columns ? N : M;
   const index_t chunks = std::min<index_t>(workers, extent);
   parallel_for(chunks, [&](index_t k0, index_t k1, int) {
