@@ -5,13 +5,21 @@
 #   tests/cli/write_fault.sh FLEXSPLAT CONFIG WORK_DIR full|readonly
 # full: a full disk, as a file-size limit (ulimit -f, SIGXFSZ ignored, so write() fails with EFBIG) below the size of
 #       state.safetensors; works for any user.
-# readonly: chmod a-w on the run folder; permissions do not bind root, so as root the test exits 77 (ctest SKIP).
+# readonly: chmod a-w on the run folder. Permissions do not bind root, so as root (the CI) the faulty run runs as
+#       nobody (setpriv, else runuser); only if neither can switch users does the test exit 77 (ctest SKIP).
 set -euo pipefail
 [[ $# -eq 4 ]] || { echo "usage: $0 FLEXSPLAT CONFIG WORK_DIR full|readonly" >&2; exit 2; }
 exe="$1" config="$2" work="$3" mode="$4"
+as_user=()
 if [[ "$mode" == readonly && $(id -u) -eq 0 ]]; then
-  echo "SKIP: running as root, where chmod a-w does not stop writes (the 'full' mode covers write failures)"
-  exit 77
+  if setpriv --reuid=65534 --regid=65534 --clear-groups true 2>/dev/null; then
+    as_user=(setpriv --reuid=65534 --regid=65534 --clear-groups)
+  elif runuser -u nobody -- true 2>/dev/null; then
+    as_user=(runuser -u nobody --)
+  else
+    echo "SKIP: running as root, where chmod a-w does not stop writes, and neither setpriv nor runuser can drop to nobody"
+    exit 77
+  fi
 fi
 rm -rf "$work"
 mkdir -p "$work"
@@ -32,7 +40,18 @@ case "$mode" in
     ;;
   readonly)
     chmod a-w "$work/run"
-    "${cmd[@]}" --out "$work/run" >"$work/fault.log" 2>&1
+    if ((${#as_user[@]})); then
+      # nobody must reach the program, its config and the run folder, and needs a TMPDIR of its own (Open MPI's
+      # session directory; the CI's TMPDIR is private to root).
+      mkdir -m 1777 "$work/tmp"
+      for d in "$work/run" "$(dirname "$exe")" "$(dirname "$config")"; do
+        "${as_user[@]}" test -r "$d" -a -x "$d" || { echo "SKIP: nobody cannot reach $d (a private parent folder)"; exit 77; }
+      done
+      ! "${as_user[@]}" test -w "$work/run" || { echo "FAIL: the run folder is writable for nobody" >&2; exit 1; }
+      TMPDIR="$work/tmp" "${as_user[@]}" "${cmd[@]}" --out "$work/run" >"$work/fault.log" 2>&1
+    else
+      "${cmd[@]}" --out "$work/run" >"$work/fault.log" 2>&1
+    fi
     status=$?
     chmod u+w "$work/run"
     expect="$work/run/"
