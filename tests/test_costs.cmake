@@ -4,7 +4,7 @@
 # loses its place in the queue. tests/CMakeLists.txt includes this file twice: at configure time for the tests it
 # defines itself, and through TEST_INCLUDE_FILES at ctest time, after the Catch2 tests are discovered, for those.
 set(flexsplat_test_costs
-    "model:the whole model passes the float64 gradient check from the losses to every module's parameters|151"
+    "model:the whole model passes the float64 gradient check from the losses to every module's parameters|55"
     "check-reference: lpips_2024|77"
     "consumer_find_package|60"
     "consumer_add_subdirectory|60"
