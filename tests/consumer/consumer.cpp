@@ -1,6 +1,14 @@
-// A downstream program: includes the umbrella header, writes and reads back a safetensors file, and runs a GEMM on
-// the backend its configuration chose (FLEXSPLAT_CONSUMER_EXPECT_BLAS: the BLAS must be there).
+// A downstream program: includes the umbrella header (installed package) or the module headers it uses
+// (subdirectory), writes and reads back a safetensors file, and runs a GEMM on the backend its configuration chose
+// (FLEXSPLAT_CONSUMER_EXPECT_BLAS: the BLAS must be there).
+#if defined(FLEXSPLAT_CONSUMER_UMBRELLA)
 #include <flexsplat/flexsplat.hpp>
+#else
+#include <flexsplat/core/gemm.hpp>
+#include <flexsplat/core/tensor.hpp>
+#include <flexsplat/core/version.hpp>
+#include <flexsplat/io/safetensors.hpp>
+#endif
 
 #include <cstdio>
 #include <filesystem>
