@@ -225,6 +225,11 @@ template <class T>
 inline T lane_exp(T v) { return std::exp(v); }
 template <class T, class A>
 inline xsimd::batch<T, A> lane_exp(const xsimd::batch<T, A>& v) { return xsimd::exp(v); }
+// erf: std::erf on the scalar path (the reference), xsimd's on the batches; the dispatch vectors add theirs.
+template <class T>
+inline T lane_erf(T v) { return std::erf(v); }
+template <class T, class A>
+inline xsimd::batch<T, A> lane_erf(const xsimd::batch<T, A>& v) { return xsimd::erf(v); }
 template <class T>
 inline T lane_min(T a, T b) { return a < b ? a : b; }
 template <class T, class A>

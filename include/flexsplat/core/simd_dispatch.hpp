@@ -5,6 +5,7 @@
 // compiled for the wider target gets that target's instructions. The compile-time path (xsimd batches) and the
 // scalar path stay; tests compare all of them.
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
@@ -256,6 +257,37 @@ inline wide<T, N> lane_exp(wide<T, N> x) {
   return wide<T, N>::make(result);
 }
 
+// erf at float precision for the dispatch vectors: the float kernel of xsimd 8 (from Boost.SIMD), x P(x^2) for
+// |x| < 2/3, else 1 - exp(-x^2) Q(|x| / (1 + |x|) - 0.4), both sides evaluated and one selected per lane; |x| is
+// capped at 10 (erf is 1 in float from 3.92 on), so infinities give +-1. Within a few ulp of std::erf (tested).
+inline constexpr float erf_small[6] = {std::bit_cast<float>(0x3f906ebau), std::bit_cast<float>(0xbec0937eu),
+                                       std::bit_cast<float>(0x3de70f22u), std::bit_cast<float>(0xbcdb61f4u),
+                                       std::bit_cast<float>(0x3ba4468du), std::bit_cast<float>(0xba1fc83bu)};
+inline constexpr float erfc_large[11] = {
+    std::bit_cast<float>(0x3f0a0e8bu), std::bit_cast<float>(0xbf918a62u), std::bit_cast<float>(0x3e243828u),
+    std::bit_cast<float>(0x3ec4ca6eu), std::bit_cast<float>(0x3e1175c7u), std::bit_cast<float>(0x3e2006f0u),
+    std::bit_cast<float>(0xbfaea865u), std::bit_cast<float>(0x4050b063u), std::bit_cast<float>(0xc0cd1a85u),
+    std::bit_cast<float>(0x40d67e3bu), std::bit_cast<float>(0xc0283611u)};
+template <class V>
+inline V erf_float_lanes(V x) {
+  const V zero(0.0f), one(1.0f);
+  const auto negative = x < zero;
+  const V a = lane_min(lane_select(negative, -x, x), V(10.0f));
+  const V a2 = a * a;
+  V p(erf_small[5]);
+  for (int k = 4; k >= 0; --k) p = p * a2 + V(erf_small[k]);
+  V q(erfc_large[10]);
+  const V z = a / (one + a) - V(0.4f);
+  for (int k = 9; k >= 0; --k) q = q * z + V(erfc_large[k]);
+  const V large = one - lane_exp(-a2) * q;
+  return lane_select(a < V(2.0f / 3.0f), x * p, lane_select(negative, -large, large));
+}
+template <class T, int N>
+inline wide<T, N> lane_erf(wide<T, N> x) {
+  static_assert(sizeof(T) == 4, "lane_erf of dispatch vectors is accurate to float precision only");
+  return erf_float_lanes(x);
+}
+
 // 16 floats and 8 doubles with AVX-512 mask registers: GCC lowers vector-extension comparisons of 512-bit vectors
 // lane by lane, so this width is written with intrinsics (every function carries the AVX-512 target of the kernels
 // that use it). avx512_ops<T> names the intrinsics of one lane type, and one template serves both types.
@@ -449,6 +481,7 @@ FLEXSPLAT_AVX512_TARGET inline __m512 exp_avx512(__m512 x) {
 FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp(wide<float, 16> x) {
   return wide<float, 16>::make(exp_avx512(x.v));
 }
+FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_erf(wide<float, 16> x) { return erf_float_lanes(x); }
 // (An overload with the target: a 64-byte vector passed to a function without it draws a GCC ABI note.)
 FLEXSPLAT_AVX512_TARGET inline wide<float, 16> lane_exp_blend(wide<float, 16> x) {
   return wide<float, 16>::make(exp_avx512<true>(x.v));
