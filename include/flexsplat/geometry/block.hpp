@@ -9,11 +9,13 @@
 #include <cstdint>
 #include <span>
 #include <string>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/simd_dispatch.hpp"
 #include "flexsplat/geometry/param_source.hpp"
 #include "flexsplat/geometry/rope.hpp"
 #include "flexsplat/nn/activations.hpp"
@@ -189,72 +191,58 @@ inline index_t block_cache_elements(const BlockConfig& c, index_t rows, bool rec
 }
 
 namespace detail {
-// Per-(row, head) LayerNorm of the head_dim features at x[r*row_stride + h*head_dim ...], in place.
+// Per-(row, head) LayerNorm of the head_dim features at x[r*row_stride + h*head_dim ...], in place: nn's layer norm
+// row kernels (same lanes and statistics as nn::layernorm_forward) on this strided layout.
 template <class T>
 void head_layernorm_inplace(T* x, index_t rows, index_t row_stride, index_t heads, index_t head_dim, const T* gamma,
                             const T* beta, double eps) {
+  const simd::Lanes lanes = simd::best_lanes<T>();
   parallel_for(rows, [&](index_t r0, index_t r1, int) {
-    for (index_t r = r0; r < r1; ++r)
-      for (index_t h = 0; h < heads; ++h) {
-        T* v = x + r * row_stride + h * head_dim;
-        double sum = 0.0;
-        for (index_t i = 0; i < head_dim; ++i) sum += v[i];
-        const double mean = sum / static_cast<double>(head_dim);
-        double sq = 0.0;
-        for (index_t i = 0; i < head_dim; ++i) sq += (v[i] - mean) * (v[i] - mean);
-        const T rstd = static_cast<T>(1.0 / std::sqrt(sq / static_cast<double>(head_dim) + eps));
-        const T m = static_cast<T>(mean);
-        for (index_t i = 0; i < head_dim; ++i) v[i] = (v[i] - m) * rstd * gamma[i] + beta[i];
-      }
+    simd::with_lanes<T>(lanes, [&](auto* lane_type) {
+      using V = std::remove_pointer_t<decltype(lane_type)>;
+      for (index_t r = r0; r < r1; ++r)
+        for (index_t h = 0; h < heads; ++h) {
+          T* v = x + r * row_stride + h * head_dim;
+          T mean, rstd;
+          nn::detail::layernorm_row<V>(v, v, gamma, beta, head_dim, static_cast<T>(eps), mean, rstd);
+        }
+    });
   });
 }
 
 // Adjoint of head_layernorm_inplace given its input x: adds into d_x (same strides), d_gamma, d_beta (may be null).
-// Statistics are recomputed exactly as in forward; d_gamma / d_beta are summed over rows in a fixed order.
+// Statistics are recomputed as in forward; d_gamma / d_beta are summed over rows in a fixed order.
 template <class T>
 void head_layernorm_backward(T* d_x, T* d_gamma, T* d_beta, const T* d_out, const T* x, index_t rows, index_t row_stride,
                              index_t heads, index_t head_dim, const T* gamma, double eps) {
-  auto stats = [&](const T* v, T& m, T& rstd) {
-    double sum = 0.0;
-    for (index_t i = 0; i < head_dim; ++i) sum += v[i];
-    const double mean = sum / static_cast<double>(head_dim);
-    double sq = 0.0;
-    for (index_t i = 0; i < head_dim; ++i) sq += (v[i] - mean) * (v[i] - mean);
-    rstd = static_cast<T>(1.0 / std::sqrt(sq / static_cast<double>(head_dim) + eps));
-    m = static_cast<T>(mean);
-  };
-  const T inv_dim = T(1) / static_cast<T>(head_dim);
+  const simd::Lanes lanes = simd::best_lanes<T>();
+  const T e = static_cast<T>(eps);
   parallel_for(rows, [&](index_t r0, index_t r1, int) {
-    for (index_t r = r0; r < r1; ++r)
+    simd::with_lanes<T>(lanes, [&](auto* lane_type) {
+      using V = std::remove_pointer_t<decltype(lane_type)>;
+      for (index_t r = r0; r < r1; ++r)
+        for (index_t h = 0; h < heads; ++h) {
+          const index_t off = r * row_stride + h * head_dim;
+          T mean, rstd;
+          nn::detail::layernorm_row_stats<V>(x + off, head_dim, e, mean, rstd);
+          nn::detail::layernorm_row_backward<V>(d_x + off, d_out + off, x + off, gamma, head_dim, mean, rstd);
+        }
+    });
+  });
+  if (!d_gamma && !d_beta) return;
+  simd::with_lanes<T>(lanes, [&](auto* lane_type) {
+    using V = std::remove_pointer_t<decltype(lane_type)>;
+    for (index_t r = 0; r < rows; ++r)
       for (index_t h = 0; h < heads; ++h) {
         const index_t off = r * row_stride + h * head_dim;
-        const T* v = x + off;
-        const T* dy = d_out + off;
-        T m, rstd;
-        stats(v, m, rstd);
-        T sum_dn = 0, sum_dn_n = 0;
+        T mean, rstd;
+        nn::detail::layernorm_row_stats<V>(x + off, head_dim, e, mean, rstd);
         for (index_t i = 0; i < head_dim; ++i) {
-          const T dn = dy[i] * gamma[i];
-          sum_dn += dn;
-          sum_dn_n += dn * (v[i] - m) * rstd;
-        }
-        for (index_t i = 0; i < head_dim; ++i) {
-          const T n = (v[i] - m) * rstd;
-          d_x[off + i] += rstd * (dy[i] * gamma[i] - inv_dim * sum_dn - n * inv_dim * sum_dn_n);
+          if (d_gamma) d_gamma[i] += d_out[off + i] * ((x[off + i] - mean) * rstd);
+          if (d_beta) d_beta[i] += d_out[off + i];
         }
       }
   });
-  if (!d_gamma && !d_beta) return;
-  for (index_t r = 0; r < rows; ++r)
-    for (index_t h = 0; h < heads; ++h) {
-      const index_t off = r * row_stride + h * head_dim;
-      T m, rstd;
-      stats(x + off, m, rstd);
-      for (index_t i = 0; i < head_dim; ++i) {
-        if (d_gamma) d_gamma[i] += d_out[off + i] * (x[off + i] - m) * rstd;
-        if (d_beta) d_beta[i] += d_out[off + i];
-      }
-    }
 }
 
 // x[r, :] += scale[:] * y[r, :] (scale may be null: plain residual).
