@@ -2,6 +2,10 @@
 // [rows, 3 * 1024] buffer as geometry/block.hpp does), next to the SGEMM rate of the same (n x 64) x (64 x n) product
 // in the same run, and the max error of the float kernels against a dense float64 reference on a smaller shape.
 //   bench/attention [--reps R] [--no-backward] [--shape batch:tokens]...
+//   bench/attention --elementwise [--reps R]: instead, GELU (nn/activations) and layer norm (nn/layernorm) forward and
+//   backward on VGGT-1B's tensors at 4 frames of 252^2 (1316 token rows; GELU on [1316, 4096], layer norm on
+//   [1316, 1024]) in every lane type the CPU runs, scalar first: ns per element and GB/s of the tensors read and
+//   written once (GELU 8 / 16 bytes per element forward / backward, layer norm 8 / 12).
 // FLOPs: forward 4 n_q n_kv d per (batch, head) (QK^T and PV); backward 8 n_q n_kv d (dP, dV, dK, dQ; the
 // recomputed score tiles are not counted).
 #include <algorithm>
@@ -15,7 +19,10 @@
 
 #include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/simd.hpp"
+#include "flexsplat/core/simd_dispatch.hpp"
+#include "flexsplat/nn/activations.hpp"
 #include "flexsplat/nn/attention.hpp"
+#include "flexsplat/nn/layernorm.hpp"
 #include "sgemm_rate.hpp"
 
 using namespace flexsplat;
@@ -141,16 +148,60 @@ void accuracy_check() {
   std::printf("  backward max abs err %.3g (max |grad| %.3g)\n", max_abs_diff(dqkv, dqkv_ref), max_abs(dqkv_ref));
 }
 
+// GELU and layer norm forward / backward at VGGT-1B's 4 x 252^2 sizes, per lane type.
+void elementwise_table(int reps) {
+  const index_t rows = 4 * (18 * 18 + 5), C = 1024, H = 4096;
+  using Aligned = std::vector<float, AlignedAllocator<float>>;  // 64-byte aligned, as the model's activations
+  auto values = [](index_t n, unsigned seed, double sigma) {
+    const auto v = random_values<float>(n, seed, sigma);
+    return Aligned(v.begin(), v.end());
+  };
+  const Aligned hidden = values(rows * H, 5, 1.5), d_hidden = values(rows * H, 6, 1.0);
+  const Aligned x = values(rows * C, 7, 2.0), dy = values(rows * C, 8, 1.0), gamma = values(C, 9, 1.0), beta = values(C, 10, 1.0);
+  Aligned act(rows * H), d_act(rows * H), y(rows * C), dx(rows * C), dg(C), db(C);
+  std::vector<float> mean(rows), rstd(rows);
+  std::vector<simd::Lanes> lanes{simd::Lanes::scalar, simd::Lanes::compiled};
+  if (simd::best_lanes<float>(simd::DispatchLevel::avx2) == simd::Lanes::avx2) lanes.push_back(simd::Lanes::avx2);
+  if (simd::best_lanes<float>() == simd::Lanes::avx512) lanes.push_back(simd::Lanes::avx512);
+  std::printf("GELU [%lld, %lld] and layer norm [%lld, %lld] (VGGT-1B, 4 x 252^2), float, %d threads, best of %d\n",
+              (long long)rows, (long long)H, (long long)rows, (long long)C, global_pool().size(), reps);
+  std::printf("%-9s %-9s %10s %8s %10s %8s\n", "kernel", "lanes", "fwd ns/el", "fwd GB/s", "bwd ns/el", "bwd GB/s");
+  auto row = [&](const char* kernel, simd::Lanes l, double t_fwd, double t_bwd, double n, double fwd_bytes, double bwd_bytes) {
+    std::printf("%-9s %-9s %10.3f %8.1f %10.3f %8.1f\n", kernel, simd::lanes_name(l), t_fwd / n * 1e9,
+                fwd_bytes * n / t_fwd / 1e9, t_bwd / n * 1e9, bwd_bytes * n / t_bwd / 1e9);
+    std::fflush(stdout);
+  };
+  for (simd::Lanes l : lanes) {
+    const double f = best_seconds([&] { nn::gelu_forward_impl<float>(act.data(), hidden.data(), rows * H, l); }, reps);
+    const double b = best_seconds([&] {
+      nn::gelu_backward_impl<float>(d_act.data(), d_hidden.data(), hidden.data(), rows * H, l);
+    }, reps);
+    row("gelu", l, f, b, double(rows * H), 8, 16);
+  }
+  for (simd::Lanes l : lanes) {
+    const nn::LayerNormCache<float> cache{mean.data(), rstd.data()};
+    const double f = best_seconds([&] {
+      nn::layernorm_forward_impl<float>(y.data(), x.data(), gamma.data(), beta.data(), rows, C, 1e-6f, cache, l);
+    }, reps);
+    const double b = best_seconds([&] {
+      nn::layernorm_backward_impl<float>(dx.data(), dg.data(), db.data(), dy.data(), x.data(), gamma.data(), rows, C,
+                                         cache, l);
+    }, reps);
+    row("layernorm", l, f, b, double(rows * C), 8, 12);
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   int reps = 3;
-  bool backward = true;
+  bool backward = true, elementwise = false;
   std::vector<std::pair<index_t, index_t>> shapes;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--reps" && i + 1 < argc) reps = std::atoi(argv[++i]);
     else if (a == "--no-backward") backward = false;
+    else if (a == "--elementwise") elementwise = true;
     else if (a == "--shape" && i + 1 < argc) {
       const std::string s = argv[++i];
       const auto colon = s.find(':');
@@ -160,7 +211,7 @@ int main(int argc, char** argv) {
       }
       shapes.emplace_back(std::atol(s.substr(0, colon).c_str()), std::atol(s.substr(colon + 1).c_str()));
     } else {
-      std::fprintf(stderr, "usage: %s [--reps R] [--no-backward] [--shape batch:tokens]...\n", argv[0]);
+      std::fprintf(stderr, "usage: %s [--reps R] [--no-backward] [--shape batch:tokens]... | --elementwise [--reps R]\n", argv[0]);
       return 2;
     }
   }
@@ -170,6 +221,10 @@ int main(int argc, char** argv) {
   std::printf("attention bench: float, 16 heads x 64, %d threads, arch %s%s, cpu: %s\n", global_pool().size(),
               simd::compiled_arch_name(), simd::enabled() ? "" : " (FLEXSPLAT_SIMD=scalar)",
               simd::describe(simd::cpu_features()).c_str());
+  if (elementwise) {
+    elementwise_table(reps);
+    return 0;
+  }
   accuracy_check();
   // The compute-bound reference bench/geometry uses, for comparison with its "of SGEMM" column.
   const bench::SgemmRate sgemm_rate = bench::best_sgemm(reps);
