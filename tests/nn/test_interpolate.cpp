@@ -1,5 +1,7 @@
 #include <catch2/catch.hpp>
 
+#include <array>
+
 #include "flexsplat/nn/interpolate.hpp"
 #include "flexsplat/testing/gradcheck.hpp"
 #include "nn_test_util.hpp"
@@ -30,4 +32,26 @@ TEST_CASE("bilinear resize backward passes the float64 gradient check", "[nn][in
     INFO(result.summary());
     CHECK(result.ok());
   }
+}
+
+TEST_CASE("bilinear resize equals the per-pixel taps, upsampling and downsampling", "[nn][interpolate]") {
+  for (bool align : {true, false})
+    for (auto [h, w, oh, ow] : {std::array<index_t, 4>{5, 7, 11, 3}, std::array<index_t, 4>{9, 4, 2, 13}}) {
+      const index_t planes = 3;
+      const auto in = random_vector(static_cast<std::size_t>(planes * h * w), 52);
+      std::vector<double> out(static_cast<std::size_t>(planes * oh * ow));
+      nn::bilinear_resize_forward(out.data(), in.data(), planes, h, w, oh, ow, align);
+      for (index_t p = 0; p < planes; ++p)
+        for (index_t y = 0; y < oh; ++y)
+          for (index_t x = 0; x < ow; ++x) {
+            const auto ty = nn::bilinear_tap(y, h, oh, align), tx = nn::bilinear_tap(x, w, ow, align);
+            const double* s = in.data() + p * h * w;
+            const double top = (1 - tx.w1) * s[ty.i0 * w + tx.i0] + tx.w1 * s[ty.i0 * w + tx.i1];
+            const double bottom = (1 - tx.w1) * s[ty.i1 * w + tx.i0] + tx.w1 * s[ty.i1 * w + tx.i1];
+            INFO("plane " << p << " row " << y << " column " << x << " align " << align);
+            // Approx: a -march=native build may contract either side into FMAs differently.
+            const double want = (1 - ty.w1) * top + ty.w1 * bottom;
+            REQUIRE(out[static_cast<std::size_t>((p * oh + y) * ow + x)] == Approx(want).epsilon(1e-14));
+          }
+    }
 }

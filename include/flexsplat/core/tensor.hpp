@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/memory.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -141,16 +142,20 @@ private:
   Shape<Rank> strides_{};
 };
 
-// Cache-line aligned so SIMD loads on tensor rows never straddle lines by construction.
+// Cache-line aligned so SIMD loads on tensor rows never straddle lines by construction; buffers of megabytes go on
+// huge pages (core/memory.hpp).
 template <class T>
 struct AlignedAllocator {
   using value_type = T;
-  static constexpr std::align_val_t alignment{64};
+  static constexpr std::size_t alignment = 64;
   AlignedAllocator() = default;
   template <class U>
   AlignedAllocator(const AlignedAllocator<U>&) noexcept {}
-  T* allocate(std::size_t n) { return static_cast<T*>(::operator new(n * sizeof(T), alignment)); }
-  void deallocate(T* p, std::size_t) noexcept { ::operator delete(p, alignment); }
+  T* allocate(std::size_t n) {
+    if (n > std::numeric_limits<std::size_t>::max() / sizeof(T)) throw std::bad_array_new_length();
+    return static_cast<T*>(allocate_aligned(n * sizeof(T), alignment));
+  }
+  void deallocate(T* p, std::size_t n) noexcept { deallocate_aligned(p, n * sizeof(T), alignment); }
   template <class U>
   bool operator==(const AlignedAllocator<U>&) const noexcept { return true; }
 };

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/memory.hpp"
 #include "flexsplat/core/tensor.hpp"
 
 namespace flexsplat {
@@ -146,14 +147,14 @@ private:
   void add_block(std::size_t bytes) {
     blocks_.reserve(blocks_.size() + 1);
     Block b;
-    b.data = static_cast<std::byte*>(::operator new(bytes, std::align_val_t{alignment}));
+    b.data = static_cast<std::byte*>(allocate_aligned(bytes, alignment));
     b.size = bytes;
     blocks_.push_back(b);
     offset_ = 0;
     ++heap_allocations_;
   }
   static void release(Block& b) noexcept {
-    ::operator delete(b.data, std::align_val_t{alignment});
+    deallocate_aligned(b.data, b.size, alignment);
     b.data = nullptr;
   }
   void swap(Workspace& o) noexcept {

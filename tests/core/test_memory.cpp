@@ -1,0 +1,65 @@
+#include <catch2/catch.hpp>
+
+#include <cstdint>
+#include <fstream>
+#include <limits>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "flexsplat/core/memory.hpp"
+#include "flexsplat/core/tensor.hpp"
+
+using namespace flexsplat;
+
+namespace {
+// The VmFlags line of the mapping in /proc/self/smaps that holds address p ("" if none).
+std::string vm_flags_of(const void* p) {
+  std::ifstream smaps("/proc/self/smaps");
+  const auto a = reinterpret_cast<std::uintptr_t>(p);
+  std::string line;
+  bool inside = false;
+  while (std::getline(smaps, line)) {
+    std::uintptr_t lo = 0, hi = 0;
+    char dash = 0;
+    std::istringstream head(line);
+    if (head >> std::hex >> lo >> dash >> hi && dash == '-') inside = lo <= a && a < hi;
+    else if (inside && line.rfind("VmFlags:", 0) == 0) return line;
+  }
+  return "";
+}
+}  // namespace
+
+TEST_CASE("memory: large buffers start on a huge page and carry the huge-page advice", "[core][memory]") {
+  const std::size_t bytes = 3 * huge_page_bytes + 4096;
+  void* p = allocate_aligned(bytes, 64);
+  CHECK(reinterpret_cast<std::uintptr_t>(p) % huge_page_bytes == 0);
+  static_cast<char*>(p)[bytes - 1] = 1;  // the whole range is usable
+#if defined(__linux__) && defined(MADV_HUGEPAGE)
+  const std::string flags = vm_flags_of(p);
+  INFO(flags);
+  CHECK(flags.find(" hg") != std::string::npos);  // VM_HUGEPAGE: madvise(MADV_HUGEPAGE) took effect
+#endif
+  deallocate_aligned(p, bytes, 64);
+}
+
+TEST_CASE("memory: small buffers keep their own alignment", "[core][memory]") {
+  CHECK(allocation_alignment(huge_page_min_bytes - 1, 64) == 64);
+  CHECK(allocation_alignment(huge_page_min_bytes, 64) == huge_page_bytes);
+  CHECK(allocation_alignment(huge_page_min_bytes, std::size_t(1) << 22) == std::size_t(1) << 22);
+  void* p = allocate_aligned(1000, 64);
+  CHECK(reinterpret_cast<std::uintptr_t>(p) % 64 == 0);
+  deallocate_aligned(p, 1000, 64);
+}
+
+TEST_CASE("memory: AlignedAllocator vectors grow across the huge-page threshold", "[core][memory]") {
+  std::vector<float, AlignedAllocator<float>> v;
+  for (std::size_t n : {std::size_t(100), huge_page_bytes / sizeof(float) + 1, std::size_t(10)}) {
+    v.resize(n, 2.0f);
+    v.shrink_to_fit();
+    CHECK(reinterpret_cast<std::uintptr_t>(v.data()) % 64 == 0);
+    CHECK(v.back() == 2.0f);
+  }
+  AlignedAllocator<double> a;
+  CHECK_THROWS_AS(a.allocate(std::numeric_limits<std::size_t>::max() / 4), std::bad_array_new_length);
+}
