@@ -14,6 +14,7 @@
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/geometry/camera_head.hpp"
 #include "flexsplat/geometry/dpt_head.hpp"
+#include "flexsplat/geometry/flops.hpp"
 #include "sgemm_rate.hpp"
 
 using namespace flexsplat;
@@ -46,28 +47,6 @@ void add_random(ParamSource<float>& src, const std::vector<TensorSpec>& specs, u
     for (auto& x : v) x = is_norm_weight ? 1.0f + 0.02f * normal(rng) : is_gamma ? 0.01f : scale * normal(rng);
     src.add(s.name, s.shape, std::move(v));
   }
-}
-
-// Multiply-adds x 2 of one DPT forward for one frame.
-double dpt_flops_per_frame(const DptHeadConfig& c, index_t ph, index_t pw) {
-  const DptGeometry g(ph, pw, c.patch_size);
-  const double P = static_cast<double>(ph * pw), F = static_cast<double>(c.features);
-  auto conv = [](double cin, double cout, double k, double hw) { return 2.0 * cin * cout * k * k * hw; };
-  double f = 0;
-  for (int i = 0; i < 4; ++i) f += 2.0 * static_cast<double>(c.dim_in * c.out_channels[i]) * P;  // projects
-  f += conv(c.out_channels[0], c.out_channels[0], 4, P);                                          // transposed convs
-  f += conv(c.out_channels[1], c.out_channels[1], 2, P);
-  f += conv(c.out_channels[3], c.out_channels[3], 3, static_cast<double>(g.level_size(3)));
-  for (int i = 0; i < 4; ++i) f += conv(c.out_channels[i], F, 3, static_cast<double>(g.level_size(i)));  // layer_rn
-  for (int i = 0; i < 4; ++i) {
-    const double hw = static_cast<double>(g.level_size(i));
-    f += (i == 3 ? 2 : 4) * conv(F, F, 3, hw) + conv(F, F, 1, hw);  // residual units + out_conv (at the low size)
-  }
-  const double fused = static_cast<double>(g.fused_h * g.fused_w), full = static_cast<double>(g.out_h * g.out_w);
-  f += conv(F, static_cast<double>(c.head_features()), 3, fused);
-  f += conv(static_cast<double>(c.head_features()), DptHeadConfig::head_hidden, 3, full);
-  f += conv(DptHeadConfig::head_hidden, static_cast<double>(c.output_dim), 1, full);
-  return f;
 }
 
 }  // namespace
@@ -115,11 +94,7 @@ int main(int argc, char** argv) {
     t0 = std::chrono::steady_clock::now();
     camera_head_forward<float>(enc.data(), cam_cfg, cam_w, layer.data(), frames, tokens, cam_ws);
     const double cam_s = seconds_since(t0);
-    // Trunk FLOPs: per iteration, blocks (qkv, proj, mlp) + modulation + branch; attention over frames negligible.
-    const double Cc = static_cast<double>(cam_cfg.dim), S = static_cast<double>(frames);
-    const double cam_flops = cam_cfg.iterations * S *
-                             (cam_cfg.trunk_depth * 2.0 * (3 * Cc * Cc + Cc * Cc + 8 * Cc * Cc) + 2.0 * 3 * Cc * Cc +
-                              2.0 * Cc * Cc / 2);
+    const double cam_flops = camera_head_flops(cam_cfg, frames);
 
     std::vector<float> dpt_ws(static_cast<std::size_t>(dpt_head_workspace_size(dpt_cfg, ph, pw)));
     const index_t full = ph * 14 * pw * 14;
@@ -128,7 +103,7 @@ int main(int argc, char** argv) {
     t0 = std::chrono::steady_clock::now();
     dpt_head_forward<float>(out, dpt_cfg, dpt_w, layers, frames, tokens, 5, ph * 14, pw * 14, dpt_ws);
     const double dpt_s = seconds_since(t0);
-    const double dpt_flops = dpt_flops_per_frame(dpt_cfg, ph, pw) * static_cast<double>(frames);
+    const double dpt_flops = geometry::dpt_flops(dpt_cfg, ph, pw) * static_cast<double>(frames);
     double finite = 0;
     for (float d : depth) finite += std::isfinite(d) ? 1 : 0;
     std::printf("%ld frames at %ldx%ld (patch grid %ldx%ld):\n", long(frames), long(ph * 14), long(pw * 14), long(ph),

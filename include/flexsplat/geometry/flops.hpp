@@ -2,6 +2,7 @@
 // Floating-point operations of a VGGT forward per stage (2 x multiply-adds of the linear layers, attention products
 // and convolutions; norms, activations and resizes are not counted), for benchmarks' GFLOP/s and "of SGEMM" columns.
 // A backward costs about twice its forward.
+#include "flexsplat/geometry/camera_head.hpp"
 #include "flexsplat/geometry/config.hpp"
 #include "flexsplat/geometry/dpt_head.hpp"
 
@@ -28,13 +29,22 @@ inline double dpt_flops(const DptHeadConfig& c, index_t ph, index_t pw) {
   const double conv3 = 2 * F * F * 9, conv1 = 2 * F * F;
   for (int i = 0; i < 4; ++i) {
     const double units = i == 3 ? 1 : 2;  // refinenet4 has no skip unit
-    const double up = i == 0 ? double(g.fused_h * g.fused_w) : double(g.level_size(i - 1));
-    f += units * 2 * conv3 * double(g.level_size(i)) + conv1 * up;
+    // out_conv (1x1) runs before the resize, at the level's own size (it commutes with bilinear resizing)
+    f += (units * 2 * conv3 + conv1) * double(g.level_size(i));
   }
   f += 2 * double(g.fused_h * g.fused_w) * F * Fh * 9;
   const double full = double(g.out_h * g.out_w);
   f += 2 * full * Fh * DptHeadConfig::head_hidden * 9 + 2 * full * DptHeadConfig::head_hidden * double(c.output_dim);
   return f;
+}
+
+// The camera head over `frames` camera tokens: per iteration the trunk blocks, pose embedding, adaLN modulation and
+// the pose branch MLP.
+inline double camera_head_flops(const CameraHeadConfig& c, index_t frames) {
+  const double S = double(frames), C = double(c.dim), E = double(pose_encoding_dim);
+  const double per_iteration = double(c.trunk_depth) * block_flops(c.block(), 1, S) +
+                               2 * S * (E * C + 3 * C * C + C * double(c.branch_hidden()) + double(c.branch_hidden()) * E);
+  return double(c.iterations) * per_iteration;
 }
 
 struct VggtFlops {
@@ -51,7 +61,7 @@ inline VggtFlops vggt_forward_flops(const VggtConfig& cfg, index_t frames, index
            double(a.dino.depth) * block_flops(a.dino.block(), S, double(1 + a.dino.num_register_tokens + P));
   const double tokens = double(a.patch_start_idx() + P);
   f.aggregator = double(a.depth) * (block_flops(a.block(), S, tokens) + block_flops(a.block(), 1, S * tokens));
-  f.camera_head = double(cfg.camera.iterations * cfg.camera.trunk_depth) * block_flops(cfg.camera.block(), 1, S);
+  f.camera_head = camera_head_flops(cfg.camera, frames);
   f.depth_head = S * dpt_flops(cfg.depth, gh, gw);
   return f;
 }
