@@ -339,13 +339,17 @@ void blend_tile_backward(const TileIntersections& ti, index_t tile, const T* rec
   const T* const d_alpha_p = st.d_alpha.data();
   const T* const d_channels_p = st.d_channels.data();
   T* const behind_p = st.behind.data();
-  for (std::int64_t k = count - 1; k >= 0; --k) {
+  // Entries behind every pixel's last contributor get a zero record without their splat record being read.
+  const std::int64_t live = std::min<std::int64_t>(count, max_last);
+  for (std::int64_t k = count - 1; k >= live; --k)
+    std::fill_n(entry_grads + std::int64_t(ti.tile_entries[begin + k]) * stride, stride, T(0));
+  for (std::int64_t k = live - 1; k >= 0; --k) {
     if (k - prefetch_distance >= 0)
       __builtin_prefetch(records + std::int64_t(gaussians[k - prefetch_distance]) * record_stride);
     T* record_out = entry_grads + std::int64_t(ti.tile_entries[begin + k]) * stride;
     const T* r = records + std::int64_t(gaussians[k]) * record_stride;
     const EntryPixels px = entry_pixels(r, f.x_base, f.y_base, f.width_here, f.rows_here);
-    if (px.empty() || k >= max_last) {  // reaches no pixel, or behind every pixel's last contributor
+    if (px.empty()) {  // reaches no pixel
       std::fill_n(record_out, stride, T(0));
       continue;
     }
