@@ -159,3 +159,83 @@ TEMPLATE_TEST_CASE("project: batch lanes are bit-identical to project_forward_on
   CHECK(visible > 1000);
   CHECK(culled > 100);
 }
+
+TEMPLATE_TEST_CASE("project: backward batch lanes are bit-identical to project_backward_one", "[raster][project]", float,
+                   double) {
+  using T = TestType;
+  using V = simd::batch<T>;
+  constexpr int L = int(V::size);
+  std::mt19937 rng(31);
+  std::uniform_real_distribution<double> uni(-1, 1), u01(0, 1);
+  std::normal_distribution<double> normal;
+  CameraParams<T> cam;
+  const double a = 0.3, c = std::cos(a), si = std::sin(a);
+  const double R[9] = {c, -si, 0, si, c, 0.1, 0, -0.1, 1};
+  for (int i = 0; i < 9; ++i) cam.R[i] = T(R[i]);
+  cam.t[0] = T(0.1), cam.t[1] = T(-0.2), cam.t[2] = T(4);
+  cam.fx = T(90), cam.fy = T(85), cam.cx = T(40.3), cam.cy = T(29.7), cam.width = T(80), cam.height = T(60);
+  long compared = 0, off_screen = 0;
+  for (int trial = 0; trial < 3200 / L; ++trial) {  // 3200 Gaussians for any lane count
+    ProjectSettings<T> set;
+    set.antialiased = trial % 2 == 1;
+    // Inputs, cotangents and the junk the gradients start from (the += contract), one column per lane.
+    alignas(64) T m[3][L], q[4][L], s[3][L], o[L], g[7][L], junk[29][L];
+    for (int l = 0; l < L; ++l) {
+      const double reach = trial % 3 == 0 ? 8.0 : 1.5;  // far outside the field of view: the clamp is active
+      for (int i = 0; i < 3; ++i) m[i][l] = T(reach * uni(rng));
+      for (int i = 0; i < 4; ++i) q[i][l] = T(normal(rng));
+      for (int i = 0; i < 3; ++i) s[i][l] = T(std::pow(10.0, -5 + 7 * u01(rng)));
+      o[l] = T(u01(rng));
+      for (auto& v : g) v[l] = T(normal(rng));
+      for (auto& v : junk) v[l] = T(normal(rng));
+    }
+    auto load = [](const T* p) { return simd::lane_load<V>(p); };
+    V mv[3], qv[4], sv[3], dm[3], dq[4], ds[3];
+    for (int i = 0; i < 3; ++i) mv[i] = load(m[i]), sv[i] = load(s[i]), dm[i] = load(junk[i]), ds[i] = load(junk[3 + i]);
+    for (int i = 0; i < 4; ++i) qv[i] = load(q[i]), dq[i] = load(junk[6 + i]);
+    V dopacity = load(junk[10]);
+    CameraGradParams<V> dcam;
+    for (int i = 0; i < 9; ++i) dcam.R[i] = load(junk[11 + i]);
+    for (int i = 0; i < 3; ++i) dcam.t[i] = load(junk[20 + i]);
+    dcam.fx = load(junk[23]), dcam.fy = load(junk[24]), dcam.cx = load(junk[25]), dcam.cy = load(junk[26]);
+    ProjectionGrad<V> gv;
+    gv.u = load(g[0]), gv.v = load(g[1]), gv.z = load(g[2]), gv.opacity = load(g[6]);
+    for (int i = 0; i < 3; ++i) gv.conic[i] = load(g[3 + i]);
+    project_backward_lanes<V, T>(mv, qv, sv, load(o), cam, set, gv, dm, dq, ds, dopacity, dcam);
+    // Lane results in the order of the scalar ones below.
+    const V* fields[27] = {&dm[0], &dm[1], &dm[2], &ds[0], &ds[1], &ds[2], &dq[0], &dq[1], &dq[2], &dq[3], &dopacity,
+                           &dcam.R[0], &dcam.R[1], &dcam.R[2], &dcam.R[3], &dcam.R[4], &dcam.R[5], &dcam.R[6],
+                           &dcam.R[7], &dcam.R[8], &dcam.t[0], &dcam.t[1], &dcam.t[2], &dcam.fx, &dcam.fy, &dcam.cx,
+                           &dcam.cy};
+    alignas(64) T f[27][L];
+    for (int i = 0; i < 27; ++i) simd::lane_store(f[i], *fields[i]);
+    for (int l = 0; l < L; ++l) {
+      const T ml[3] = {m[0][l], m[1][l], m[2][l]}, ql[4] = {q[0][l], q[1][l], q[2][l], q[3][l]};
+      const T sl[3] = {s[0][l], s[1][l], s[2][l]};
+      Projection<T> p;
+      if (!project_forward_one(ml, ql, sl, o[l], cam, set, p)) continue;  // the backward runs for visible Gaussians
+      T dml[3], dql[4], dsl[3], dol = junk[10][l];
+      for (int i = 0; i < 3; ++i) dml[i] = junk[i][l], dsl[i] = junk[3 + i][l];
+      for (int i = 0; i < 4; ++i) dql[i] = junk[6 + i][l];
+      CameraGradParams<T> dc;
+      for (int i = 0; i < 9; ++i) dc.R[i] = junk[11 + i][l];
+      for (int i = 0; i < 3; ++i) dc.t[i] = junk[20 + i][l];
+      dc.fx = junk[23][l], dc.fy = junk[24][l], dc.cx = junk[25][l], dc.cy = junk[26][l];
+      ProjectionGrad<T> gl;
+      gl.u = g[0][l], gl.v = g[1][l], gl.z = g[2][l], gl.opacity = g[6][l];
+      for (int i = 0; i < 3; ++i) gl.conic[i] = g[3 + i][l];
+      project_backward_one(ml, ql, sl, o[l], cam, set, gl, dml, dql, dsl, dol, dc);
+      const T expect[27] = {dml[0], dml[1], dml[2], dsl[0], dsl[1], dsl[2], dql[0], dql[1], dql[2], dql[3], dol,
+                            dc.R[0], dc.R[1], dc.R[2], dc.R[3], dc.R[4], dc.R[5], dc.R[6], dc.R[7], dc.R[8],
+                            dc.t[0], dc.t[1], dc.t[2], dc.fx, dc.fy, dc.cx, dc.cy};
+      ++compared;
+      off_screen += p.u < 0 || p.u > cam.width || p.v < 0 || p.v > cam.height;
+      for (int i = 0; i < 27; ++i) {
+        INFO("trial " << trial << " lane " << l << " field " << i << ": " << expect[i] << " vs " << f[i][l]);
+        CHECK(std::memcmp(&expect[i], &f[i][l], sizeof(T)) == 0);
+      }
+    }
+  }
+  CHECK(compared > 500);
+  CHECK(off_screen > 20);  // many beyond the 1.3x field-of-view clamp
+}

@@ -90,3 +90,45 @@ TEMPLATE_TEST_CASE("sh: batch lanes are bit-identical to sh_forward", "[raster][
       }
     }
 }
+
+TEMPLATE_TEST_CASE("sh: backward batch lanes are bit-identical to sh_backward", "[raster][sh]", float, double) {
+  using T = TestType;
+  using V = simd::batch<T>;
+  constexpr int L = int(V::size);
+  std::mt19937 rng(37);
+  std::normal_distribution<double> normal;
+  for (int degree = 0; degree <= 3; ++degree)
+    for (int trial = 0; trial < 200; ++trial) {
+      // d_dir starts from junk: sh_backward adds into it (nothing for a zero direction).
+      alignas(64) T coeffs[48][L], dir[3][L], d_out[3][L], d_dir[3][L], d_coeffs[48][L];
+      for (int l = 0; l < L; ++l) {
+        for (int j = 0; j < 48; ++j) coeffs[j][l] = T(normal(rng));
+        for (int i = 0; i < 3; ++i) dir[i][l] = T(l == 1 ? 0.0 : 3 * normal(rng));  // lane 1: zero direction
+        for (int c = 0; c < 3; ++c) d_out[c][l] = T(l == 2 ? 0.0 : normal(rng));   // lane 2: zero cotangent
+        for (int i = 0; i < 3; ++i) d_dir[i][l] = T(normal(rng));
+      }
+      V cv[48], dv[3], gv[3], ddv[3], dcv[48];
+      for (int j = 0; j < 48; ++j) cv[j] = simd::lane_load<V>(coeffs[j]);
+      for (int i = 0; i < 3; ++i)
+        dv[i] = simd::lane_load<V>(dir[i]), gv[i] = simd::lane_load<V>(d_out[i]), ddv[i] = simd::lane_load<V>(d_dir[i]);
+      sh_backward_lanes<V>(degree, 3, cv, dv, gv, dcv, ddv);
+      const int n = sh_coefficients(degree) * 3;
+      for (int j = 0; j < n; ++j) simd::lane_store(d_coeffs[j], dcv[j]);
+      alignas(64) T dd[3][L];
+      for (int i = 0; i < 3; ++i) simd::lane_store(dd[i], ddv[i]);
+      for (int l = 0; l < L; ++l) {
+        T cl[48], dl[3] = {dir[0][l], dir[1][l], dir[2][l]}, gl[3] = {d_out[0][l], d_out[1][l], d_out[2][l]};
+        T ddl[3] = {d_dir[0][l], d_dir[1][l], d_dir[2][l]}, dcl[48];
+        for (int j = 0; j < 48; ++j) cl[j] = coeffs[j][l], dcl[j] = T(-0.0);
+        sh_backward(degree, 3, cl, dl, gl, dcl, ddl);  // x + (-0) is x bit for bit: the products themselves
+        for (int j = 0; j < n; ++j) {
+          INFO("degree " << degree << " lane " << l << " coefficient " << j << ": " << dcl[j] << " vs " << d_coeffs[j][l]);
+          CHECK(std::memcmp(&dcl[j], &d_coeffs[j][l], sizeof(T)) == 0);
+        }
+        for (int i = 0; i < 3; ++i) {
+          INFO("degree " << degree << " lane " << l << " d_dir " << i << ": " << ddl[i] << " vs " << dd[i][l]);
+          CHECK(std::memcmp(&ddl[i], &dd[i][l], sizeof(T)) == 0);
+        }
+      }
+    }
+}
