@@ -13,36 +13,30 @@ using namespace flexsplat;
 namespace {
 
 // The dispatch vectors only exist inside functions compiled for their target, as in the raster kernels.
-template <int N>
-void dispatch_exp_lanes(const float* in, float* out, int count) {
+template <int N, class Op>
+void dispatch_lanes(const float* in, float* out, int count) {
   for (int i = 0; i + N <= count; i += N)
-    simd::lane_store(out + i, simd::lane_exp(simd::lane_load<simd::wide<float, N>>(in + i)));
+    simd::lane_store(out + i, Op{}(simd::lane_load<simd::wide<float, N>>(in + i)));
 }
-__attribute__((target("avx512f,avx512dq,avx512bw,avx512vl,avx2,fma"), flatten)) void dispatch_exp16(const float* in,
-                                                                                                   float* out, int n) {
-  dispatch_exp_lanes<16>(in, out, n);
+template <class Op>
+__attribute__((target("avx512f,avx512dq,avx512bw,avx512vl,avx2,fma"), flatten)) void dispatch16(const float* in,
+                                                                                               float* out, int n) {
+  dispatch_lanes<16, Op>(in, out, n);
 }
-__attribute__((target("avx2,fma"), flatten)) void dispatch_exp8(const float* in, float* out, int n) {
-  dispatch_exp_lanes<8>(in, out, n);
+template <class Op>
+__attribute__((target("avx2,fma"), flatten)) void dispatch8(const float* in, float* out, int n) {
+  dispatch_lanes<8, Op>(in, out, n);
 }
-__attribute__((target("avx512f,avx512dq,avx512bw,avx512vl,avx2,fma"), flatten)) void blend_exp16(const float* in,
-                                                                                                float* out, int n) {
-  for (int i = 0; i + 16 <= n; i += 16)
-    simd::lane_store(out + i, simd::lane_exp_blend(simd::lane_load<simd::wide<float, 16>>(in + i)));
-}
-
-template <int N>
-void dispatch_erf_lanes(const float* in, float* out, int count) {
-  for (int i = 0; i + N <= count; i += N)
-    simd::lane_store(out + i, simd::lane_erf(simd::lane_load<simd::wide<float, N>>(in + i)));
-}
-__attribute__((target("avx512f,avx512dq,avx512bw,avx512vl,avx2,fma"), flatten)) void dispatch_erf16(const float* in,
-                                                                                                   float* out, int n) {
-  dispatch_erf_lanes<16>(in, out, n);
-}
-__attribute__((target("avx2,fma"), flatten)) void dispatch_erf8(const float* in, float* out, int n) {
-  dispatch_erf_lanes<8>(in, out, n);
-}
+// The lane operations under test, as types so each target wrapper is instantiated per operation.
+struct LaneExp {
+  template <class V> V operator()(V v) const { return simd::lane_exp(v); }
+};
+struct LaneExpBlend {
+  template <class V> V operator()(V v) const { return simd::lane_exp_blend(v); }
+};
+struct LaneErf {
+  template <class V> V operator()(V v) const { return simd::lane_erf(v); }
+};
 
 // any / all / select / min of lanes a < b, written back as 0/1 per lane.
 template <int N>
@@ -109,6 +103,18 @@ bool level_available(simd::DispatchLevel level) {
                                               : f.avx2 && f.fma;
 }
 
+// Op over in[0, n) with `level`'s dispatch vectors; false, with a warning, where the CPU lacks that level.
+template <class Op>
+bool run_dispatch(simd::DispatchLevel level, const float* in, float* out, int n) {
+  if (!level_available(level)) {
+    WARN("CPU lacks " << simd::dispatch_name(level) << ": its dispatch vectors are not exercised here");
+    return false;
+  }
+  if (level == simd::DispatchLevel::avx512) dispatch16<Op>(in, out, n);
+  else dispatch8<Op>(in, out, n);
+  return true;
+}
+
 }  // namespace
 
 TEST_CASE("simd dispatch: exp of 8- and 16-lane dispatch vectors is accurate to float precision", "[simd][dispatch]") {
@@ -116,13 +122,8 @@ TEST_CASE("simd dispatch: exp of 8- and 16-lane dispatch vectors is accurate to 
   std::vector<float> in(n), out(n);
   for (int i = 0; i < n; ++i) in[i] = -100.0f + 100.0f * float(i) / float(n - 1);  // [-100, 0]: the kernels' -sigma
   for (auto level : {simd::DispatchLevel::avx2, simd::DispatchLevel::avx512}) {
-    if (!level_available(level)) {
-      WARN("CPU lacks " << simd::dispatch_name(level) << ": its dispatch vectors are not exercised here");
-      continue;
-    }
     std::fill(out.begin(), out.end(), -1.0f);
-    if (level == simd::DispatchLevel::avx512) dispatch_exp16(in.data(), out.data(), n);
-    else dispatch_exp8(in.data(), out.data(), n);
+    if (!run_dispatch<LaneExp>(level, in.data(), out.data(), n)) continue;
     double worst = 0;
     for (int i = 0; i < n; ++i) {
       const double ref = std::exp(double(in[i]));
@@ -146,13 +147,8 @@ TEST_CASE("simd dispatch: erf of 8- and 16-lane dispatch vectors is accurate to 
                              3.92f, -3.92f, 0.6666f, 0.6667f, -0.6667f, 10.0f, 1e-6f, 2.0f};
   std::copy(special, special + 16, in.begin() + (n - 16));
   for (auto level : {simd::DispatchLevel::avx2, simd::DispatchLevel::avx512}) {
-    if (!level_available(level)) {
-      WARN("CPU lacks " << simd::dispatch_name(level) << ": its dispatch vectors are not exercised here");
-      continue;
-    }
     std::fill(out.begin(), out.end(), -2.0f);
-    if (level == simd::DispatchLevel::avx512) dispatch_erf16(in.data(), out.data(), n);
-    else dispatch_erf8(in.data(), out.data(), n);
+    if (!run_dispatch<LaneErf>(level, in.data(), out.data(), n)) continue;
     double worst = 0;
     for (int i = 0; i < n; ++i) worst = std::max(worst, std::abs(double(out[i]) - std::erf(double(in[i]))));
     INFO(simd::dispatch_name(level) << ": worst absolute error " << worst);
@@ -172,7 +168,7 @@ TEST_CASE("simd dispatch: the blend exp is accurate to float precision where the
   const int n = 16 * 4096;
   std::vector<float> in(n), out(n, -1.0f);
   for (int i = 0; i < n; ++i) in[i] = -6.0f + 6.0f * float(i) / float(n - 1);
-  blend_exp16(in.data(), out.data(), n);
+  dispatch16<LaneExpBlend>(in.data(), out.data(), n);
   double worst = 0;
   for (int i = 0; i < n; ++i) {
     const double ref = std::exp(double(in[i]));
