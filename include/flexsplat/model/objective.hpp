@@ -123,8 +123,9 @@ struct ObjectiveWorkspace {
 };
 
 // Forward, loss and backward of the appearance side for one scene. images [V, 3, h, w] in [0, 1]; params/d_params:
-// the decoder::ModelParamLayout block and its gradient (added into); d_geometry (may be null: geometry frozen) is
-// added into and must be shaped like g (GeometryResult::zero_like). lpips may be null when weights.lpips is 0.
+// the decoder::ModelParamLayout block and its gradient (added into; null: forward and losses only, d_geometry null
+// too); d_geometry (may be null: geometry frozen) is added into and must be shaped like g (GeometryResult::zero_like).
+// lpips may be null when weights.lpips is 0.
 template <class T>
 LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_params, const decoder::ModelConfig& c,
                                index_t n_queries, const T* images, const GeometryResult<T>& g,
@@ -135,6 +136,8 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
   PhaseClock clock(times);
   require(!views.empty(), "objective: no views to render");
   require(weights.lpips == 0 || lpips, "objective: lambda_P is ", weights.lpips, " but no LPIPS weights were given");
+  const bool backward = d_params != nullptr;
+  require(backward || !d_geometry, "objective: geometry gradients asked for without parameter gradients");
   const index_t V = g.views, h = g.h, w = g.w;
   const decoder::ViewGeometry<T> vg = g.view_geometry();
   decoder::model_forward(ws.model, n_queries, params, c, images, h, w, g.features.data(), g.feature_h, g.feature_w, vg);
@@ -146,18 +149,19 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
   LossParts parts;
   // lambda_E: the RGB head against the inputs.
   const loss::ImageShape rgb_shape{V, 3, h, w, loss::Layout::nchw};
-  ws.d_rgb.assign(ws.model.rgb.size(), T(0));
-  if (weights.rgb_head > 0) {
+  if (weights.rgb_head > 0)
     parts.rgb_head = weights.rgb_head * loss::mse_forward(ws.model.rgb.data(), images, static_cast<const T*>(nullptr), rgb_shape);
-    loss::mse_backward(ws.d_rgb.data(), static_cast<T*>(nullptr), weights.rgb_head, ws.model.rgb.data(), images,
-                       static_cast<const T*>(nullptr), rgb_shape);
-  }
-
-  ws.d_gaussians.resize(sets.size());
-  for (std::size_t s = 0; s < sets.size(); ++s) {
-    if (static_cast<index_t>(s) >= first) resize_gaussian_grad(ws.d_gaussians[s], sets[s]);
-    else ws.d_gaussians[s] = GaussianSetGrad<T>();
-    ws.d_gaussians[s].zero();
+  if (backward) {
+    ws.d_rgb.assign(ws.model.rgb.size(), T(0));
+    if (weights.rgb_head > 0)
+      loss::mse_backward(ws.d_rgb.data(), static_cast<T*>(nullptr), weights.rgb_head, ws.model.rgb.data(), images,
+                         static_cast<const T*>(nullptr), rgb_shape);
+    ws.d_gaussians.resize(sets.size());
+    for (std::size_t s = 0; s < sets.size(); ++s) {
+      if (static_cast<index_t>(s) >= first) resize_gaussian_grad(ws.d_gaussians[s], sets[s]);
+      else ws.d_gaussians[s] = GaussianSetGrad<T>();
+      ws.d_gaussians[s].zero();
+    }
   }
   raster::RenderOptions ro = render_options;
   ro.expected_depth = true;  // the depth term compares camera z with the depth head's
@@ -180,20 +184,22 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
       raster::render_forward(set, cam, ro, ws.render, ws.out);
       clock.lap(&PhaseTimes::raster_forward);
       const T* img = ws.out.image.data();
-      ws.d_image.assign(static_cast<std::size_t>(3 * pixels), T(0));
-      ws.d_depth.assign(static_cast<std::size_t>(pixels), T(0));
+      if (backward) {
+        ws.d_image.assign(static_cast<std::size_t>(3 * pixels), T(0));
+        ws.d_depth.assign(static_cast<std::size_t>(pixels), T(0));
+      }
       bool any_depth = false;
       if (weights.render > 0) {
         const double scale = weights.render * per_view;
         parts.render += scale * loss::mse_forward(img, view.target, static_cast<const T*>(nullptr), shape);
-        loss::mse_backward(ws.d_image.data(), static_cast<T*>(nullptr), scale, img, view.target,
-                           static_cast<const T*>(nullptr), shape);
+        if (backward)
+          loss::mse_backward(ws.d_image.data(), static_cast<T*>(nullptr), scale, img, view.target,
+                             static_cast<const T*>(nullptr), shape);
       }
       if (weights.lpips > 0) {
         const double scale = weights.lpips * per_view;
         ws.render_chw.resize(static_cast<std::size_t>(3 * pixels));
         ws.target_chw.resize(ws.render_chw.size());
-        ws.d_render_chw.assign(ws.render_chw.size(), T(0));
         image::hwc_to_chw(ws.render_chw.data(), img, H, W);
         image::hwc_to_chw(ws.target_chw.data(), view.target, H, W);
         T value = 0;
@@ -201,10 +207,13 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
         loss::lpips_forward(&value, static_cast<T*>(nullptr), ws.render_chw.data(), ws.target_chw.data(), 1, H, W,
                             lpips->params.data(), lpips->layout, ws.lpips, true, l > 0);
         parts.lpips += scale * static_cast<double>(value);
-        const T d_value = static_cast<T>(scale);
-        loss::lpips_backward(ws.d_render_chw.data(), static_cast<T*>(nullptr), &d_value, static_cast<const T*>(nullptr),
-                             lpips->params.data(), lpips->layout, ws.lpips);
-        image::add_chw_to_hwc(ws.d_image.data(), ws.d_render_chw.data(), H, W);
+        if (backward) {
+          ws.d_render_chw.assign(ws.render_chw.size(), T(0));
+          const T d_value = static_cast<T>(scale);
+          loss::lpips_backward(ws.d_render_chw.data(), static_cast<T*>(nullptr), &d_value,
+                               static_cast<const T*>(nullptr), lpips->params.data(), lpips->layout, ws.lpips);
+          image::add_chw_to_hwc(ws.d_image.data(), ws.d_render_chw.data(), H, W);
+        }
       }
       if (predicted && weights.depth > 0) {
         // U is the depth head's confidence normalised to mean 1 over the compared pixels, held constant.
@@ -221,15 +230,17 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
         const T* vggt_depth = g.depth.data() + view.input_view * pixels;
         const double scale = weights.depth * per_view;
         parts.depth += scale * loss::depth_l1_forward(ws.out.depth.data(), vggt_depth, ws.weights.data(), view.mask, pixels);
-        loss::depth_l1_backward(ws.d_depth.data(),
-                                d_geometry ? d_geometry->depth.data() + view.input_view * pixels : static_cast<T*>(nullptr),
-                                scale, ws.out.depth.data(), vggt_depth, ws.weights.data(), view.mask, pixels);
+        if (backward)
+          loss::depth_l1_backward(ws.d_depth.data(),
+                                  d_geometry ? d_geometry->depth.data() + view.input_view * pixels : static_cast<T*>(nullptr),
+                                  scale, ws.out.depth.data(), vggt_depth, ws.weights.data(), view.mask, pixels);
         any_depth = true;
       }
       // A pixel-exact render (an empty scene over its own background) counts as 100 dB (MSE floored at 1e-10, far
       // below 16-bit quantisation) instead of loss::psnr's +inf, so the logged mean stays a number.
       if (first + l == static_cast<index_t>(sets.size()) - 1)
         psnr_sum += std::min(loss::psnr(img, view.target, 3 * pixels), 100.0);
+      if (!backward) continue;
       raster::RenderOutputGrads<T> d_out;
       d_out.image = TensorView<const T, 3>(ws.d_image.data(), Shape<3>{H, W, 3});
       if (any_depth) d_out.depth = TensorView<const T, 2>(ws.d_depth.data(), Shape<2>{H, W});
@@ -246,6 +257,7 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
   }
   parts.psnr_last = psnr_sum * per_view;
   parts.total = parts.rgb_head + parts.render + parts.depth + parts.lpips;
+  if (!backward) return parts;
 
   decoder::ViewGeometryGrad<T> d_vg;
   if (d_geometry) d_vg = {d_geometry->K.data(), d_geometry->extrinsics.data(), d_geometry->depth.data()};

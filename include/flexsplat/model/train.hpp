@@ -138,41 +138,46 @@ struct SceneWorkspace {
   std::vector<std::uint8_t> depth_mask;
 };
 
-// Adds one scene's loss gradient into `grads` (the store's layout) and returns its loss parts (unweighted sums as
-// they enter the total).
+namespace detail {
+// One scene's forward and loss parts; grads non-null: then its backward, added into grads. scene_loss and
+// scene_gradient are its two modes, so both report the one computation of the loss.
 template <class T>
-StepReport scene_gradient(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* grads, const TrainExample<T>& e,
-                          const StepConfig& sc, const loss::LpipsWeights<T>* lpips = nullptr,
-                          PhaseTimes* times = nullptr) {
+StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* grads, const TrainExample<T>& e,
+                      const StepConfig& sc, const loss::LpipsWeights<T>* lpips, PhaseTimes* times) {
   const FlexSplatConfig& c = w.config();
   const index_t V = e.views, px = e.h * e.w;
+  const bool backward = grads != nullptr;
   StepReport r;
   PhaseClock clock(times);
   geometry_stage_forward(ws.geometry, w, e.images.data(), V, sc.train_geometry);
   clock.lap(&PhaseTimes::geometry_forward);
   const GeometryResult<T>& g = ws.geometry.result;
-  ws.d_geometry.zero_like(g);
   const index_t iters = ws.geometry.iterations;
-  ws.d_pose_enc.assign(static_cast<std::size_t>(iters * V * 9), T(0));
+  if (backward) {
+    ws.d_geometry.zero_like(g);
+    ws.d_pose_enc.assign(static_cast<std::size_t>(iters * V * 9), T(0));
+  }
 
   if (sc.camera_weight > 0) {
     std::vector<const T*> stages;
     std::vector<T*> d_stages;
     for (index_t i = 0; i < iters; ++i) {
       stages.push_back(ws.geometry.pose_enc.data() + i * V * 9);
-      d_stages.push_back(ws.d_pose_enc.data() + i * V * 9);
+      if (backward) d_stages.push_back(ws.d_pose_enc.data() + i * V * 9);
     }
     r.camera = sc.camera_weight * loss::camera_loss_forward(stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss).total;
-    loss::camera_loss_backward(d_stages, sc.camera_weight, stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss);
+    if (backward)
+      loss::camera_loss_backward(d_stages, sc.camera_weight, stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss);
   }
   if (sc.depth_weight > 0) {
     ws.depth_mask.resize(static_cast<std::size_t>(V * px));
     for (index_t i = 0; i < V * px; ++i) ws.depth_mask[static_cast<std::size_t>(i)] = e.gt_depth[static_cast<std::size_t>(i)] > T(0);
     r.depth = sc.depth_weight * loss::depth_loss_forward(g.depth.data(), g.confidence.data(), e.gt_depth.data(),
                                                         ws.depth_mask.data(), V, e.h, e.w, sc.depth_loss).total;
-    loss::depth_loss_backward(ws.d_geometry.depth.data(), ws.d_geometry.confidence.data(), sc.depth_weight,
-                              g.depth.data(), g.confidence.data(), e.gt_depth.data(), ws.depth_mask.data(), V, e.h,
-                              e.w, sc.depth_loss);
+    if (backward)
+      loss::depth_loss_backward(ws.d_geometry.depth.data(), ws.d_geometry.confidence.data(), sc.depth_weight,
+                                g.depth.data(), g.confidence.data(), e.gt_depth.data(), ws.depth_mask.data(), V, e.h,
+                                e.w, sc.depth_loss);
   }
   if (sc.appearance) {
     ws.views.clear();
@@ -196,21 +201,39 @@ StepReport scene_gradient(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T
     ro.background = {static_cast<double>(e.background[0]), static_cast<double>(e.background[1]),
                      static_cast<double>(e.background[2])};
     const index_t n = sc.gaussians > 0 ? sc.gaussians : c.gaussians_for(V);
-    T* d_app = grads + w.store().segment(appearance_segment).offset;
+    T* d_app = backward ? grads + w.store().segment(appearance_segment).offset : nullptr;
     const LossParts p = appearance_objective<T>(ws.objective, w.appearance(), d_app, c.appearance, n, e.images.data(), g,
-                                                sc.train_geometry ? &ws.d_geometry : nullptr, ws.views, sc.objective,
-                                                ro, lpips, times);
+                                                backward && sc.train_geometry ? &ws.d_geometry : nullptr, ws.views,
+                                                sc.objective, ro, lpips, times);
     clock = PhaseClock(times);
     r.rgb_head = p.rgb_head, r.render = p.render, r.render_depth = p.depth, r.lpips = p.lpips, r.psnr = p.psnr_last;
   }
   clock.lap(&PhaseTimes::losses);
-  if (sc.train_geometry) {
+  if (backward && sc.train_geometry) {
     geometry_stage_backward(ws.geometry, w, grads, ws.d_geometry, ws.d_pose_enc.data());
     clock.lap(&PhaseTimes::geometry_backward);
   }
   r.loss = r.camera + r.depth + r.rgb_head + r.render + r.render_depth + r.lpips;
   r.scenes = 1;
   return r;
+}
+}  // namespace detail
+
+// One scene's loss parts (unweighted sums as they enter the total), forward only: what scene_gradient reports, to the
+// bit, at about a third of its cost.
+template <class T>
+StepReport scene_loss(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, const TrainExample<T>& e,
+                      const StepConfig& sc, const loss::LpipsWeights<T>* lpips = nullptr, PhaseTimes* times = nullptr) {
+  return detail::scene_pass<T>(ws, w, nullptr, e, sc, lpips, times);
+}
+
+// Adds one scene's loss gradient into `grads` (the store's layout) and returns its loss parts (as scene_loss).
+template <class T>
+StepReport scene_gradient(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* grads, const TrainExample<T>& e,
+                          const StepConfig& sc, const loss::LpipsWeights<T>* lpips = nullptr,
+                          PhaseTimes* times = nullptr) {
+  require(grads, "scene_gradient: null gradient block (scene_loss is the forward-only pass)");
+  return detail::scene_pass<T>(ws, w, grads, e, sc, lpips, times);
 }
 
 template <class T>
