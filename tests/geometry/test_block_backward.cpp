@@ -75,7 +75,7 @@ TEST_CASE("qk-norm (per-head LayerNorm) backward matches central differences", "
   auto x = random_doubles(static_cast<std::size_t>(rows * stride), 1);
   auto gamma = random_doubles(static_cast<std::size_t>(hd), 2, 0.5), beta = random_doubles(static_cast<std::size_t>(hd), 3);
   for (auto& v : gamma) v += 1.0;
-  std::vector<double> dx(x.size()), dgamma(gamma.size()), dbeta(beta.size());
+  std::vector<double> dx(x.size()), dgamma(gamma.size()), dbeta(beta.size()), stats(static_cast<std::size_t>(2 * rows * heads));
   const double eps = 1e-5;
   auto forward = [&](std::span<double> out) {
     std::copy(x.begin(), x.end(), out.begin());
@@ -83,7 +83,7 @@ TEST_CASE("qk-norm (per-head LayerNorm) backward matches central differences", "
   };
   auto backward = [&](std::span<const double> d_out) {
     geometry::detail::head_layernorm_backward(dx.data(), dgamma.data(), dbeta.data(), d_out.data(), x.data(), rows, stride, heads, hd,
-                                    gamma.data(), eps);
+                                    gamma.data(), eps, stats.data());
     // Entries outside the heads pass through unchanged.
     for (index_t r = 0; r < rows; ++r)
       for (index_t i = heads * hd; i < stride; ++i) dx[r * stride + i] += d_out[r * stride + i];

@@ -211,37 +211,33 @@ void head_layernorm_inplace(T* x, index_t rows, index_t row_stride, index_t head
 }
 
 // Adjoint of head_layernorm_inplace given its input x: adds into d_x (same strides), d_gamma, d_beta (may be null).
-// Statistics are recomputed as in forward; d_gamma / d_beta are summed over rows in a fixed order.
+// stats: 2 * rows * heads scratch. Statistics are recomputed as in forward, once: the d_x pass keeps them there for the
+// d_gamma / d_beta pass, which sums over rows and then heads in a fixed order.
 template <class T>
 void head_layernorm_backward(T* d_x, T* d_gamma, T* d_beta, const T* d_out, const T* x, index_t rows, index_t row_stride,
-                             index_t heads, index_t head_dim, const T* gamma, double eps) {
+                             index_t heads, index_t head_dim, const T* gamma, double eps, T* stats) {
   const simd::Lanes lanes = simd::best_lanes<T>();
   const T e = static_cast<T>(eps);
+  T* mean = stats;
+  T* rstd = stats + rows * heads;
   parallel_for(rows, [&](index_t r0, index_t r1, int) {
     simd::with_lanes<T>(lanes, [&](auto* lane_type) {
       using V = std::remove_pointer_t<decltype(lane_type)>;
       for (index_t r = r0; r < r1; ++r)
         for (index_t h = 0; h < heads; ++h) {
-          const index_t off = r * row_stride + h * head_dim;
-          T mean, rstd;
-          nn::detail::layernorm_row_stats<V>(x + off, head_dim, e, mean, rstd);
-          nn::detail::layernorm_row_backward<V>(d_x + off, d_out + off, x + off, gamma, head_dim, mean, rstd);
+          const index_t off = r * row_stride + h * head_dim, s = r * heads + h;
+          nn::detail::layernorm_row_stats<V>(x + off, head_dim, e, mean[s], rstd[s]);
+          nn::detail::layernorm_row_backward<V>(d_x + off, d_out + off, x + off, gamma, head_dim, mean[s], rstd[s]);
         }
     });
   });
   if (!d_gamma && !d_beta) return;
+  // A row's heads are contiguous: a [heads, head_dim] block for nn's per-column sums.
   simd::with_lanes<T>(lanes, [&](auto* lane_type) {
     using V = std::remove_pointer_t<decltype(lane_type)>;
     for (index_t r = 0; r < rows; ++r)
-      for (index_t h = 0; h < heads; ++h) {
-        const index_t off = r * row_stride + h * head_dim;
-        T mean, rstd;
-        nn::detail::layernorm_row_stats<V>(x + off, head_dim, e, mean, rstd);
-        for (index_t i = 0; i < head_dim; ++i) {
-          if (d_gamma) d_gamma[i] += d_out[off + i] * ((x[off + i] - mean) * rstd);
-          if (d_beta) d_beta[i] += d_out[off + i];
-        }
-      }
+      nn::detail::layernorm_columns_backward<V>(d_gamma, d_beta, d_out + r * row_stride, x + r * row_stride, heads,
+                                                head_dim, mean + r * heads, rstd + r * heads, 0, head_dim);
   });
 }
 
@@ -487,11 +483,12 @@ void block_backward(T* d_x, const BlockGrads<T>& g, BlockCache<T>& cache, const 
     std::swap(cur, other);
   }
   if (c.qk_norm) {
+    T* stats = qk;  // attention_backward was qk's last reader; 3 * rows * C >= 2 * rows * heads
     zero_columns(other, rows, 3 * C, 0, 2 * C);
     head_layernorm_backward(other, g.q_norm_weight, g.q_norm_bias, cur, raw, rows, 3 * C, heads, hd, w.q_norm_weight,
-                            c.qk_norm_eps);
+                            c.qk_norm_eps, stats);
     head_layernorm_backward(other + C, g.k_norm_weight, g.k_norm_bias, cur + C, raw + C, rows, 3 * C, heads, hd,
-                            w.k_norm_weight, c.qk_norm_eps);
+                            w.k_norm_weight, c.qk_norm_eps, stats);
     std::swap(cur, other);
   }
   if (cur != dA) copy_columns(dA, cur, rows, 3 * C, 0, 2 * C);
