@@ -102,6 +102,20 @@ TEST_CASE("project: culls behind the near plane and far plane, keeps a Gaussian 
   CHECK_FALSE(project_forward_one(front, q, s, 0.5 / 255, cam, set, p));  // can never reach alpha 1/255
 }
 
+namespace {
+// A rotated, off-centre 80 x 60 camera 4 units from the origin: the lane tests' Gaussians straddle its frustum.
+template <class T>
+CameraParams<T> lanes_camera() {
+  CameraParams<T> cam;
+  const double a = 0.3, c = std::cos(a), si = std::sin(a);
+  const double R[9] = {c, -si, 0, si, c, 0.1, 0, -0.1, 1};
+  for (int i = 0; i < 9; ++i) cam.R[i] = T(R[i]);
+  cam.t[0] = T(0.1), cam.t[1] = T(-0.2), cam.t[2] = T(4);
+  cam.fx = T(90), cam.fy = T(85), cam.cx = T(40.3), cam.cy = T(29.7), cam.width = T(80), cam.height = T(60);
+  return cam;
+}
+}  // namespace
+
 TEMPLATE_TEST_CASE("project: batch lanes are bit-identical to project_forward_one", "[raster][project]", float, double) {
   using T = TestType;
   using V = simd::batch<T>;
@@ -109,12 +123,7 @@ TEMPLATE_TEST_CASE("project: batch lanes are bit-identical to project_forward_on
   std::mt19937 rng(23);
   std::uniform_real_distribution<double> uni(-1, 1), u01(0, 1);
   std::normal_distribution<double> normal;
-  CameraParams<T> cam;
-  const double a = 0.3, c = std::cos(a), si = std::sin(a);
-  const double R[9] = {c, -si, 0, si, c, 0.1, 0, -0.1, 1};
-  for (int i = 0; i < 9; ++i) cam.R[i] = T(R[i]);
-  cam.t[0] = T(0.1), cam.t[1] = T(-0.2), cam.t[2] = T(4);
-  cam.fx = T(90), cam.fy = T(85), cam.cx = T(40.3), cam.cy = T(29.7), cam.width = T(80), cam.height = T(60);
+  const CameraParams<T> cam = lanes_camera<T>();
   long visible = 0, culled = 0;
   for (int trial = 0; trial < 6400 / L; ++trial) {  // 6400 Gaussians for any lane count
     ProjectSettings<T> set;
@@ -168,12 +177,7 @@ TEMPLATE_TEST_CASE("project: backward batch lanes are bit-identical to project_b
   std::mt19937 rng(31);
   std::uniform_real_distribution<double> uni(-1, 1), u01(0, 1);
   std::normal_distribution<double> normal;
-  CameraParams<T> cam;
-  const double a = 0.3, c = std::cos(a), si = std::sin(a);
-  const double R[9] = {c, -si, 0, si, c, 0.1, 0, -0.1, 1};
-  for (int i = 0; i < 9; ++i) cam.R[i] = T(R[i]);
-  cam.t[0] = T(0.1), cam.t[1] = T(-0.2), cam.t[2] = T(4);
-  cam.fx = T(90), cam.fy = T(85), cam.cx = T(40.3), cam.cy = T(29.7), cam.width = T(80), cam.height = T(60);
+  const CameraParams<T> cam = lanes_camera<T>();
   long compared = 0, off_screen = 0;
   for (int trial = 0; trial < 3200 / L; ++trial) {  // 3200 Gaussians for any lane count
     ProjectSettings<T> set;
