@@ -244,6 +244,13 @@ TEST_CASE("the reader rejects each kind of corrupted folder and names the file",
   CHECK_THROWS_WITH(load_object(f), Catch::Contains("frame 0 'K'"));
   f = corrupt([&](const fs::path& d) { edit_json(d, [](nlohmann::json& j) { j["input_views"] = {0, 7}; }); });
   CHECK_THROWS_WITH(load_object(f), Catch::Contains("'input_views' entry 7"));
+  // A file name longer than the file system allows (ENAMETOOLONG): a flexsplat error naming it, not a
+  // std::filesystem exception; through load_objects as well as load_object.
+  const std::string long_name(300, 'x');
+  f = corrupt([&](const fs::path& d) { edit_json(d, [&](nlohmann::json& j) { j["frames"][1]["depth"] = long_name; }); });
+  CHECK_THROWS_AS(load_object(f), Error);
+  CHECK_THROWS_WITH(load_objects({f}), Catch::Contains(long_name) && Catch::Contains("cannot be read"));
+  CHECK_THROWS_WITH(load_objects({dir.path / long_name}), Catch::Contains("is not a folder"));
 }
 
 TEST_CASE("the shared Blender renders load, and the orbit ranges and structured views match them", "[data]") {

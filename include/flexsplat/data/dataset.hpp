@@ -15,6 +15,7 @@
 #include <limits>
 #include <numeric>
 #include <string>
+#include <system_error>
 #include <vector>
 
 #include <unistd.h>
@@ -313,6 +314,16 @@ inline void read_matrix(const nlohmann::json& frame, const char* key, int rows, 
   }
 }
 
+// True if p is a regular file, false if it or a parent is missing; any other failure (a name longer than the file
+// system allows, no permission, a symlink loop) is an error naming p, not a std::filesystem exception.
+inline bool is_file(const std::filesystem::path& p) {
+  std::error_code ec;
+  const std::filesystem::file_status st = std::filesystem::status(p, ec);
+  if (ec && ec != std::errc::no_such_file_or_directory && ec != std::errc::not_a_directory)
+    dataset_error(p, "cannot be read: ", ec.message());
+  return std::filesystem::is_regular_file(st);
+}
+
 inline std::filesystem::path frame_file(const nlohmann::json& frame, const char* key, const std::filesystem::path& dir,
                                         const std::filesystem::path& file, std::size_t index) {
   if (!frame.contains(key) || !frame[key].is_string())
@@ -330,7 +341,7 @@ inline std::filesystem::path frame_file(const nlohmann::json& frame, const char*
 inline ObjectRecord load_object(const std::filesystem::path& dir) {
   namespace fs = std::filesystem;
   const fs::path file = dir / "cameras.json";
-  if (!fs::is_regular_file(file)) detail::dataset_error(file, "missing (not an object folder)");
+  if (!detail::is_file(file)) detail::dataset_error(file, "missing (not an object folder)");
   std::ifstream in(file, std::ios::binary);
   if (!in) detail::dataset_error(file, "cannot open");
   const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
@@ -404,7 +415,7 @@ inline ObjectRecord load_object(const std::filesystem::path& dir) {
     if (frame.contains("azimuth_deg") && frame["azimuth_deg"].is_number())
       cam.azimuth_deg = frame["azimuth_deg"].get<double>();
     for (const fs::path* p : {&fr.image, &fr.depth})
-      if (!fs::is_regular_file(*p)) detail::dataset_error(*p, "missing (frame ", i, " of '", file.string(), "')");
+      if (!detail::is_file(*p)) detail::dataset_error(*p, "missing (frame ", i, " of '", file.string(), "')");
     const image::ImageInfo im = image::probe(fr.image);
     if (im.width != rec.width || im.height != rec.height || im.channels < 3)
       detail::dataset_error(fr.image, "is ", im.width, "x", im.height, " with ", im.channels, " channels; '",
@@ -436,14 +447,17 @@ inline std::vector<ObjectRecord> load_objects(const std::vector<std::filesystem:
   namespace fs = std::filesystem;
   std::vector<ObjectRecord> out;
   for (const fs::path& p : paths) {
-    require(fs::is_directory(p), "dataset: '", p.string(), "' is not a folder");
-    if (fs::exists(p / "cameras.json")) {
+    std::error_code ec;
+    const bool folder = fs::is_directory(p, ec);
+    require(folder, "dataset: '", p.string(), "' is not a folder", ec ? " (" + ec.message() + ")" : "");
+    if (fs::exists(p / "cameras.json", ec) || ec) {  // load_object names an unreadable one
       out.push_back(load_object(p));
       continue;
     }
     std::vector<fs::path> children;
-    for (const auto& entry : fs::directory_iterator(p))
-      if (entry.is_directory() && entry.path().filename().string().rfind(".tmp_", 0) != 0) children.push_back(entry.path());
+    for (fs::directory_iterator it(p, ec), end; !ec && it != end; it.increment(ec))
+      if (it->is_directory(ec) && it->path().filename().string().rfind(".tmp_", 0) != 0) children.push_back(it->path());
+    require(!ec, "dataset: cannot list '", p.string(), "': ", ec.message());
     std::sort(children.begin(), children.end());
     const std::size_t before = out.size();
     for (const fs::path& c : children) out.push_back(load_object(c));
