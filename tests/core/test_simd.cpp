@@ -81,3 +81,25 @@ TEMPLATE_TEST_CASE("simd lane_floor and lane_ceil match std::floor and std::ceil
     }
   }
 }
+
+TEMPLATE_TEST_CASE("simd lane_exp on batches keeps exp's values at infinities, NaN and past the exponent range",
+                   "[simd]", float, double) {
+  using V = simd::batch<TestType>;
+  constexpr int L = int(V::size);
+  constexpr TestType inf = std::numeric_limits<TestType>::infinity(), nan = std::numeric_limits<TestType>::quiet_NaN();
+  // -inf is what an online softmax's first rescale exp(-inf - max) feeds it.
+  const std::vector<TestType> in{-inf, inf, nan, TestType(-1e30), TestType(1e30), TestType(-1000.5), TestType(0),
+                                 TestType(1), TestType(-20)};
+  for (std::size_t at = 0; at < in.size(); ++at) {
+    alignas(64) TestType x[L], r[L];
+    for (int l = 0; l < L; ++l) x[l] = in[(at + std::size_t(l)) % in.size()];
+    simd::lane_store(r, simd::lane_exp(simd::lane_load<V>(x)));
+    for (int l = 0; l < L; ++l) {
+      const TestType want = std::exp(x[l]);
+      INFO("exp(" << x[l] << ")");
+      if (std::isnan(want)) CHECK(std::isnan(r[l]));
+      else if (want == TestType(0) || std::isinf(want)) CHECK(r[l] == want);
+      else CHECK(std::abs(r[l] - want) <= TestType(4) * std::numeric_limits<TestType>::epsilon() * want);
+    }
+  }
+}

@@ -224,7 +224,19 @@ inline T lane_sum(const xsimd::batch<T, A>& v) { return xsimd::hadd(v); }
 template <class T>
 inline T lane_exp(T v) { return std::exp(v); }
 template <class T, class A>
-inline xsimd::batch<T, A> lane_exp(const xsimd::batch<T, A>& v) { return xsimd::exp(v); }
+inline xsimd::batch<T, A> lane_exp(const xsimd::batch<T, A>& v) {
+  if constexpr (std::is_same_v<T, double>) {
+    // Without a packed double -> int64 conversion (SSE2, AVX2) xsimd casts the exponent in C++, undefined for
+    // +-inf and NaN: clamp to +-1000 (exp gives 0 and inf there as well) and pass NaN around the call.
+    using V = xsimd::batch<T, A>;
+    const V lo(-1000.0), hi(1000.0), zero(0.0);
+    const auto nan = v != v;
+    const V arg = xsimd::select(nan, zero, xsimd::select(v < lo, lo, xsimd::select(v > hi, hi, v)));
+    return xsimd::select(nan, v, xsimd::exp(arg));
+  } else {
+    return xsimd::exp(v);
+  }
+}
 // erf: std::erf on the scalar path (the reference), xsimd's on the batches; the dispatch vectors add theirs.
 template <class T>
 inline T lane_erf(T v) { return std::erf(v); }

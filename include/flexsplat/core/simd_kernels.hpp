@@ -125,7 +125,7 @@ void softmax_row_simd(T* row, index_t n) {
     const B m(max);
     B vsum(T(0));
     for (i = 0; i + w <= n; i += w) {
-      const B e = xsimd::exp(B::load_unaligned(row + i) - m);
+      const B e = lane_exp(B::load_unaligned(row + i) - m);
       e.store_unaligned(row + i);
       vsum += e;
     }

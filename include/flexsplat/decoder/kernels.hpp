@@ -45,7 +45,7 @@ T softmax_lse_impl(T* row, index_t n) {
     const B mb(max);
     B acc(T(0));
     for (; i + w <= n; i += w) {
-      const B e = xsimd::exp(B::load_unaligned(row + i) - mb);
+      const B e = simd::lane_exp(B::load_unaligned(row + i) - mb);
       e.store_unaligned(row + i);
       acc += e;
     }
@@ -72,7 +72,7 @@ void softmax_grad_row_impl(T* s_to_p, T* dp_to_ds, T lse, T delta, index_t n) {
     constexpr index_t w = static_cast<index_t>(B::size);
     const B l(lse), d(delta);
     for (; i + w <= n; i += w) {
-      const B p = xsimd::exp(B::load_unaligned(s_to_p + i) - l);
+      const B p = simd::lane_exp(B::load_unaligned(s_to_p + i) - l);
       p.store_unaligned(s_to_p + i);
       (p * (B::load_unaligned(dp_to_ds + i) - d)).store_unaligned(dp_to_ds + i);
     }
