@@ -7,7 +7,8 @@
 using namespace flexsplat;
 
 TEST_CASE("UNet keeps the input resolution (odd sizes too) and passes the float64 gradient check", "[decoder][unet]") {
-  for (auto [h, w] : {std::pair<index_t, index_t>{8, 8}, {7, 5}}) {
+  for (const auto& size : {std::pair<index_t, index_t>{8, 8}, {7, 5}}) {
+    const index_t h = size.first, w = size.second;  // named variables: lambdas below capture them
     decoder::UNetConfig c{3, 2, 2};
     std::mt19937_64 rng(3);
     std::vector<double> params(decoder::unet_param_count(c));

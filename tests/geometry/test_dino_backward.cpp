@@ -82,7 +82,9 @@ TEST_CASE("DINO backward matches central differences (patch conv, tokens, resize
           "[geometry][dino][backward]") {
   DinoConfig c = tiny_dino();
   // 6 x 6: the native grid; 4 x 8: position grid resized 3 -> 2 and 3 -> 4; the offset path as DINOv2's legacy one.
-  const auto [H, W, offset] = GENERATE(table<index_t, index_t, double>({{6, 6, 0.0}, {4, 8, 0.0}, {4, 8, 0.1}}));
+  const auto row = GENERATE(table<index_t, index_t, double>({{6, 6, 0.0}, {4, 8, 0.0}, {4, 8, 0.1}}));
+  const auto H = std::get<0>(row), W = std::get<1>(row);  // variables, not bindings: the lambdas below capture them
+  const double offset = std::get<2>(row);
   c.interpolate_offset = offset;
   FlatDino d(c, 3);
   const index_t S = 2, P = (H / c.patch_size) * (W / c.patch_size);

@@ -193,9 +193,12 @@ FLEXSPLAT_ALWAYS_INLINE simd::lane_mask<V> project_forward_lanes(const V m[3], c
   out.u = fx * tr.p[0] / zc + V(cam.cx);
   out.v = fy * tr.p[1] / zc + V(cam.cy);
   using simd::lane_isfinite;
-  return (zc >= V(set.near_plane)) & simd::lane_not(zc > V(set.far_plane)) & (tr.det_b > V(T(0))) &
-         lane_isfinite(tr.det_b) & (out.opacity >= V(T(alpha_threshold))) & lane_isfinite(out.conic[0]) &
-         lane_isfinite(out.conic[1]) & lane_isfinite(out.conic[2]) & lane_isfinite(out.u) & lane_isfinite(out.v);
+  // Calls into named masks first: clang's -Wall flags a bool '&' with a call operand, and lanes must not branch.
+  const auto before_far = simd::lane_not(zc > V(set.far_plane)), det_finite = lane_isfinite(tr.det_b),
+             c0_finite = lane_isfinite(out.conic[0]), c1_finite = lane_isfinite(out.conic[1]),
+             c2_finite = lane_isfinite(out.conic[2]), u_finite = lane_isfinite(out.u), v_finite = lane_isfinite(out.v);
+  return (zc >= V(set.near_plane)) & before_far & (tr.det_b > V(T(0))) & det_finite &
+         (out.opacity >= V(T(alpha_threshold))) & c0_finite & c1_finite & c2_finite & u_finite & v_finite;
 }
 
 // Projects one Gaussian; false when it is culled (near/far, degenerate, or too transparent to reach the alpha
