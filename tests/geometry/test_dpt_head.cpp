@@ -114,26 +114,6 @@ TEST_CASE("DPT head exposes the map that output_conv2 turns into depth", "[dpt_h
   CHECK(norm > 0);
 }
 
-TEST_CASE("banded 3x3 convolution equals the whole-image convolution", "[dpt_head]") {
-  const index_t cin = 3, cout = 4, h = 7, w = 5;
-  std::vector<double> in(cin * h * w), weight(cout * cin * 9), bias(cout);
-  for (std::size_t i = 0; i < in.size(); ++i) in[i] = std::sin(0.37 * static_cast<double>(i));
-  for (std::size_t i = 0; i < weight.size(); ++i) weight[i] = std::cos(0.11 * static_cast<double>(i));
-  for (std::size_t i = 0; i < bias.size(); ++i) bias[i] = 0.5 * static_cast<double>(i);
-  nn::Conv2dShape shape{1, cin, cout, h, w, 3, 3, 1, 1};
-  std::vector<double> ref(cout * h * w), scratch(nn::conv2d_scratch_size(shape));
-  nn::conv2d_forward(ref.data(), in.data(), weight.data(), bias.data(), shape, std::span<double>(scratch));
-  for (index_t band_rows : {1, 2, 3, 7}) {
-    std::vector<double> out(cout * h * w, -1.0), small(cin * 9 * w * band_rows);
-    geometry::detail::conv2d_same(out.data(), in.data(), weight.data(), bias.data(), cin, cout, h, w, 3, std::span<double>(small));
-    for (std::size_t i = 0; i < out.size(); ++i) CHECK(out[i] == Approx(ref[i]).margin(1e-12));
-  }
-  std::vector<double> out(cout * h * w), too_small(cin * 9 * w - 1);
-  CHECK_THROWS_WITH(geometry::detail::conv2d_same(out.data(), in.data(), weight.data(), bias.data(), cin, cout, h, w, 3,
-                                        std::span<double>(too_small)),
-                    Catch::Contains("cannot hold one row"));
-}
-
 TEST_CASE("DPT head parameter names match the VGGT-1B state_dict layout", "[dpt_head]") {
   const auto expected = heads_test::vggt1b_layout_shapes("depth_head.");
   std::vector<TensorSpec> specs;

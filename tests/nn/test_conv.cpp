@@ -103,3 +103,37 @@ TEST_CASE("zero-size feature maps are a clear error", "[nn][conv]") {
   CHECK_THROWS_WITH(nn::conv2d_forward(buf.data(), buf.data(), buf.data(), (const double*)nullptr, s, std::span<double>(buf)),
                     Catch::Contains("0x8 (zero-size)"));
 }
+
+TEST_CASE("conv2d in bands of output rows equals the whole-image product, and a scratch below one row is an error",
+          "[nn][conv]") {
+  for (auto [k, stride, pad] : {std::tuple{3, 1, 1}, std::tuple{3, 2, 1}, std::tuple{5, 2, 2}, std::tuple{4, 4, 0}}) {
+    const nn::Conv2dShape s{2, 3, 4, 11, 6, k, k, stride, pad};
+    INFO("kernel " << k << " stride " << stride << " padding " << pad);
+    auto x = random_vector(2 * 3 * 11 * 6, 51), w = random_vector(4 * 3 * k * k, 52), b = random_vector(4, 53);
+    auto dy = random_vector(2 * 4 * s.conv_out_h() * s.conv_out_w(), 54);
+    const auto full = static_cast<std::size_t>(nn::conv2d_scratch_size(s)),
+               row = static_cast<std::size_t>(nn::conv2d_row_scratch_size(s));
+    auto run = [&](std::size_t scratch_size, std::vector<double>& y, std::vector<double>& dx, std::vector<double>& dw,
+                   std::vector<double>& db) {
+      std::vector<double> scratch(scratch_size);
+      y.assign(dy.size(), 0.0), dx.assign(x.size(), 0.5), dw.assign(w.size(), 0.25), db.assign(b.size(), 0.125);
+      nn::conv2d_forward(y.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch));
+      nn::conv2d_backward(dx.data(), dw.data(), db.data(), dy.data(), x.data(), w.data(), s, std::span<double>(scratch));
+    };
+    std::vector<double> y0, dx0, dw0, db0;
+    run(full, y0, dx0, dw0, db0);
+    for (std::size_t scratch_size : {row, 2 * row + 1}) {
+      std::vector<double> y1, dx1, dw1, db1;
+      run(scratch_size, y1, dx1, dw1, db1);
+      // The same sums up to rounding: a GEMM over fewer columns may order a dot product's terms otherwise, and dx, dw
+      // add the bands' parts in another order. The bias gradient does not depend on the bands.
+      CHECK(db1 == db0);
+      for (std::size_t i = 0; i < y0.size(); ++i) REQUIRE(y1[i] == Approx(y0[i]).margin(1e-12));
+      for (std::size_t i = 0; i < dx0.size(); ++i) REQUIRE(dx1[i] == Approx(dx0[i]).margin(1e-12));
+      for (std::size_t i = 0; i < dw0.size(); ++i) REQUIRE(dw1[i] == Approx(dw0[i]).margin(1e-12));
+    }
+    std::vector<double> y(dy.size()), scratch(row - 1);
+    CHECK_THROWS_WITH(nn::conv2d_forward(y.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch)),
+                      Catch::Contains("cannot hold one output row's columns"));
+  }
+}

@@ -262,114 +262,23 @@ inline DptWorkspaceLayout dpt_workspace_layout(const DptHeadConfig& cfg, const D
   return L;
 }
 
-// Rows [r0, r0 + rows) of the im2col matrix of a k x k, stride-1, (k-1)/2-padded convolution of in [cin, h, w]:
-// cols[(c*k + i)*k + j, oy*w + x] = in[c, r0 + oy + i - pad, x + j - pad] (zero outside).
-template <class T>
-void im2col_band(T* cols, const T* in, index_t cin, index_t h, index_t w, index_t k, index_t r0, index_t rows) {
-  const index_t pad = (k - 1) / 2, hw = h * w, n = rows * w;
-  parallel_for(cin * k, [&](index_t b0, index_t b1, int) {
-    for (index_t ci = b0; ci < b1; ++ci) {
-      const index_t c = ci / k, i = ci % k;
-      for (index_t j = 0; j < k; ++j) {
-        T* dst = cols + ((c * k + i) * k + j) * n;
-        for (index_t oy = 0; oy < rows; ++oy, dst += w) {
-          const index_t y = r0 + oy + i - pad;
-          if (y < 0 || y >= h) {
-            std::fill(dst, dst + w, T(0));
-            continue;
-          }
-          const T* src = in + c * hw + y * w;
-          const index_t x_lo = std::max<index_t>(0, pad - j), x_hi = std::min<index_t>(w, w + pad - j);
-          std::fill(dst, dst + x_lo, T(0));
-          std::copy(src + x_lo + j - pad, src + x_hi + j - pad, dst + x_lo);
-          std::fill(dst + x_hi, dst + w, T(0));
-        }
-      }
-    }
-  });
+// k x k convolution, stride 1, zero padding (k-1)/2, one NCHW image; nn::conv2d runs bands of output rows when the
+// scratch (dpt_band_scratch) is smaller than the whole column matrix.
+inline nn::Conv2dShape same_conv_shape(index_t cin, index_t cout, index_t h, index_t w, index_t k) {
+  return {1, cin, cout, h, w, k, k, 1, (k - 1) / 2};
 }
 
-// The adjoint of im2col_band: in += scatter(cols). Channels split over the pool (each writes its own plane).
-template <class T>
-void col2im_band_add(T* in, const T* cols, index_t cin, index_t h, index_t w, index_t k, index_t r0, index_t rows) {
-  const index_t pad = (k - 1) / 2, hw = h * w, n = rows * w;
-  parallel_for(cin, [&](index_t c0, index_t c1, int) {
-    for (index_t c = c0; c < c1; ++c)
-      for (index_t i = 0; i < k; ++i)
-        for (index_t j = 0; j < k; ++j) {
-          const T* src = cols + ((c * k + i) * k + j) * n;
-          const index_t x_lo = std::max<index_t>(0, pad - j), x_hi = std::min<index_t>(w, w + pad - j);
-          for (index_t oy = 0; oy < rows; ++oy, src += w) {
-            const index_t y = r0 + oy + i - pad;
-            if (y < 0 || y >= h) continue;
-            T* dst = in + c * hw + y * w + j - pad;
-            for (index_t x = x_lo; x < x_hi; ++x) dst[x] += src[x];
-          }
-        }
-  });
-}
-
-inline index_t conv_band_rows(index_t h, index_t row_cols, std::size_t scratch) {
-  const index_t band = std::min(h, static_cast<index_t>(scratch) / row_cols);
-  require(band >= 1, "DPT conv: scratch of ", scratch, " elements cannot hold one row (", row_cols, ")");
-  return band;
-}
-
-// k x k convolution, stride 1, zero padding (k-1)/2, NCHW single image; bands of output rows bound the im2col size.
 template <class T>
 void conv2d_same(T* out, const T* in, const T* weight, const T* bias, index_t cin, index_t cout, index_t h, index_t w,
                  index_t k, std::span<T> scratch) {
-  const index_t hw = h * w;
-  if (k == 1) {
-    if (bias)
-      for (index_t o = 0; o < cout; ++o) std::fill(out + o * hw, out + (o + 1) * hw, bias[o]);
-    gemm(Trans::no, Trans::no, cout, hw, cin, T(1), weight, cin, in, hw, bias ? T(1) : T(0), out, hw);
-    return;
-  }
-  const index_t K = cin * k * k, band = conv_band_rows(h, K * w, scratch.size());
-  T* cols = scratch.data();
-  for (index_t r0 = 0; r0 < h; r0 += band) {
-    const index_t rows = std::min(band, h - r0), n = rows * w;
-    im2col_band(cols, in, cin, h, w, k, r0, rows);
-    if (bias)
-      for (index_t o = 0; o < cout; ++o) std::fill(out + o * hw + r0 * w, out + o * hw + r0 * w + n, bias[o]);
-    gemm(Trans::no, Trans::no, cout, n, K, T(1), weight, K, cols, n, bias ? T(1) : T(0), out + r0 * w, hw);
-  }
+  nn::conv2d_forward(out, in, weight, bias, same_conv_shape(cin, cout, h, w, k), scratch);
 }
 
-// Backward of conv2d_same: adds into d_in, d_weight, d_bias (each may be null), banded like the forward.
+// Backward of conv2d_same: adds into d_in, d_weight, d_bias (each may be null).
 template <class T>
 void conv2d_same_backward(T* d_in, T* d_weight, T* d_bias, const T* d_out, const T* in, const T* weight, index_t cin,
                           index_t cout, index_t h, index_t w, index_t k, std::span<T> scratch) {
-  const index_t hw = h * w;
-  if (d_bias)
-    parallel_for(cout, [&](index_t o0, index_t o1, int) {
-      for (index_t o = o0; o < o1; ++o) {
-        T sum = 0;
-        for (index_t p = 0; p < hw; ++p) sum += d_out[o * hw + p];
-        d_bias[o] += sum;
-      }
-    });
-  if (k == 1) {
-    if (d_weight) gemm(Trans::no, Trans::yes, cout, cin, hw, T(1), d_out, hw, in, hw, T(1), d_weight, cin);
-    if (d_in) gemm(Trans::yes, Trans::no, cin, hw, cout, T(1), weight, cin, d_out, hw, T(1), d_in, hw);
-    return;
-  }
-  if (!d_in && !d_weight) return;
-  const index_t K = cin * k * k, band = conv_band_rows(h, K * w, scratch.size());
-  T* cols = scratch.data();
-  for (index_t r0 = 0; r0 < h; r0 += band) {
-    const index_t rows = std::min(band, h - r0), n = rows * w;
-    const T* dy = d_out + r0 * w;
-    if (d_weight) {
-      im2col_band(cols, in, cin, h, w, k, r0, rows);
-      gemm(Trans::no, Trans::yes, cout, K, n, T(1), dy, hw, cols, n, T(1), d_weight, K);
-    }
-    if (d_in) {
-      gemm(Trans::yes, Trans::no, K, n, cout, T(1), weight, K, dy, hw, T(0), cols, n);
-      col2im_band_add(d_in, cols, cin, h, w, k, r0, rows);
-    }
-  }
+  nn::conv2d_backward(d_in, d_weight, d_bias, d_out, in, weight, same_conv_shape(cin, cout, h, w, k), scratch);
 }
 
 template <class T>

@@ -5,6 +5,7 @@
 #include <span>
 
 #include "flexsplat/core/gemm.hpp"
+#include "flexsplat/core/parallel.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -32,110 +33,161 @@ inline void validate_conv(const Conv2dShape& s, bool transposed, const char* wha
   require(!transposed || s.output_padding < s.stride, what, ": output_padding must be smaller than stride");
 }
 
-// Scratch elements for one image's column matrix.
+// Scratch elements for one image's whole column matrix (one GEMM per image). conv2d also takes less, down to one
+// output row's columns (conv2d_row_scratch_size), and then runs bands of output rows.
 inline index_t conv2d_scratch_size(const Conv2dShape& s) {
   return s.in_channels * s.kernel_h * s.kernel_w * s.conv_out_h() * s.conv_out_w();
+}
+inline index_t conv2d_row_scratch_size(const Conv2dShape& s) {
+  return s.in_channels * s.kernel_h * s.kernel_w * s.conv_out_w();
 }
 inline index_t conv_transpose2d_scratch_size(const Conv2dShape& s) {
   return s.out_channels * s.kernel_h * s.kernel_w * s.in_h * s.in_w;
 }
 
 namespace detail {
-// cols[(c*kh + i)*kw + j, oy*ow + ox] = image[c, oy*stride - pad + i, ox*stride - pad + j] (zero outside).
+// Output columns ox whose input column ox * stride - pad + j lies in [0, w): [lo, hi).
+inline void im2col_valid_columns(index_t& lo, index_t& hi, index_t w, index_t j, index_t stride, index_t pad, index_t ow) {
+  const index_t first = pad - j, last = w + pad - j - 1;
+  lo = first <= 0 ? 0 : std::min(ow, (first + stride - 1) / stride);
+  hi = last < 0 ? 0 : std::min(ow, last / stride + 1);
+  hi = std::max(hi, lo);
+}
+
+// Output rows [oy0, oy0 + rows) of the column matrix, n = rows * ow columns:
+// cols[(c*kh + i)*kw + j, (oy - oy0)*ow + ox] = image[c, oy*stride - pad + i, ox*stride - pad + j] (zero outside).
+// Channel x kernel-row pairs split over the pool.
 template <class T>
 void im2col(T* cols, const T* image, index_t channels, index_t h, index_t w, index_t kh, index_t kw, index_t stride,
-            index_t pad, index_t oh, index_t ow) {
-  for (index_t c = 0; c < channels; ++c)
-    for (index_t i = 0; i < kh; ++i)
+            index_t pad, index_t oy0, index_t rows, index_t ow) {
+  const index_t n = rows * ow;
+  parallel_for(channels * kh, [&](index_t r0, index_t r1, int) {
+    for (index_t ci = r0; ci < r1; ++ci) {
+      const index_t c = ci / kh, i = ci % kh;
       for (index_t j = 0; j < kw; ++j) {
-        T* row = cols + ((c * kh + i) * kw + j) * oh * ow;
-        for (index_t oy = 0; oy < oh; ++oy) {
+        index_t lo, hi;
+        im2col_valid_columns(lo, hi, w, j, stride, pad, ow);
+        T* dst = cols + (ci * kw + j) * n;
+        for (index_t oy = oy0; oy < oy0 + rows; ++oy, dst += ow) {
           const index_t y = oy * stride - pad + i;
-          T* dst = row + oy * ow;
           if (y < 0 || y >= h) {
             std::fill(dst, dst + ow, T(0));
             continue;
           }
           const T* src = image + (c * h + y) * w;
-          for (index_t ox = 0; ox < ow; ++ox) {
-            const index_t x = ox * stride - pad + j;
-            dst[ox] = (x >= 0 && x < w) ? src[x] : T(0);
-          }
+          const index_t shift = j - pad;
+          std::fill(dst, dst + lo, T(0));
+          if (stride == 1 && hi > lo)
+            std::copy(src + (lo + shift), src + (hi + shift), dst + lo);
+          else
+            for (index_t ox = lo; ox < hi; ++ox) dst[ox] = src[ox * stride + shift];
+          std::fill(dst + hi, dst + ow, T(0));
         }
       }
+    }
+  });
 }
 
-// The adjoint of im2col: image += scatter(cols).
+// The adjoint of im2col: image += scatter(cols) over the same band. Channels split over the pool (each adds into its
+// own plane, in the same order for any thread count).
 template <class T>
 void col2im_add(T* image, const T* cols, index_t channels, index_t h, index_t w, index_t kh, index_t kw, index_t stride,
-                index_t pad, index_t oh, index_t ow) {
-  for (index_t c = 0; c < channels; ++c)
-    for (index_t i = 0; i < kh; ++i)
-      for (index_t j = 0; j < kw; ++j) {
-        const T* row = cols + ((c * kh + i) * kw + j) * oh * ow;
-        for (index_t oy = 0; oy < oh; ++oy) {
-          const index_t y = oy * stride - pad + i;
-          if (y < 0 || y >= h) continue;
-          T* dst = image + (c * h + y) * w;
-          for (index_t ox = 0; ox < ow; ++ox) {
-            const index_t x = ox * stride - pad + j;
-            if (x >= 0 && x < w) dst[x] += row[oy * ow + ox];
+                index_t pad, index_t oy0, index_t rows, index_t ow) {
+  const index_t n = rows * ow;
+  parallel_for(channels, [&](index_t c0, index_t c1, int) {
+    for (index_t c = c0; c < c1; ++c)
+      for (index_t i = 0; i < kh; ++i)
+        for (index_t j = 0; j < kw; ++j) {
+          index_t lo, hi;
+          im2col_valid_columns(lo, hi, w, j, stride, pad, ow);
+          const T* src = cols + ((c * kh + i) * kw + j) * n;
+          for (index_t oy = oy0; oy < oy0 + rows; ++oy, src += ow) {
+            const index_t y = oy * stride - pad + i;
+            if (y < 0 || y >= h) continue;
+            T* dst = image + (c * h + y) * w;
+            for (index_t ox = lo; ox < hi; ++ox) dst[ox * stride + j - pad] += src[ox];
           }
         }
-      }
+  });
+}
+
+// Output rows per band for `scratch` elements of column matrix.
+inline index_t conv2d_band_rows(const Conv2dShape& s, std::size_t scratch) {
+  const index_t row = conv2d_row_scratch_size(s), band = std::min(s.conv_out_h(), static_cast<index_t>(scratch) / row);
+  require(band >= 1, "conv2d: scratch of ", scratch, " elements cannot hold one output row's columns (", row, ")");
+  return band;
+}
+
+inline bool conv2d_pointwise(const Conv2dShape& s) {
+  return s.kernel_h == 1 && s.kernel_w == 1 && s.stride == 1 && s.padding == 0;
 }
 }  // namespace detail
 
-// out [B, C_out, OH, OW]; bias may be null; scratch >= conv2d_scratch_size(s).
+// out [B, C_out, OH, OW]; bias may be null; scratch >= conv2d_row_scratch_size(s) unless the kernel is 1 x 1, stride 1,
+// no padding (then unused).
 template <class T>
 void conv2d_forward(T* out, const T* in, const T* weight, const T* bias, const Conv2dShape& s, std::span<T> scratch) {
   validate_conv(s, false, "conv2d");
   const index_t oh = s.conv_out_h(), ow = s.conv_out_w(), K = s.in_channels * s.kernel_h * s.kernel_w;
-  require(static_cast<index_t>(scratch.size()) >= conv2d_scratch_size(s), "conv2d: scratch too small");
-  const bool pointwise = s.kernel_h == 1 && s.kernel_w == 1 && s.stride == 1 && s.padding == 0;
+  const bool pointwise = detail::conv2d_pointwise(s);
+  const index_t band = pointwise ? oh : detail::conv2d_band_rows(s, scratch.size());
   for (index_t b = 0; b < s.batch; ++b) {
     const T* x = in + b * s.in_channels * s.in_h * s.in_w;
     T* y = out + b * s.out_channels * oh * ow;
-    const T* cols = x;
-    if (!pointwise) {
-      detail::im2col(scratch.data(), x, s.in_channels, s.in_h, s.in_w, s.kernel_h, s.kernel_w, s.stride, s.padding, oh, ow);
-      cols = scratch.data();
+    for (index_t oy0 = 0; oy0 < oh; oy0 += band) {
+      const index_t rows = std::min(band, oh - oy0), n = rows * ow;
+      const T* cols = x;
+      if (!pointwise) {
+        detail::im2col(scratch.data(), x, s.in_channels, s.in_h, s.in_w, s.kernel_h, s.kernel_w, s.stride, s.padding,
+                       oy0, rows, ow);
+        cols = scratch.data();
+      }
+      if (bias)
+        for (index_t o = 0; o < s.out_channels; ++o)
+          std::fill(y + o * oh * ow + oy0 * ow, y + o * oh * ow + oy0 * ow + n, bias[o]);
+      gemm(Trans::no, Trans::no, s.out_channels, n, K, T(1), weight, K, cols, n, bias ? T(1) : T(0), y + oy0 * ow,
+           oh * ow);
     }
-    if (bias)
-      for (index_t o = 0; o < s.out_channels; ++o) std::fill(y + o * oh * ow, y + (o + 1) * oh * ow, bias[o]);
-    gemm(Trans::no, Trans::no, s.out_channels, oh * ow, K, T(1), weight, K, cols, oh * ow, bias ? T(1) : T(0), y, oh * ow);
   }
 }
 
-// Adds into d_in, d_weight, d_bias (each may be null). scratch >= conv2d_scratch_size(s).
+// Adds into d_in, d_weight, d_bias (each may be null); scratch as for conv2d_forward, in bands the same way.
 template <class T>
 void conv2d_backward(T* d_in, T* d_weight, T* d_bias, const T* d_out, const T* in, const T* weight,
                      const Conv2dShape& s, std::span<T> scratch) {
   validate_conv(s, false, "conv2d");
   const index_t oh = s.conv_out_h(), ow = s.conv_out_w(), K = s.in_channels * s.kernel_h * s.kernel_w;
-  require(static_cast<index_t>(scratch.size()) >= conv2d_scratch_size(s), "conv2d: scratch too small");
-  const bool pointwise = s.kernel_h == 1 && s.kernel_w == 1 && s.stride == 1 && s.padding == 0;
+  const bool pointwise = detail::conv2d_pointwise(s);
+  const index_t band = pointwise ? oh : detail::conv2d_band_rows(s, scratch.size());
   for (index_t b = 0; b < s.batch; ++b) {
     const T* x = in + b * s.in_channels * s.in_h * s.in_w;
     const T* dy = d_out + b * s.out_channels * oh * ow;
     if (d_bias)
-      for (index_t o = 0; o < s.out_channels; ++o)
-        for (index_t p = 0; p < oh * ow; ++p) d_bias[o] += dy[o * oh * ow + p];
-    if (d_weight) {
-      const T* cols = x;
-      if (!pointwise) {
-        detail::im2col(scratch.data(), x, s.in_channels, s.in_h, s.in_w, s.kernel_h, s.kernel_w, s.stride, s.padding, oh, ow);
-        cols = scratch.data();
-      }
-      gemm(Trans::no, Trans::yes, s.out_channels, K, oh * ow, T(1), dy, oh * ow, cols, oh * ow, T(1), d_weight, K);
+      parallel_for(s.out_channels, [&](index_t o0, index_t o1, int) {
+        for (index_t o = o0; o < o1; ++o) {
+          T sum = 0;
+          for (index_t p = 0; p < oh * ow; ++p) sum += dy[o * oh * ow + p];
+          d_bias[o] += sum;
+        }
+      });
+    if (pointwise) {
+      if (d_weight) gemm(Trans::no, Trans::yes, s.out_channels, K, oh * ow, T(1), dy, oh * ow, x, oh * ow, T(1), d_weight, K);
+      if (d_in)
+        gemm(Trans::yes, Trans::no, K, oh * ow, s.out_channels, T(1), weight, K, dy, oh * ow, T(1),
+             d_in + b * s.in_channels * s.in_h * s.in_w, oh * ow);
+      continue;
     }
-    if (d_in) {
-      T* dx = d_in + b * s.in_channels * s.in_h * s.in_w;
-      if (pointwise) {
-        gemm(Trans::yes, Trans::no, K, oh * ow, s.out_channels, T(1), weight, K, dy, oh * ow, T(1), dx, oh * ow);
-      } else {
-        gemm(Trans::yes, Trans::no, K, oh * ow, s.out_channels, T(1), weight, K, dy, oh * ow, T(0), scratch.data(), oh * ow);
-        detail::col2im_add(dx, scratch.data(), s.in_channels, s.in_h, s.in_w, s.kernel_h, s.kernel_w, s.stride, s.padding, oh, ow);
+    for (index_t oy0 = 0; oy0 < oh; oy0 += band) {
+      const index_t rows = std::min(band, oh - oy0), n = rows * ow;
+      if (d_weight) {
+        detail::im2col(scratch.data(), x, s.in_channels, s.in_h, s.in_w, s.kernel_h, s.kernel_w, s.stride, s.padding,
+                       oy0, rows, ow);
+        gemm(Trans::no, Trans::yes, s.out_channels, K, n, T(1), dy + oy0 * ow, oh * ow, scratch.data(), n, T(1), d_weight, K);
+      }
+      if (d_in) {
+        gemm(Trans::yes, Trans::no, K, n, s.out_channels, T(1), weight, K, dy + oy0 * ow, oh * ow, T(0), scratch.data(), n);
+        detail::col2im_add(d_in + b * s.in_channels * s.in_h * s.in_w, scratch.data(), s.in_channels, s.in_h, s.in_w,
+                           s.kernel_h, s.kernel_w, s.stride, s.padding, oy0, rows, ow);
       }
     }
   }
@@ -154,7 +206,8 @@ void conv_transpose2d_forward(T* out, const T* in, const T* weight, const T* bia
     T* y = out + b * s.out_channels * oh * ow;
     for (index_t o = 0; o < s.out_channels; ++o) std::fill(y + o * oh * ow, y + (o + 1) * oh * ow, bias ? bias[o] : T(0));
     gemm(Trans::yes, Trans::no, K, hw, s.in_channels, T(1), weight, K, x, hw, T(0), scratch.data(), hw);
-    detail::col2im_add(y, scratch.data(), s.out_channels, oh, ow, s.kernel_h, s.kernel_w, s.stride, s.padding, s.in_h, s.in_w);
+    detail::col2im_add(y, scratch.data(), s.out_channels, oh, ow, s.kernel_h, s.kernel_w, s.stride, s.padding, 0, s.in_h,
+                       s.in_w);
   }
 }
 
@@ -172,7 +225,7 @@ void conv_transpose2d_backward(T* d_in, T* d_weight, T* d_bias, const T* d_out, 
       for (index_t o = 0; o < s.out_channels; ++o)
         for (index_t p = 0; p < oh * ow; ++p) d_bias[o] += dy[o * oh * ow + p];
     if (!d_in && !d_weight) continue;
-    detail::im2col(scratch.data(), dy, s.out_channels, oh, ow, s.kernel_h, s.kernel_w, s.stride, s.padding, s.in_h, s.in_w);
+    detail::im2col(scratch.data(), dy, s.out_channels, oh, ow, s.kernel_h, s.kernel_w, s.stride, s.padding, 0, s.in_h, s.in_w);
     if (d_in)
       gemm(Trans::no, Trans::no, s.in_channels, hw, K, T(1), weight, K, scratch.data(), hw, T(1),
            d_in + b * s.in_channels * hw, hw);
