@@ -7,7 +7,9 @@
 
 #include "flexsplat/export/cameras_json.hpp"
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+namespace fuzz_cameras_json {
+
+int test_one_input(const std::uint8_t* data, std::size_t size) {
   using namespace flexsplat;
   const nlohmann::json doc = nlohmann::json::parse(data, data + size, nullptr, false);
   if (doc.is_discarded()) return 0;
@@ -17,3 +19,5 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   }
   return 0;
 }
+
+}  // namespace fuzz_cameras_json

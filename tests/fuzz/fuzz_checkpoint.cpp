@@ -13,7 +13,7 @@
 #include "flexsplat/model/weights.hpp"
 #include "flexsplat/train/checkpoint.hpp"
 
-namespace {
+namespace fuzz_checkpoint {
 
 namespace fs = std::filesystem;
 
@@ -29,9 +29,7 @@ flexsplat::train::ParamStore<float>& small_store() {
   return store;
 }
 
-}  // namespace
-
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+int test_one_input(const std::uint8_t* data, std::size_t size) {
   using namespace flexsplat;
   static const fs::path path =
       fs::temp_directory_path() / ("flexsplat_fuzz_checkpoint_" + std::to_string(::getpid()) + ".safetensors");
@@ -52,3 +50,5 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   }
   return 0;
 }
+
+}  // namespace fuzz_checkpoint

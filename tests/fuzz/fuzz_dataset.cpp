@@ -13,7 +13,7 @@
 
 #include "flexsplat/data/dataset.hpp"
 
-namespace {
+namespace fuzz_dataset {
 
 namespace fs = std::filesystem;
 
@@ -26,9 +26,7 @@ const fs::path& work_dir() {
   return dir;
 }
 
-}  // namespace
-
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+int test_one_input(const std::uint8_t* data, std::size_t size) {
   using namespace flexsplat;
   const std::string_view input(reinterpret_cast<const char*>(data), size);
   const fs::path obj = work_dir() / "obj";
@@ -54,3 +52,5 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   }
   return 0;
 }
+
+}  // namespace fuzz_dataset

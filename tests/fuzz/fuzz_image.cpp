@@ -6,7 +6,9 @@
 
 #include "flexsplat/image/image_io.hpp"
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+namespace fuzz_image {
+
+int test_one_input(const std::uint8_t* data, std::size_t size) {
   using namespace flexsplat;
   const std::vector<unsigned char> bytes(data, data + size);
   const std::filesystem::path source = "fuzz.png";
@@ -23,3 +25,5 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   }
   return 0;
 }
+
+}  // namespace fuzz_image

@@ -8,7 +8,9 @@
 
 #include "flexsplat/export/ply.hpp"
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+namespace fuzz_ply {
+
+int test_one_input(const std::uint8_t* data, std::size_t size) {
   using namespace flexsplat;
   decltype(ply::decode_ply(nullptr, 0, "")) set;
   try {
@@ -25,3 +27,5 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   }
   return 0;
 }
+
+}  // namespace fuzz_ply

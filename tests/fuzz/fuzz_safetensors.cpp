@@ -6,7 +6,9 @@
 
 #include "flexsplat/io/safetensors.hpp"
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+namespace fuzz_safetensors {
+
+int test_one_input(const std::uint8_t* data, std::size_t size) {
   using namespace flexsplat;
   try {
     const auto file = safetensors::File::from_bytes(data, size, "fuzz.safetensors");
@@ -30,3 +32,5 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   }
   return 0;
 }
+
+}  // namespace fuzz_safetensors

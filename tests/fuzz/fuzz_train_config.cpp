@@ -7,7 +7,9 @@
 
 #include "flexsplat/train/run_config.hpp"
 
-extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+namespace fuzz_train_config {
+
+int test_one_input(const std::uint8_t* data, std::size_t size) {
   using namespace flexsplat;
   const nlohmann::json doc = nlohmann::json::parse(data, data + size, nullptr, false);
   if (doc.is_discarded()) return 0;
@@ -19,3 +21,5 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   }
   return 0;
 }
+
+}  // namespace fuzz_train_config
