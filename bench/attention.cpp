@@ -233,7 +233,8 @@ int main(int argc, char** argv) {
   const index_t heads = 16, d = 64, C = heads * d;
   std::printf("%-14s %9s %10s %10s %9s %10s %9s %10s\n", "batch x tokens", "fwd s", "fwd GF/s", "SGEMM GF/s",
               "fwd/SGEMM", "bwd s", "bwd GF/s", "bwd/SGEMM");
-  for (auto [batch, tokens] : shapes) {
+  for (const auto& shape : shapes) {
+    const index_t batch = shape.first, tokens = shape.second;
     const auto L = fused_layout(batch, tokens, heads, d);
     const float scale = 1.0f / std::sqrt(float(d));
     const auto qkv = random_values<float>(batch * tokens * 3 * C, 1, 1.0);
