@@ -137,3 +137,49 @@ TEST_CASE("conv2d in bands of output rows equals the whole-image product, and a 
                       Catch::Contains("cannot hold one output row's columns"));
   }
 }
+
+TEST_CASE("conv2d's shifted path (one GEMM per kernel tap) matches the direct definition in bands of any height",
+          "[nn][conv]") {
+  for (auto [kh, kw, pad] : {std::tuple{3, 3, 1}, std::tuple{5, 5, 2}, std::tuple{3, 3, 0}, std::tuple{2, 4, 1}}) {
+    const nn::Conv2dShape s{1, 3, 4, 9, 7, kh, kw, 1, pad};
+    INFO("kernel " << kh << "x" << kw << " padding " << pad);
+    const auto x = random_vector(3 * 9 * 7, 61), w = random_vector(4 * 3 * kh * kw, 62), b = random_vector(4, 63);
+    const std::vector<double> zero(4, 0.0);
+    const index_t oh = s.conv_out_h();
+    for (index_t rows : {index_t(1), index_t(2), oh}) {
+      for (const double* bias : {b.data(), static_cast<const double*>(nullptr)}) {
+        INFO("rows per band " << rows << (bias ? ", bias" : ", no bias"));
+        // One element short of the next row: the band height is what the scratch holds.
+        std::vector<double> scratch(nn::conv2d_shifted_scratch_size(s, rows + 1) - 1), y(4 * oh * s.conv_out_w(), -7.0);
+        CHECK(nn::detail::conv2d_shifted_band_rows(s, scratch.size()) == std::min(rows, oh));
+        nn::detail::conv2d_forward_shifted(y.data(), x.data(), w.data(), bias, s, std::span<double>(scratch));
+        const auto ref = direct_conv(x, w, bias ? b : zero, s);
+        for (std::size_t i = 0; i < ref.size(); ++i) REQUIRE(y[i] == Approx(ref[i]).margin(1e-12));
+      }
+    }
+    std::vector<double> y(4 * oh * s.conv_out_w()), scratch(nn::conv2d_shifted_scratch_size(s, 1) - 1);
+    CHECK_THROWS_WITH(
+        nn::detail::conv2d_forward_shifted(y.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch)),
+        Catch::Contains("conv2d (shifted): needs stride 1 and"));
+  }
+}
+
+TEST_CASE("conv2d takes the shifted path for large stride-1 maps when the scratch holds a row of it, batch included",
+          "[nn][conv]") {
+  // A map just at the threshold: the smallest square with that many pixels.
+  index_t side = 1;
+  while (side * side < std::max<index_t>(nn::detail::conv2d_shifted_min_pixels, 1)) ++side;
+  const nn::Conv2dShape s{2, 2, 3, side, side, 3, 3, 1, 1}, strided{2, 2, 3, side, side, 3, 3, 2, 1};
+  CHECK(nn::detail::conv2d_use_shifted(s, nn::conv2d_shifted_scratch_size(s, 1)));
+  CHECK_FALSE(nn::detail::conv2d_use_shifted(s, nn::conv2d_shifted_scratch_size(s, 1) - 1));
+  CHECK_FALSE(nn::detail::conv2d_use_shifted(strided, nn::conv2d_shifted_scratch_size(strided, side)));
+  if (side > 1) {
+    const nn::Conv2dShape small{2, 2, 3, side - 1, side - 1, 3, 3, 1, 1};
+    CHECK_FALSE(nn::detail::conv2d_use_shifted(small, nn::conv2d_shifted_scratch_size(small, side)));
+  }
+  const auto x = random_vector(2 * 2 * side * side, 71), w = random_vector(3 * 2 * 9, 72), b = random_vector(3, 73);
+  std::vector<double> y(2 * 3 * side * side), scratch(nn::conv2d_shifted_scratch_size(s, 2));
+  nn::conv2d_forward(y.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch));
+  const auto ref = direct_conv(x, w, b, s);
+  for (std::size_t i = 0; i < ref.size(); ++i) REQUIRE(y[i] == Approx(ref[i]).margin(1e-12));
+}

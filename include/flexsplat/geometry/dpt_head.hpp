@@ -206,7 +206,8 @@ struct DptGeometry {
   index_t level_size(int i) const { return h[i] * w[i]; }
 };
 
-// Convolutions larger than this run over horizontal bands so their im2col matrix stays within it (elements).
+// Convolutions larger than this run over horizontal bands so their scratch (im2col columns, or the shifted path's
+// padded rows) stays within it (elements).
 inline constexpr index_t dpt_conv_scratch_budget = index_t(1) << 22;
 
 namespace detail {

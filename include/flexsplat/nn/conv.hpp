@@ -41,6 +41,14 @@ inline index_t conv2d_scratch_size(const Conv2dShape& s) {
 inline index_t conv2d_row_scratch_size(const Conv2dShape& s) {
   return s.in_channels * s.kernel_h * s.kernel_w * s.conv_out_w();
 }
+// Stride 1 without a column matrix (detail::conv2d_forward_shifted): the weight as kh*kw matrices [C_out, C_in], and
+// per band of output rows the zero-padded input rows it reads (+ kw - 1 elements the last tap reads past them) and the
+// output over padded-width rows. Fixed part + rows * per-row part.
+inline index_t conv2d_shifted_scratch_size(const Conv2dShape& s, index_t rows) {
+  const index_t pw = s.in_w + 2 * s.padding;
+  return s.kernel_h * s.kernel_w * s.out_channels * s.in_channels + s.in_channels * (s.kernel_h - 1) * pw +
+         (s.kernel_w - 1) + rows * (s.in_channels + s.out_channels) * pw;
+}
 inline index_t conv_transpose2d_scratch_size(const Conv2dShape& s) {
   return s.out_channels * s.kernel_h * s.kernel_w * s.in_h * s.in_w;
 }
@@ -121,16 +129,79 @@ inline index_t conv2d_band_rows(const Conv2dShape& s, std::size_t scratch) {
 inline bool conv2d_pointwise(const Conv2dShape& s) {
   return s.kernel_h == 1 && s.kernel_w == 1 && s.stride == 1 && s.padding == 0;
 }
+
+// Output pixels from which a stride-1 k x k convolution takes the shifted path: on VGGT's DPT shapes it is faster
+// from 72 x 72 up and slower from 36 x 36 down (bench/conv, docs/nn.md).
+inline constexpr index_t conv2d_shifted_min_pixels = 4096;
+
+// Output rows per band of the shifted path for `scratch` elements (0 if not even one row fits).
+inline index_t conv2d_shifted_band_rows(const Conv2dShape& s, std::size_t scratch) {
+  const index_t fixed = conv2d_shifted_scratch_size(s, 0), row = conv2d_shifted_scratch_size(s, 1) - fixed;
+  return static_cast<index_t>(scratch) < fixed + row ? 0 : std::min(s.conv_out_h(), (static_cast<index_t>(scratch) - fixed) / row);
+}
+
+// Stride 1, one image: out = sum over taps (i, j) of W_ij [C_out, C_in] x the zero-padded input shifted by (i, j). Per
+// band the padded rows are copied once and each tap's B is a window of them (row stride = a padded band plane), so no
+// kh*kw-times larger column matrix is written and read back. The output is computed over rows of pw = W + 2 * pad
+// columns; the last kw - 1 of each row read across the row edge and are dropped.
+template <class T>
+void conv2d_forward_shifted(T* y, const T* x, const T* weight, const T* bias, const Conv2dShape& s, std::span<T> scratch) {
+  const index_t cin = s.in_channels, cout = s.out_channels, kh = s.kernel_h, kw = s.kernel_w, taps = kh * kw;
+  const index_t h = s.in_h, w = s.in_w, pad = s.padding, pw = w + 2 * pad, oh = s.conv_out_h(), ow = s.conv_out_w();
+  const index_t band = conv2d_shifted_band_rows(s, scratch.size());
+  require(s.stride == 1 && band >= 1, "conv2d (shifted): needs stride 1 and ", conv2d_shifted_scratch_size(s, 1),
+          " scratch elements, got stride ", s.stride, " and ", scratch.size());
+  T* wt = scratch.data();
+  T* padded = wt + taps * cout * cin;
+  parallel_for(cout, [&](index_t o0, index_t o1, int) {
+    for (index_t o = o0; o < o1; ++o)
+      for (index_t c = 0; c < cin; ++c)
+        for (index_t t = 0; t < taps; ++t) wt[(t * cout + o) * cin + c] = weight[(o * cin + c) * taps + t];
+  });
+  for (index_t oy0 = 0; oy0 < oh; oy0 += band) {
+    const index_t rows = std::min(band, oh - oy0), prows = rows + kh - 1, plane = prows * pw, n = rows * pw;
+    T* wide = padded + cin * plane + (kw - 1);
+    parallel_for(cin, [&](index_t c0, index_t c1, int) {
+      for (index_t c = c0; c < c1; ++c)
+        for (index_t r = 0; r < prows; ++r) {
+          T* dst = padded + c * plane + r * pw;
+          const index_t yy = oy0 + r - pad;
+          if (yy < 0 || yy >= h) {
+            std::fill(dst, dst + pw, T(0));
+            continue;
+          }
+          std::fill(dst, dst + pad, T(0));
+          std::copy(x + (c * h + yy) * w, x + (c * h + yy + 1) * w, dst + pad);
+          std::fill(dst + pad + w, dst + pw, T(0));
+        }
+    });
+    std::fill(padded + cin * plane, wide, T(0));
+    for (index_t t = 0; t < taps; ++t)
+      gemm(Trans::no, Trans::no, cout, n, cin, T(1), wt + t * cout * cin, cin, padded + (t / kw) * pw + t % kw, plane,
+           t == 0 ? T(0) : T(1), wide, n);
+    parallel_for(cout, [&](index_t o0, index_t o1, int) {
+      for (index_t o = o0; o < o1; ++o)
+        for (index_t r = 0; r < rows; ++r) {
+          const T* src = wide + o * n + r * pw;
+          T* dst = y + (o * oh + oy0 + r) * ow;
+          if (bias)
+            for (index_t i = 0; i < ow; ++i) dst[i] = src[i] + bias[o];
+          else
+            std::copy(src, src + ow, dst);
+        }
+    });
+  }
+}
 }  // namespace detail
 
-// out [B, C_out, OH, OW]; bias may be null; scratch >= conv2d_row_scratch_size(s) unless the kernel is 1 x 1, stride 1,
-// no padding (then unused).
+namespace detail {
+// im2col + one GEMM per band of output rows; scratch >= conv2d_row_scratch_size(s) unless pointwise (then unused).
 template <class T>
-void conv2d_forward(T* out, const T* in, const T* weight, const T* bias, const Conv2dShape& s, std::span<T> scratch) {
-  validate_conv(s, false, "conv2d");
+void conv2d_forward_im2col(T* out, const T* in, const T* weight, const T* bias, const Conv2dShape& s,
+                           std::span<T> scratch) {
   const index_t oh = s.conv_out_h(), ow = s.conv_out_w(), K = s.in_channels * s.kernel_h * s.kernel_w;
-  const bool pointwise = detail::conv2d_pointwise(s);
-  const index_t band = pointwise ? oh : detail::conv2d_band_rows(s, scratch.size());
+  const bool pointwise = conv2d_pointwise(s);
+  const index_t band = pointwise ? oh : conv2d_band_rows(s, scratch.size());
   for (index_t b = 0; b < s.batch; ++b) {
     const T* x = in + b * s.in_channels * s.in_h * s.in_w;
     T* y = out + b * s.out_channels * oh * ow;
@@ -138,8 +209,8 @@ void conv2d_forward(T* out, const T* in, const T* weight, const T* bias, const C
       const index_t rows = std::min(band, oh - oy0), n = rows * ow;
       const T* cols = x;
       if (!pointwise) {
-        detail::im2col(scratch.data(), x, s.in_channels, s.in_h, s.in_w, s.kernel_h, s.kernel_w, s.stride, s.padding,
-                       oy0, rows, ow);
+        im2col(scratch.data(), x, s.in_channels, s.in_h, s.in_w, s.kernel_h, s.kernel_w, s.stride, s.padding, oy0, rows,
+               ow);
         cols = scratch.data();
       }
       if (bias)
@@ -149,6 +220,26 @@ void conv2d_forward(T* out, const T* in, const T* weight, const T* bias, const C
            oh * ow);
     }
   }
+}
+
+// The shifted path pays kh*kw GEMMs with K = C_in instead of one; it wins where the column matrix is large
+// (bench/conv, docs/nn.md).
+inline bool conv2d_use_shifted(const Conv2dShape& s, std::size_t scratch) {
+  return s.stride == 1 && !conv2d_pointwise(s) && s.conv_out_h() * s.conv_out_w() >= conv2d_shifted_min_pixels &&
+         conv2d_shifted_band_rows(s, scratch) >= 1;
+}
+}  // namespace detail
+
+// out [B, C_out, OH, OW]; bias may be null. Stride-1 convolutions with at least detail::conv2d_shifted_min_pixels
+// output pixels run detail::conv2d_forward_shifted when scratch >= conv2d_shifted_scratch_size(s, 1); the others
+// im2col, which needs scratch >= conv2d_row_scratch_size(s) unless the kernel is 1 x 1, stride 1, no padding.
+template <class T>
+void conv2d_forward(T* out, const T* in, const T* weight, const T* bias, const Conv2dShape& s, std::span<T> scratch) {
+  validate_conv(s, false, "conv2d");
+  if (!detail::conv2d_use_shifted(s, scratch.size())) return detail::conv2d_forward_im2col(out, in, weight, bias, s, scratch);
+  const index_t in_size = s.in_channels * s.in_h * s.in_w, out_size = s.out_channels * s.conv_out_h() * s.conv_out_w();
+  for (index_t b = 0; b < s.batch; ++b)
+    detail::conv2d_forward_shifted(out + b * out_size, in + b * in_size, weight, bias, s, scratch);
 }
 
 // Adds into d_in, d_weight, d_bias (each may be null); scratch as for conv2d_forward, in bands the same way.

@@ -1,0 +1,91 @@
+// nn::conv2d_forward's two stride-1 paths on the VGGT DPT head's k x k convolutions, each in bands of output rows
+// within the DPT's scratch (geometry::dpt_conv_scratch_budget elements): im2col + one GEMM per band, and one GEMM per
+// kernel tap on a window of the padded input (detail::conv2d_forward_shifted). Time (best of reps), GFLOP/s, fraction of the machine's SGEMM rate in the same run,
+// and the largest difference between the two outputs relative to the largest output.
+// Usage: conv [size=252] [reps=5]
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <random>
+#include <vector>
+
+#include "flexsplat/core/gemm.hpp"
+#include "flexsplat/geometry/dpt_head.hpp"
+#include "flexsplat/nn/conv.hpp"
+#include "sgemm_rate.hpp"
+
+using namespace flexsplat;
+
+namespace {
+
+template <class F>
+double best_seconds(F&& f, int reps) {
+  double best = 1e300;
+  for (int r = 0; r < reps; ++r) {
+    const auto t0 = std::chrono::steady_clock::now();
+    f();
+    best = std::min(best, std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  }
+  return best;
+}
+
+std::vector<float> random_values(std::size_t n, unsigned seed) {
+  std::mt19937 rng(seed);
+  std::normal_distribution<float> dist(0.0f, 1.0f);
+  std::vector<float> v(n);
+  for (float& x : v) x = dist(rng);
+  return v;
+}
+
+struct Case {
+  const char* name;
+  index_t cin, cout, h, w, k;
+};
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  const index_t size = argc > 1 ? std::atol(argv[1]) : 252;
+  const int reps = argc > 2 ? std::atoi(argv[2]) : 5;
+  if (size < 28 || size % 14 != 0 || reps < 1) {
+    std::fprintf(stderr, "usage: conv [size: a multiple of 14, >= 28] [reps >= 1]\n");
+    return 2;
+  }
+  const bench::SgemmRate rate = bench::best_sgemm(reps);
+  std::printf("%s: %.1f GFLOP/s; %s\n", bench::sgemm_label(rate.backend).c_str(), rate.gflops,
+              gemm_backend_name().c_str());
+  // VGGT-1B's DPT (features 256, out_channels 256/512/1024/1024, head 128 -> 32) at one frame of size x size.
+  const index_t t = size / 14;
+  const Case cases[] = {
+      {"layer_rn[0]", 256, 256, 4 * t, 4 * t, 3},  {"layer_rn[1]", 512, 256, 2 * t, 2 * t, 3},
+      {"layer_rn[2]", 1024, 256, t, t, 3},         {"layer_rn[3]", 1024, 256, (t + 1) / 2, (t + 1) / 2, 3},
+      {"unit 256 @4t", 256, 256, 4 * t, 4 * t, 3}, {"unit 256 @2t", 256, 256, 2 * t, 2 * t, 3},
+      {"unit 256 @t", 256, 256, t, t, 3},          {"output_conv1", 256, 128, 8 * t, 8 * t, 3},
+      {"output_conv2", 128, 32, size, size, 3},
+  };
+  std::printf("%-14s %5s %5s %9s %10s %7s %10s %7s %9s\n", "conv", "cin", "cout", "map", "im2col ms", "/SGEMM",
+              "shifted ms", "/SGEMM", "rel diff");
+  for (const Case& c : cases) {
+    const nn::Conv2dShape s{1, c.cin, c.cout, c.h, c.w, c.k, c.k, 1, (c.k - 1) / 2};
+    const auto x = random_values(std::size_t(c.cin * c.h * c.w), 1);
+    const auto wt = random_values(std::size_t(c.cout * c.cin * c.k * c.k), 2);
+    const auto b = random_values(std::size_t(c.cout), 3);
+    std::vector<float> y0(std::size_t(c.cout * c.h * c.w)), y1(y0.size());
+    std::vector<float> scratch(std::size_t(std::max({geometry::dpt_conv_scratch_budget, nn::conv2d_row_scratch_size(s),
+                                                     nn::conv2d_shifted_scratch_size(s, 1)})));
+    const double flops = 2.0 * double(c.cout) * double(c.cin * c.k * c.k) * double(c.h * c.w);
+    const double t0 = best_seconds([&] { nn::detail::conv2d_forward_im2col(y0.data(), x.data(), wt.data(), b.data(), s, std::span<float>(scratch)); }, reps);
+    const double t1 = best_seconds([&] { nn::detail::conv2d_forward_shifted(y1.data(), x.data(), wt.data(), b.data(), s, std::span<float>(scratch)); }, reps);
+    double diff = 0, scale = 0;
+    for (std::size_t i = 0; i < y0.size(); ++i) {
+      diff = std::max(diff, double(std::abs(y0[i] - y1[i])));
+      scale = std::max(scale, double(std::abs(y0[i])));
+    }
+    std::printf("%-14s %5ld %5ld %4ldx%-4ld %10.2f %7.2f %10.2f %7.2f %9.1e\n", c.name, long(c.cin), long(c.cout),
+                long(c.h), long(c.w), t0 * 1e3, flops / t0 * 1e-9 / rate.gflops, t1 * 1e3,
+                flops / t1 * 1e-9 / rate.gflops, diff / scale);
+  }
+  return 0;
+}
