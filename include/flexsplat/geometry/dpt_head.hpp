@@ -211,9 +211,16 @@ struct DptGeometry {
 inline constexpr index_t dpt_conv_scratch_budget = index_t(1) << 22;
 
 namespace detail {
+// k x k convolution, stride 1, zero padding (k-1)/2, one NCHW image; nn::conv2d runs bands of output rows when the
+// scratch (dpt_band_scratch) is smaller than the whole column matrix.
+inline nn::Conv2dShape same_conv_shape(index_t cin, index_t cout, index_t h, index_t w, index_t k) {
+  return {1, cin, cout, h, w, k, k, 1, (k - 1) / 2};
+}
+
+// The whole column matrix, or the budget if that is smaller (but at least one output row's columns).
 inline index_t dpt_band_scratch(index_t cin, index_t k, index_t h, index_t w) {
-  const index_t row = cin * k * k * w;
-  return std::min(row * h, std::max(row, dpt_conv_scratch_budget));
+  const nn::Conv2dShape s = same_conv_shape(cin, 1, h, w, k);  // the column matrix does not depend on C_out
+  return std::min(nn::conv2d_scratch_size(s), std::max(nn::conv2d_row_scratch_size(s), dpt_conv_scratch_budget));
 }
 
 // Offsets (in elements) of one frame's buffers inside the workspace.
@@ -263,11 +270,6 @@ inline DptWorkspaceLayout dpt_workspace_layout(const DptHeadConfig& cfg, const D
   return L;
 }
 
-// k x k convolution, stride 1, zero padding (k-1)/2, one NCHW image; nn::conv2d runs bands of output rows when the
-// scratch (dpt_band_scratch) is smaller than the whole column matrix.
-inline nn::Conv2dShape same_conv_shape(index_t cin, index_t cout, index_t h, index_t w, index_t k) {
-  return {1, cin, cout, h, w, k, k, 1, (k - 1) / 2};
-}
 
 template <class T>
 void conv2d_same(T* out, const T* in, const T* weight, const T* bias, index_t cin, index_t cout, index_t h, index_t w,

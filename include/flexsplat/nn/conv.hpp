@@ -119,6 +119,19 @@ void col2im_add(T* image, const T* cols, index_t channels, index_t h, index_t w,
   });
 }
 
+// sums[c] += the sum of plane c of [channels, n]: the bias gradient of one image. Channels split over the pool; each
+// plane is summed in order, so the result does not depend on the thread count.
+template <class T>
+void add_plane_sums(T* sums, const T* planes, index_t channels, index_t n) {
+  parallel_for(channels, [&](index_t c0, index_t c1, int) {
+    for (index_t c = c0; c < c1; ++c) {
+      T sum = 0;
+      for (index_t p = 0; p < n; ++p) sum += planes[c * n + p];
+      sums[c] += sum;
+    }
+  });
+}
+
 // Output rows per band for `scratch` elements of column matrix.
 inline index_t conv2d_band_rows(const Conv2dShape& s, std::size_t scratch) {
   const index_t row = conv2d_row_scratch_size(s), band = std::min(s.conv_out_h(), static_cast<index_t>(scratch) / row);
@@ -253,14 +266,7 @@ void conv2d_backward(T* d_in, T* d_weight, T* d_bias, const T* d_out, const T* i
   for (index_t b = 0; b < s.batch; ++b) {
     const T* x = in + b * s.in_channels * s.in_h * s.in_w;
     const T* dy = d_out + b * s.out_channels * oh * ow;
-    if (d_bias)
-      parallel_for(s.out_channels, [&](index_t o0, index_t o1, int) {
-        for (index_t o = o0; o < o1; ++o) {
-          T sum = 0;
-          for (index_t p = 0; p < oh * ow; ++p) sum += dy[o * oh * ow + p];
-          d_bias[o] += sum;
-        }
-      });
+    if (d_bias) detail::add_plane_sums(d_bias, dy, s.out_channels, oh * ow);
     if (pointwise) {
       if (d_weight) gemm(Trans::no, Trans::yes, s.out_channels, K, oh * ow, T(1), dy, oh * ow, x, oh * ow, T(1), d_weight, K);
       if (d_in)
@@ -312,9 +318,7 @@ void conv_transpose2d_backward(T* d_in, T* d_weight, T* d_bias, const T* d_out, 
   for (index_t b = 0; b < s.batch; ++b) {
     const T* x = in + b * s.in_channels * hw;
     const T* dy = d_out + b * s.out_channels * oh * ow;
-    if (d_bias)
-      for (index_t o = 0; o < s.out_channels; ++o)
-        for (index_t p = 0; p < oh * ow; ++p) d_bias[o] += dy[o * oh * ow + p];
+    if (d_bias) detail::add_plane_sums(d_bias, dy, s.out_channels, oh * ow);
     if (!d_in && !d_weight) continue;
     detail::im2col(scratch.data(), dy, s.out_channels, oh, ow, s.kernel_h, s.kernel_w, s.stride, s.padding, 0, s.in_h, s.in_w);
     if (d_in)
