@@ -1,7 +1,7 @@
 // nn::conv2d_forward's two stride-1 paths on the VGGT DPT head's k x k convolutions, each in bands of output rows
 // within the DPT's scratch (geometry::dpt_conv_scratch_budget elements): im2col + one GEMM per band, and one GEMM per
-// kernel tap on a window of the padded input (detail::conv2d_forward_shifted). Time (best of reps), GFLOP/s, fraction of the machine's SGEMM rate in the same run,
-// and the largest difference between the two outputs relative to the largest output.
+// kernel tap on a window of the padded input (detail::conv2d_forward_shifted). Time (best of reps), fraction of the
+// machine's SGEMM rate in the same run, and the largest difference between the two outputs over the largest output.
 // Usage: conv [size=252] [reps=5]
 #include <algorithm>
 #include <chrono>
@@ -76,8 +76,11 @@ int main(int argc, char** argv) {
     std::vector<float> scratch(std::size_t(std::max({geometry::dpt_conv_scratch_budget, nn::conv2d_row_scratch_size(s),
                                                      nn::conv2d_shifted_scratch_size(s, 1)})));
     const double flops = 2.0 * double(c.cout) * double(c.cin * c.k * c.k) * double(c.h * c.w);
-    const double t0 = best_seconds([&] { nn::detail::conv2d_forward_im2col(y0.data(), x.data(), wt.data(), b.data(), s, std::span<float>(scratch)); }, reps);
-    const double t1 = best_seconds([&] { nn::detail::conv2d_forward_shifted(y1.data(), x.data(), wt.data(), b.data(), s, std::span<float>(scratch)); }, reps);
+    const std::span<float> sp(scratch);
+    const double t0 = best_seconds(
+        [&] { nn::detail::conv2d_forward_im2col(y0.data(), x.data(), wt.data(), b.data(), s, sp); }, reps);
+    const double t1 = best_seconds(
+        [&] { nn::detail::conv2d_forward_shifted(y1.data(), x.data(), wt.data(), b.data(), s, sp); }, reps);
     double diff = 0, scale = 0;
     for (std::size_t i = 0; i < y0.size(); ++i) {
       diff = std::max(diff, double(std::abs(y0[i] - y1[i])));

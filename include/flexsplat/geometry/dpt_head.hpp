@@ -270,7 +270,6 @@ inline DptWorkspaceLayout dpt_workspace_layout(const DptHeadConfig& cfg, const D
   return L;
 }
 
-
 template <class T>
 void conv2d_same(T* out, const T* in, const T* weight, const T* bias, index_t cin, index_t cout, index_t h, index_t w,
                  index_t k, std::span<T> scratch) {

@@ -150,7 +150,8 @@ inline constexpr index_t conv2d_shifted_min_pixels = 4096;
 // Output rows per band of the shifted path for `scratch` elements (0 if not even one row fits).
 inline index_t conv2d_shifted_band_rows(const Conv2dShape& s, std::size_t scratch) {
   const index_t fixed = conv2d_shifted_scratch_size(s, 0), row = conv2d_shifted_scratch_size(s, 1) - fixed;
-  return static_cast<index_t>(scratch) < fixed + row ? 0 : std::min(s.conv_out_h(), (static_cast<index_t>(scratch) - fixed) / row);
+  const index_t have = static_cast<index_t>(scratch);
+  return have < fixed + row ? 0 : std::min(s.conv_out_h(), (have - fixed) / row);
 }
 
 // Stride 1, one image: out = sum over taps (i, j) of W_ij [C_out, C_in] x the zero-padded input shifted by (i, j). Per
@@ -158,7 +159,8 @@ inline index_t conv2d_shifted_band_rows(const Conv2dShape& s, std::size_t scratc
 // kh*kw-times larger column matrix is written and read back. The output is computed over rows of pw = W + 2 * pad
 // columns; the last kw - 1 of each row read across the row edge and are dropped.
 template <class T>
-void conv2d_forward_shifted(T* y, const T* x, const T* weight, const T* bias, const Conv2dShape& s, std::span<T> scratch) {
+void conv2d_forward_shifted(T* y, const T* x, const T* weight, const T* bias, const Conv2dShape& s,
+                            std::span<T> scratch) {
   const index_t cin = s.in_channels, cout = s.out_channels, kh = s.kernel_h, kw = s.kernel_w, taps = kh * kw;
   const index_t h = s.in_h, w = s.in_w, pad = s.padding, pw = w + 2 * pad, oh = s.conv_out_h(), ow = s.conv_out_w();
   const index_t band = conv2d_shifted_band_rows(s, scratch.size());
@@ -205,9 +207,7 @@ void conv2d_forward_shifted(T* y, const T* x, const T* weight, const T* bias, co
     });
   }
 }
-}  // namespace detail
 
-namespace detail {
 // im2col + one GEMM per band of output rows; scratch >= conv2d_row_scratch_size(s) unless pointwise (then unused).
 template <class T>
 void conv2d_forward_im2col(T* out, const T* in, const T* weight, const T* bias, const Conv2dShape& s,
@@ -249,7 +249,8 @@ inline bool conv2d_use_shifted(const Conv2dShape& s, std::size_t scratch) {
 template <class T>
 void conv2d_forward(T* out, const T* in, const T* weight, const T* bias, const Conv2dShape& s, std::span<T> scratch) {
   validate_conv(s, false, "conv2d");
-  if (!detail::conv2d_use_shifted(s, scratch.size())) return detail::conv2d_forward_im2col(out, in, weight, bias, s, scratch);
+  if (!detail::conv2d_use_shifted(s, scratch.size()))
+    return detail::conv2d_forward_im2col(out, in, weight, bias, s, scratch);
   const index_t in_size = s.in_channels * s.in_h * s.in_w, out_size = s.out_channels * s.conv_out_h() * s.conv_out_w();
   for (index_t b = 0; b < s.batch; ++b)
     detail::conv2d_forward_shifted(out + b * out_size, in + b * in_size, weight, bias, s, scratch);
