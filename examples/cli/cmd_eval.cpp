@@ -116,7 +116,7 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
   const int degree = p.gaussians.sh_degree();
   ObjectResult r;
   r.name = rec.name;
-  std::vector<float> w2c = p.geometry.extrinsics;
+  std::vector<float> w2c(p.geometry.extrinsics.begin(), p.geometry.extrinsics.end());
   if (x.refine_seconds > 0) {
     model::EvalOptions before = o;
     before.white_baseline = false, before.grid_targets = 0;

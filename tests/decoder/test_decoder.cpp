@@ -169,6 +169,33 @@ TEST_CASE("decoder workspace: reserved once, repeated forward/backward neither g
   }
 }
 
+TEST_CASE("decoder forward without layer caches: same Gaussians from one cache, backward refused",
+          "[decoder][decoder][workspace]") {
+  for (bool local : {false, true}) {
+    Tiny t(2, local);
+    decoder::DecoderWorkspace<double> kept, shared;
+    shared.keep_for_backward = false;
+    decoder::decoder_forward(kept, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry());
+    decoder::decoder_forward(shared, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry());
+    REQUIRE(kept.layers.size() == 2);
+    REQUIRE(shared.layers.size() == 1);
+    REQUIRE(shared.gaussians.size() == kept.gaussians.size());
+    for (std::size_t s = 0; s < kept.gaussians.size(); ++s) {
+      CHECK(std::ranges::equal(shared.gaussians[s].means.span(), kept.gaussians[s].means.span()));
+      CHECK(std::ranges::equal(shared.gaussians[s].sh.span(), kept.gaussians[s].sh.span()));
+      CHECK(std::ranges::equal(shared.gaussians[s].opacities.span(), kept.gaussians[s].opacities.span()));
+    }
+    CHECK(shared.capacity_bytes() < kept.capacity_bytes());
+    std::vector<double> dp(t.params.size());
+    GaussianSetGrad<double> d;
+    d.means = Tensor<double, 2>({t.n, 3}, 1.0);
+    const std::vector<GaussianSetGrad<double>> dg(static_cast<std::size_t>(t.cfg.layers + 1), d);
+    CHECK_THROWS_WITH(decoder::decoder_backward(dp.data(), static_cast<double*>(nullptr), {}, dg, shared,
+                                                t.params.data(), t.cfg, t.maps(), t.rig.geometry()),
+                      Catch::Contains("keep_for_backward"));
+  }
+}
+
 TEST_CASE("decoder_layer_offsets agrees with DecoderParamLayout", "[decoder][decoder]") {
   decoder::DecoderConfig c;
   c.dim = 16, c.ffn = 40, c.heads = 4, c.layers = 3, c.points = 2, c.max_views = 3, c.value_dim = 5, c.max_queries = 11;

@@ -37,3 +37,24 @@ TEST_CASE("fusion rejects zero-size feature maps", "[decoder][fusion]") {
                                             params.data(), c),
                     Catch::Contains("zero-size"));
 }
+
+TEST_CASE("fusion forward only: the same fused features without backward caches, backward refused",
+          "[decoder][fusion]") {
+  decoder::FusionConfig c{3, 2, 4};
+  const index_t V = 2, dh = 3, dw = 4, h = 6, w = 7;
+  std::mt19937_64 rng(6);
+  std::vector<double> params(decoder::FusionParamLayout(c).size);
+  decoder::fusion_init(params.data(), c, rng);
+  const auto depth = random_normal(V * 3 * dh * dw, 83), unet = random_normal(V * 2 * h * w, 84);
+  decoder::FusionCache<double> kept, bare;
+  bare.keep_for_backward = false;
+  std::vector<double> a(V * 4 * h * w), b(a.size()), dp(params.size());
+  decoder::fusion_forward(a.data(), (double*)nullptr, kept, depth.data(), dh, dw, unet.data(), V, h, w, params.data(), c);
+  decoder::fusion_forward(b.data(), (double*)nullptr, bare, depth.data(), dh, dw, unet.data(), V, h, w, params.data(), c);
+  CHECK(a == b);
+  CHECK(bare.refined_pre.empty());
+  CHECK(bare.fused.empty());
+  CHECK_THROWS_WITH(decoder::fusion_backward((double*)nullptr, (double*)nullptr, dp.data(), a.data(), (double*)nullptr,
+                                             bare, depth.data(), params.data(), c),
+                    Catch::Contains("keep_for_backward"));
+}

@@ -37,3 +37,41 @@ TEST_CASE("UNet rejects zero-size input", "[decoder][unet]") {
   CHECK_THROWS_WITH(decoder::unet_forward(out.data(), cache, out.data(), 1, 0, 4, params.data(), c),
                     Catch::Contains("0x4 (zero-size)"));
 }
+
+TEST_CASE("UNet cache: a repeated forward reuses its buffers, and another size in between leaves no stale state",
+          "[decoder][unet]") {
+  decoder::UNetConfig c{3, 2, 2};
+  std::mt19937_64 rng(5);
+  std::vector<double> params(decoder::unet_param_count(c));
+  decoder::unet_init(params.data(), c, rng);
+  const auto big = random_normal(2 * 3 * 9 * 7, 73), small = random_normal(3 * 5 * 6, 74);
+  decoder::UNetCache<double> cache, fresh;
+  std::vector<double> first(2 * 2 * 9 * 7), again(first.size()), other(2 * 5 * 6), expected(other.size());
+  decoder::unet_forward(first.data(), cache, big.data(), 2, 9, 7, params.data(), c);
+  std::vector<const double*> buffers;
+  for (const auto& v : cache.post) buffers.push_back(v.data());
+  decoder::unet_forward(other.data(), cache, small.data(), 1, 5, 6, params.data(), c);
+  decoder::unet_forward(expected.data(), fresh, small.data(), 1, 5, 6, params.data(), c);
+  CHECK(other == expected);
+  decoder::unet_forward(again.data(), cache, big.data(), 2, 9, 7, params.data(), c);
+  CHECK(again == first);
+  for (std::size_t i = 0; i < buffers.size(); ++i) CHECK(cache.post[i].data() == buffers[i]);
+}
+
+TEST_CASE("UNet forward only: the same output with each GELU in place, backward refused", "[decoder][unet]") {
+  decoder::UNetConfig c{3, 2, 2};
+  std::mt19937_64 rng(7);
+  std::vector<double> params(decoder::unet_param_count(c));
+  decoder::unet_init(params.data(), c, rng);
+  const auto images = random_normal(2 * 3 * 9 * 7, 75);
+  decoder::UNetCache<double> kept, bare;
+  bare.keep_for_backward = false;
+  std::vector<double> a(2 * 2 * 9 * 7), b(a.size()), dp(params.size());
+  decoder::unet_forward(a.data(), kept, images.data(), 2, 9, 7, params.data(), c);
+  decoder::unet_forward(b.data(), bare, images.data(), 2, 9, 7, params.data(), c);
+  CHECK(a == b);
+  const auto convs = decoder::unet_convs(c);
+  for (std::size_t i = 0; i < convs.size(); ++i) CHECK(bare.pre[i].empty() != convs[i].transposed);
+  CHECK_THROWS_WITH(decoder::unet_backward((double*)nullptr, dp.data(), a.data(), bare, images.data(), params.data(), c),
+                    Catch::Contains("keep_for_backward"));
+}

@@ -28,7 +28,9 @@ struct TinyObjective {
     for (std::size_t i = 0; i < params.size(); ++i) params[i] += noise[i];
     const TestRig rig = make_rig(2, 3.0, w, h, w, h);
     g.resize(2, h, w, fc, fh, fw);
-    g.K = rig.K, g.extrinsics = rig.E, g.depth = rig.depth;
+    g.K.assign(rig.K.begin(), rig.K.end());
+    g.extrinsics.assign(rig.E.begin(), rig.E.end());
+    g.depth.assign(rig.depth.begin(), rig.depth.end());
     const auto conf = random_uniform(g.confidence.size(), 302, 1.0, 3.0);
     g.confidence.assign(conf.begin(), conf.end());
     const auto feat = random_normal(g.features.size(), 303);
@@ -89,7 +91,7 @@ TEST_CASE("appearance objective passes the float64 gradient check into parameter
         sg.zero_like(t.g);
         run(p.data(), &sg);
         for (std::size_t i = 0; i < p.size(); ++i) dp[i] += c[0] * p[i];
-        auto add = [&](std::vector<double>& to, const std::vector<double>& from) {
+        auto add = [&](AlignedVector<double>& to, const AlignedVector<double>& from) {
           for (std::size_t i = 0; i < to.size(); ++i) to[i] += c[0] * from[i];
         };
         add(dg.extrinsics, sg.extrinsics), add(dg.K, sg.K), add(dg.depth, sg.depth), add(dg.features, sg.features);

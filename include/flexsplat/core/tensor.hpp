@@ -160,6 +160,10 @@ struct AlignedAllocator {
   bool operator==(const AlignedAllocator<U>&) const noexcept { return true; }
 };
 
+// Caches and workspaces: a megabyte-sized std::vector<T> would be first touched 4 KiB page by page.
+template <class T>
+using AlignedVector = std::vector<T, AlignedAllocator<T>>;
+
 template <class T, std::size_t Rank>
 class Tensor {
 public:

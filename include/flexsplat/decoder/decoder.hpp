@@ -10,6 +10,7 @@
 #include <random>
 #include <vector>
 
+#include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/deformable_attention.hpp"
 #include "flexsplat/decoder/gaussians.hpp"
 #include "flexsplat/decoder/init.hpp"
@@ -137,8 +138,8 @@ private:
   std::clock_t cpu0_ = 0;
 };
 
-template <class T>
-std::size_t capacity_bytes_of(const std::vector<T>& v) {
+template <class T, class A>
+std::size_t capacity_bytes_of(const std::vector<T, A>& v) {
   return v.capacity() * sizeof(T);
 }
 }  // namespace detail
@@ -146,7 +147,7 @@ std::size_t capacity_bytes_of(const std::vector<T>& v) {
 // One layer's forward cache. The layer input is the previous layer's x3 (or the query embeddings).
 template <class T>
 struct DecoderLayerCache {
-  std::vector<T> r1, mean1, rstd1, x1, r2, mean2, rstd2, x2, hidden_pre, hidden, r3, mean3, rstd3, x3, delta;
+  AlignedVector<T> r1, mean1, rstd1, x1, r2, mean2, rstd2, x2, hidden_pre, hidden, r3, mean3, rstd3, x3, delta;
   MVDeformCache<T> deform;
   SelfAttentionCache<T> attention;
   void resize(const DecoderConfig& c, index_t n, index_t views, index_t feat_h, index_t feat_w, int workers) {
@@ -170,7 +171,7 @@ struct DecoderLayerCache {
 // Backward temporaries shared by all layers.
 template <class T>
 struct DecoderGradScratch {
-  std::vector<T> d_state, d_prev_state, d_centres, d_means, d_x, d_delta, d_r, d_tmp, d_hidden, d_hidden_pre;
+  AlignedVector<T> d_state, d_prev_state, d_centres, d_means, d_x, d_delta, d_r, d_tmp, d_hidden, d_hidden_pre;
   MVDeformGradScratch<T> deform;
   SelfAttentionGradScratch<T> attention;
   void resize(const DecoderConfig& c, index_t n, index_t views, index_t feat_h, index_t feat_w) {
@@ -198,14 +199,16 @@ struct DecoderWorkspace {
   index_t n = 0;
   Anchors anchors;
   SceneCentre scene_centre;
-  std::vector<T> base_depth;
+  AlignedVector<T> base_depth;
   std::vector<unsigned char> depth_used;
   std::vector<double> median_scratch;
-  std::vector<std::vector<T>> states;  // [layers + 1][N, 24]
+  std::vector<AlignedVector<T>> states;  // [layers + 1][N, 24]
   std::vector<GaussianSet<T>> gaussians;
   std::vector<DecoderLayerCache<T>> layers;
   DecoderGradScratch<T> grad;
   DecoderProfile* profile = nullptr;  // set to collect per-part timings of decoder_forward
+  // false: forward only (predict); every layer runs in layers[0], so decoder_backward cannot follow.
+  bool keep_for_backward = true;
 
   void resize_forward(const DecoderConfig& c, index_t n_queries, index_t views, index_t feat_h, index_t feat_w,
                       index_t depth_pixels) {
@@ -221,7 +224,8 @@ struct DecoderWorkspace {
     for (auto& st : states) st.resize(z * splat_values);
     gaussians.resize(sets);
     for (auto& g : gaussians) resize_gaussian_set(g, n_queries, 1);
-    layers.resize(static_cast<std::size_t>(c.layers));
+    if (layers.size() < static_cast<std::size_t>(keep_for_backward ? c.layers : 1))
+      layers.resize(static_cast<std::size_t>(keep_for_backward ? c.layers : 1));
     for (auto& k : layers) k.resize(c, n_queries, views, feat_h, feat_w, global_pool().size());
   }
   // Sizes everything (forward and backward) for up to n_queries Gaussians.
@@ -286,7 +290,8 @@ void decoder_forward(DecoderWorkspace<T>& ws, index_t n_queries, const T* params
   const T* x = embeddings;
   for (index_t l = 0; l < c.layers; ++l) {
     const DecoderLayerOffsets o = decoder_layer_offsets(c, l);
-    auto& k = ws.layers[static_cast<std::size_t>(l)];
+    // One cache serves every layer when none is kept: layer l reads x (layers[0].x3) only before it rewrites x3.
+    auto& k = ws.layers[ws.keep_for_backward ? static_cast<std::size_t>(l) : 0];
     const T* centres = ws.gaussians[static_cast<std::size_t>(l)].means.data();
     {
       detail::ProfileScope t(prof, DecoderProfile::deform);
@@ -339,13 +344,15 @@ void decoder_backward(T* d_params, T* d_features, const ViewGeometryGrad<T>& d_g
                       const DecoderConfig& c, const FeatureMaps<T>& features, const ViewGeometry<T>& g) {
   require(static_cast<index_t>(d_gaussians.size()) == c.layers + 1, "decoder_backward: ", d_gaussians.size(),
           " gradient sets for ", c.layers + 1, " Gaussian sets");
+  require(ws.keep_for_backward && ws.layers.size() >= static_cast<std::size_t>(c.layers),
+          "decoder_backward: the forward kept no per-layer caches (DecoderWorkspace::keep_for_backward is false)");
   const index_t n = ws.n, C = c.dim;
   auto& s = ws.grad;
   s.resize(c, n, g.views, features.h, features.w);
   for (auto* v : {&s.d_state, &s.d_centres, &s.d_x}) std::fill(v->begin(), v->end(), T(0));
-  auto zero = [](std::vector<T>& v) { std::fill(v.begin(), v.end(), T(0)); };
+  auto zero = [](AlignedVector<T>& v) { std::fill(v.begin(), v.end(), T(0)); };
   // Loss gradient plus the gradient that later layers' attention sent into these centres.
-  auto gaussians_grad = [&](index_t set, std::vector<T>& d_st) {
+  auto gaussians_grad = [&](index_t set, AlignedVector<T>& d_st) {
     detail::GaussianGradPointers<T> d = detail::grad_pointers(d_gaussians[static_cast<std::size_t>(set)], n);
     if (d.means) std::transform(d.means, d.means + 3 * n, s.d_centres.begin(), s.d_means.begin(), std::plus<T>());
     else std::copy(s.d_centres.begin(), s.d_centres.end(), s.d_means.begin());

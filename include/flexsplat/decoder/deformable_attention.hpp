@@ -11,6 +11,7 @@
 #include <random>
 #include <vector>
 
+#include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/deform_core.hpp"
 #include "flexsplat/decoder/gaussians.hpp"
 #include "flexsplat/decoder/init.hpp"
@@ -81,15 +82,15 @@ struct FeatureMaps {
 template <class T>
 struct MVDeformCache {
   index_t n = 0, views = 0;
-  std::vector<T> value;          // [V*h*w, dim] = [1, S, heads, head_dim]: a bilinear tap reads head_dim contiguous values
-  std::vector<T> offsets;        // [N, V*heads*points*2] (linear output, view-major)
-  std::vector<T> logits;         // [N, V*heads*points]
-  std::vector<T> reference;      // [N, V, 2] normalised reference points
+  AlignedVector<T> value;          // [V*h*w, dim] = [1, S, heads, head_dim]: a bilinear tap reads head_dim contiguous values
+  AlignedVector<T> offsets;        // [N, V*heads*points*2] (linear output, view-major)
+  AlignedVector<T> logits;         // [N, V*heads*points]
+  AlignedVector<T> reference;      // [N, V, 2] normalised reference points
   std::vector<unsigned char> visible;  // [N, V]
   std::vector<unsigned char> any_visible;  // [N]
-  std::vector<T> locations;      // [N, heads, V, points, 2]
-  std::vector<T> weights;        // [N, heads, V, points]
-  std::vector<T> sampled;        // [N, dim]
+  AlignedVector<T> locations;      // [N, heads, V, points, 2]
+  AlignedVector<T> weights;        // [N, heads, V, points]
+  AlignedVector<T> sampled;        // [N, dim]
   std::vector<index_t> order;                    // [N] queries along a Morton curve of their centres (cache locality)
   std::vector<MortonKey> morton_keys, morton_scratch;  // [N] sort items
   DeformCoreLayout core;
@@ -123,7 +124,7 @@ struct MVDeformCache {
 // Backward temporaries; one instance can serve every layer.
 template <class T>
 struct MVDeformGradScratch {
-  std::vector<T> g_out, d_sampled, d_value, d_loc, d_w, d_logits, d_offsets, d_ref;
+  AlignedVector<T> g_out, d_sampled, d_value, d_loc, d_w, d_logits, d_offsets, d_ref;
   void resize(index_t n, index_t views, index_t feat_h, index_t feat_w, const MVDeformConfig& c) {
     const auto z = static_cast<std::size_t>(n), slots = static_cast<std::size_t>(views * c.heads * c.points);
     g_out.resize(z * static_cast<std::size_t>(c.dim));

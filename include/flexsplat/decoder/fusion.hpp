@@ -6,6 +6,7 @@
 #include <random>
 #include <vector>
 
+#include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/init.hpp"
 #include "flexsplat/decoder/splat_head.hpp"
 #include "flexsplat/nn/activations.hpp"
@@ -50,7 +51,8 @@ void fusion_init(T* params, const FusionConfig& c, std::mt19937_64& rng) {
 template <class T>
 struct FusionCache {
   index_t views = 0, dh = 0, dw = 0, h = 0, w = 0;
-  std::vector<T> projected, sum, refined_pre, refined, fused, rgb_logit, scratch;
+  AlignedVector<T> projected, sum, refined_pre, refined, fused, rgb_logit, scratch;
+  bool keep_for_backward = true;  // false: forward only (predict), the GELU in place, no copy of the output
 };
 
 namespace detail {
@@ -79,12 +81,16 @@ void fusion_forward(T* fused, T* rgb, FusionCache<T>& k, const T* depth_features
   k.sum.resize(static_cast<std::size_t>(views * c.unet_channels * hw));
   nn::bilinear_resize_forward(k.sum.data(), k.projected.data(), views * c.unet_channels, dh, dw, h, w, false);
   for (std::size_t i = 0; i < k.sum.size(); ++i) k.sum[i] += unet[i];
-  k.refined_pre.resize(k.sum.size());
   k.refined.resize(k.sum.size());
-  nn::conv2d_forward(k.refined_pre.data(), k.sum.data(), params + L.refine_w, params + L.refine_b, refine, std::span<T>(k.scratch));
-  nn::gelu_forward(k.refined.data(), k.refined_pre.data(), static_cast<index_t>(k.refined.size()));
+  T* refine_out = k.refined.data();
+  if (k.keep_for_backward) {
+    k.refined_pre.resize(k.sum.size());
+    refine_out = k.refined_pre.data();
+  }
+  nn::conv2d_forward(refine_out, k.sum.data(), params + L.refine_w, params + L.refine_b, refine, std::span<T>(k.scratch));
+  nn::gelu_forward(k.refined.data(), refine_out, static_cast<index_t>(k.refined.size()));
   nn::conv2d_forward(fused, k.refined.data(), params + L.reduce_w, params + L.reduce_b, reduce, std::span<T>(k.scratch));
-  k.fused.assign(fused, fused + views * c.out_channels * hw);
+  if (k.keep_for_backward) k.fused.assign(fused, fused + views * c.out_channels * hw);
   if (!rgb) return;
   k.rgb_logit.resize(static_cast<std::size_t>(views * 3 * hw));
   nn::conv2d_forward(k.rgb_logit.data(), fused, params + L.rgb_w, params + L.rgb_b, head, std::span<T>(k.scratch));
@@ -95,20 +101,21 @@ void fusion_forward(T* fused, T* rgb, FusionCache<T>& k, const T* depth_features
 template <class T>
 void fusion_backward(T* d_depth_features, T* d_unet, T* d_params, const T* d_fused, const T* d_rgb, FusionCache<T>& k,
                      const T* depth_features, const T* params, const FusionConfig& c) {
+  require(k.keep_for_backward, "fusion_backward: the forward kept no caches (FusionCache::keep_for_backward is false)");
   const FusionParamLayout L(c);
   const index_t views = k.views, h = k.h, w = k.w, hw = h * w;
   const auto proj = detail::fusion_conv(views, c.depth_channels, c.unet_channels, k.dh, k.dw, 1);
   const auto refine = detail::fusion_conv(views, c.unet_channels, c.unet_channels, h, w, 3);
   const auto reduce = detail::fusion_conv(views, c.unet_channels, c.out_channels, h, w, 1);
   const auto head = detail::fusion_conv(views, c.out_channels, 3, h, w, 1);
-  std::vector<T> d_f(d_fused, d_fused + views * c.out_channels * hw);
+  AlignedVector<T> d_f(d_fused, d_fused + views * c.out_channels * hw);
   if (d_rgb) {
-    std::vector<T> d_logit(k.rgb_logit.size());
+    AlignedVector<T> d_logit(k.rgb_logit.size());
     for (std::size_t i = 0; i < d_logit.size(); ++i) d_logit[i] = nn::sigmoid_vjp(k.rgb_logit[i], d_rgb[i]);
     nn::conv2d_backward(d_f.data(), d_params + L.rgb_w, d_params + L.rgb_b, d_logit.data(), k.fused.data(), params + L.rgb_w,
                         head, std::span<T>(k.scratch));
   }
-  std::vector<T> d_refined(k.refined.size(), T(0)), d_pre(k.refined.size(), T(0)), d_sum(k.sum.size(), T(0));
+  AlignedVector<T> d_refined(k.refined.size(), T(0)), d_pre(k.refined.size(), T(0)), d_sum(k.sum.size(), T(0));
   nn::conv2d_backward(d_refined.data(), d_params + L.reduce_w, d_params + L.reduce_b, d_f.data(), k.refined.data(),
                       params + L.reduce_w, reduce, std::span<T>(k.scratch));
   nn::gelu_backward(d_pre.data(), d_refined.data(), k.refined_pre.data(), static_cast<index_t>(d_pre.size()));
@@ -116,7 +123,7 @@ void fusion_backward(T* d_depth_features, T* d_unet, T* d_params, const T* d_fus
                       params + L.refine_w, refine, std::span<T>(k.scratch));
   if (d_unet)
     for (std::size_t i = 0; i < d_sum.size(); ++i) d_unet[i] += d_sum[i];
-  std::vector<T> d_proj(k.projected.size(), T(0));
+  AlignedVector<T> d_proj(k.projected.size(), T(0));
   nn::bilinear_resize_backward(d_proj.data(), d_sum.data(), views * c.unet_channels, k.dh, k.dw, h, w, false);
   nn::conv2d_backward(d_depth_features, d_params + L.proj_w, d_params + L.proj_b, d_proj.data(), depth_features,
                       params + L.proj_w, proj, std::span<T>(k.scratch));

@@ -9,6 +9,7 @@
 #include <random>
 #include <vector>
 
+#include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/decoder.hpp"
 #include "flexsplat/decoder/fusion.hpp"
 #include "flexsplat/decoder/unet.hpp"
@@ -56,16 +57,18 @@ struct ModelWorkspace {
   index_t views = 0, h = 0, w = 0, dh = 0, dw = 0;
   UNetCache<T> unet;
   FusionCache<T> fusion;
-  std::vector<T> appearance;  // [V, unet.base, h, w] UNet output
-  std::vector<T> fused;       // [V, C_f, h, w] keys/values of the deformable attention
-  std::vector<T> rgb;         // [V, 3, h, w] RGB head output (lambda_E term)
-  std::vector<T> d_fused, d_appearance;
+  AlignedVector<T> appearance;  // [V, unet.base, h, w] UNet output
+  AlignedVector<T> fused;       // [V, C_f, h, w] keys/values of the deformable attention
+  AlignedVector<T> rgb;         // [V, 3, h, w] RGB head output (lambda_E term)
+  AlignedVector<T> d_fused, d_appearance;
   DecoderWorkspace<T> decoder;
+  // false: forward only (predict): the parts keep no backward caches and the RGB head is skipped (rgb stays empty).
+  bool keep_for_backward = true;
   const std::vector<GaussianSet<T>>& gaussians() const { return decoder.gaussians; }
 };
 
 // images [V, unet.in_channels, h, w]; depth_features [V, fusion.depth_channels, dh, dw]; g: the geometry stage's
-// cameras and depth. Results: ws.gaussians() (every layer's set) and ws.rgb.
+// cameras and depth. Results: ws.gaussians() (every layer's set) and ws.rgb (when keep_for_backward).
 template <class T>
 void model_forward(ModelWorkspace<T>& ws, index_t n_queries, const T* params, const ModelConfig& c, const T* images,
                    index_t h, index_t w, const T* depth_features, index_t dh, index_t dw, const ViewGeometry<T>& g) {
@@ -84,10 +87,11 @@ void model_forward(ModelWorkspace<T>& ws, index_t n_queries, const T* params, co
   ws.views = V, ws.h = h, ws.w = w, ws.dh = dh, ws.dw = dw;
   ws.appearance.resize(static_cast<std::size_t>(V * c.unet.base * h * w));
   ws.fused.resize(static_cast<std::size_t>(V * c.fusion.out_channels * h * w));
-  ws.rgb.resize(static_cast<std::size_t>(V * 3 * h * w));
+  ws.rgb.resize(ws.keep_for_backward ? static_cast<std::size_t>(V * 3 * h * w) : 0);
+  ws.unet.keep_for_backward = ws.fusion.keep_for_backward = ws.decoder.keep_for_backward = ws.keep_for_backward;
   unet_forward(ws.appearance.data(), ws.unet, images, V, h, w, params + L.unet, c.unet);
-  fusion_forward(ws.fused.data(), ws.rgb.data(), ws.fusion, depth_features, dh, dw, ws.appearance.data(), V, h, w,
-                 params + L.fusion, c.fusion);
+  fusion_forward(ws.fused.data(), ws.keep_for_backward ? ws.rgb.data() : nullptr, ws.fusion, depth_features, dh, dw,
+                 ws.appearance.data(), V, h, w, params + L.fusion, c.fusion);
   const FeatureMaps<T> maps{V, c.fusion.out_channels, h, w, ws.fused.data()};
   decoder_forward(ws.decoder, n_queries, params + L.decoder, c.decoder, maps, g);
 }
@@ -99,6 +103,7 @@ void model_backward(T* d_params, T* d_depth_features, const ViewGeometryGrad<T>&
                     const std::vector<GaussianSetGrad<T>>& d_gaussians, const T* d_rgb, ModelWorkspace<T>& ws,
                     const T* params, const ModelConfig& c, const T* images, const T* depth_features,
                     const ViewGeometry<T>& g) {
+  require(ws.keep_for_backward, "model_backward: the forward kept no caches (ModelWorkspace::keep_for_backward is false)");
   const ModelParamLayout L(c);
   ws.d_fused.resize(ws.fused.size());
   ws.d_appearance.resize(ws.appearance.size());

@@ -10,6 +10,7 @@
 #include <random>
 #include <vector>
 
+#include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/init.hpp"
 #include "flexsplat/decoder/kernels.hpp"
 #include "flexsplat/decoder/morton.hpp"
@@ -52,12 +53,12 @@ struct SelfAttentionCache {
   index_t n = 0;
   std::vector<index_t> order;           // local: position in the Morton order -> query index
   std::vector<MortonKey> morton_keys, morton_scratch;  // local: radix-sort items
-  std::vector<T> x_sorted;              // local: [N, dim] input rows in attention order
-  std::vector<T> qkv;                   // [N, 3 dim], in attention order
-  std::vector<T> attended;              // [N, dim], in attention order
-  std::vector<T> attended_query_order;  // local: [N, dim], input of the output projection
-  std::vector<T> lse;                   // [heads * N]
-  std::vector<T> scratch;               // per-worker attention tiles
+  AlignedVector<T> x_sorted;              // local: [N, dim] input rows in attention order
+  AlignedVector<T> qkv;                   // [N, 3 dim], in attention order
+  AlignedVector<T> attended;              // [N, dim], in attention order
+  AlignedVector<T> attended_query_order;  // local: [N, dim], input of the output projection
+  AlignedVector<T> lse;                   // [heads * N]
+  AlignedVector<T> scratch;               // per-worker attention tiles
   // Sizes every buffer for n queries; never shrinks capacity, so a reserved cache does not allocate again.
   void resize(index_t n_queries, const SelfAttentionConfig& c, int workers) {
     n = n_queries;
@@ -86,7 +87,7 @@ struct SelfAttentionCache {
 // Backward temporaries; one instance can serve every layer.
 template <class T>
 struct SelfAttentionGradScratch {
-  std::vector<T> d_att_query_order, d_att, d_qkv, d_x_sorted;
+  AlignedVector<T> d_att_query_order, d_att, d_qkv, d_x_sorted;
   void resize(index_t n, const SelfAttentionConfig& c) {
     const auto z = static_cast<std::size_t>(n), d = static_cast<std::size_t>(c.dim);
     d_att_query_order.resize(z * d);

@@ -7,6 +7,7 @@
 #include <random>
 #include <vector>
 
+#include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/init.hpp"
 #include "flexsplat/nn/activations.hpp"
 #include "flexsplat/nn/conv.hpp"
@@ -65,9 +66,10 @@ void unet_init(T* params, const UNetConfig& c, std::mt19937_64& rng) {
 template <class T>
 struct UNetCache {
   index_t views = 0, h = 0, w = 0;
-  std::vector<std::vector<T>> pre, post;  // per conv: output before and after GELU / skip addition
+  std::vector<AlignedVector<T>> pre, post;  // per conv: output before and after GELU / skip addition
   std::vector<index_t> out_h, out_w, in_h, in_w;
-  std::vector<T> scratch;
+  AlignedVector<T> scratch;
+  bool keep_for_backward = true;  // false: forward only (predict), each GELU in place; unet_backward is refused
 };
 
 namespace detail {
@@ -94,8 +96,8 @@ void unet_forward(T* out, UNetCache<T>& cache, const T* images, index_t views, i
   require(views >= 1 && h >= 1 && w >= 1, "unet: input is ", views, " views of ", h, "x", w, " (zero-size)");
   const auto convs = unet_convs(c);
   cache.views = views, cache.h = h, cache.w = w;
-  cache.pre.assign(convs.size(), {});
-  cache.post.assign(convs.size(), {});
+  cache.pre.resize(convs.size());  // buffers kept across calls: fresh memory costs its first touch
+  cache.post.resize(convs.size());
   cache.in_h.assign(convs.size(), 0), cache.in_w.assign(convs.size(), 0);
   cache.out_h.assign(convs.size(), 0), cache.out_w.assign(convs.size(), 0);
   std::vector<const T*> skips;
@@ -113,8 +115,9 @@ void unet_forward(T* out, UNetCache<T>& cache, const T* images, index_t views, i
                                                                          : nn::conv2d_scratch_size(s),
                                                            static_cast<index_t>(cache.scratch.size()))));
     auto& pre = cache.pre[i];
-    pre.resize(static_cast<std::size_t>(views * v.out_c * oh * ow));
+    const auto out_n = static_cast<std::size_t>(views * v.out_c * oh * ow);
     if (v.transposed) {
+      pre.resize(out_n);
       nn::conv_transpose2d_forward(pre.data(), x, params + v.weight, params + v.bias, s, std::span<T>(cache.scratch));
       // crop to the skip's size and add the skip
       const T* skip = skips.back();
@@ -126,10 +129,15 @@ void unet_forward(T* out, UNetCache<T>& cache, const T* images, index_t views, i
       for (std::size_t k = 0; k < post.size(); ++k) post[k] += skip[k];
       ch = sh, cw = sw;
     } else {
-      nn::conv2d_forward(pre.data(), x, params + v.weight, params + v.bias, s, std::span<T>(cache.scratch));
       auto& post = cache.post[i];
-      post.resize(pre.size());
-      nn::gelu_forward(post.data(), pre.data(), static_cast<index_t>(pre.size()));
+      post.resize(out_n);
+      T* conv_out = post.data();
+      if (cache.keep_for_backward) {
+        pre.resize(out_n);
+        conv_out = pre.data();
+      }
+      nn::conv2d_forward(conv_out, x, params + v.weight, params + v.bias, s, std::span<T>(cache.scratch));
+      nn::gelu_forward(post.data(), conv_out, static_cast<index_t>(out_n));
       ch = oh, cw = ow;
       // encoder outputs at each resolution are the skips (the first conv and every second down conv)
       const bool encoder = i < static_cast<std::size_t>(1 + 2 * c.levels);
@@ -146,9 +154,10 @@ void unet_forward(T* out, UNetCache<T>& cache, const T* images, index_t views, i
 template <class T>
 void unet_backward(T* d_images, T* d_params, const T* d_out, UNetCache<T>& cache, const T* images, const T* params,
                    const UNetConfig& c) {
+  require(cache.keep_for_backward, "unet_backward: the forward kept no pre-activation outputs (UNetCache::keep_for_backward is false)");
   const auto convs = unet_convs(c);
   const index_t views = cache.views;
-  std::vector<std::vector<T>> d_post(convs.size());
+  std::vector<AlignedVector<T>> d_post(convs.size());
   for (std::size_t i = 0; i < convs.size(); ++i) d_post[i].assign(cache.post[i].size(), T(0));
   std::copy(d_out, d_out + d_post.back().size(), d_post.back().begin());
   // skip producers, in the order the transposed convs consume them (last pushed first)
@@ -166,7 +175,7 @@ void unet_backward(T* d_images, T* d_params, const T* d_out, UNetCache<T>& cache
     const nn::Conv2dShape s = detail::unet_shape(v, views, cache.in_h[i], cache.in_w[i]);
     const T* x = i == 0 ? images : cache.post[i - 1].data();
     T* dx = i == 0 ? d_images : d_post[i - 1].data();
-    std::vector<T> d_pre(cache.pre[i].size(), T(0));
+    AlignedVector<T> d_pre(cache.pre[i].size(), T(0));
     if (v.transposed) {
       auto& d_skip = d_post[consumer_skip[i]];
       for (std::size_t k = 0; k < d_post[i].size(); ++k) d_skip[k] += d_post[i][k];

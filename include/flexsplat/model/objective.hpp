@@ -15,6 +15,7 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gaussians.hpp"
+#include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/model.hpp"
 #include "flexsplat/image/layout.hpp"
 #include "flexsplat/loss/image.hpp"
@@ -45,11 +46,11 @@ template <class T>
 struct GeometryResult {
   index_t views = 0, h = 0, w = 0;                            // model input size; depth is [V, h, w]
   index_t feature_channels = 0, feature_h = 0, feature_w = 0;  // depth features [V, C, fh, fw]
-  std::vector<T> extrinsics;  // [V, 3, 4] world-to-camera
-  std::vector<T> K;           // [V, 3, 3] pixel centres at +0.5
-  std::vector<T> depth;       // [V, h, w] camera z
-  std::vector<T> confidence;  // [V, h, w] the depth head's confidence (>= 1 for VGGT's expp1)
-  std::vector<T> features;    // [V, C, fh, fw]
+  AlignedVector<T> extrinsics;  // [V, 3, 4] world-to-camera
+  AlignedVector<T> K;           // [V, 3, 3] pixel centres at +0.5
+  AlignedVector<T> depth;       // [V, h, w] camera z
+  AlignedVector<T> confidence;  // [V, h, w] the depth head's confidence (>= 1 for VGGT's expp1)
+  AlignedVector<T> features;    // [V, C, fh, fw]
 
   void resize(index_t v, index_t height, index_t width, index_t c, index_t fh, index_t fw) {
     views = v, h = height, w = width, feature_channels = c, feature_h = fh, feature_w = fw;
@@ -117,9 +118,9 @@ struct ObjectiveWorkspace {
   raster::RenderWorkspace<T> render;
   raster::RenderOutputs<T> out;
   std::vector<GaussianSetGrad<T>> d_gaussians;
-  std::vector<T> d_rgb, d_image, d_depth, weights;
+  AlignedVector<T> d_rgb, d_image, d_depth, weights;
   loss::LpipsCache<T> lpips;
-  std::vector<T> render_chw, target_chw, d_render_chw;
+  AlignedVector<T> render_chw, target_chw, d_render_chw;
 };
 
 // Forward, loss and backward of the appearance side for one scene. images [V, 3, h, w] in [0, 1]; params/d_params:

@@ -79,6 +79,7 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
   detail::require_finite(g.K.data(), g.K.size(), "camera intrinsic");
   detail::require_finite(g.depth.data(), g.depth.size(), "depth");
   if (before_decoder) before_decoder(ws.geometry.result);
+  ws.model.keep_for_backward = false;  // no backward follows: the decoder's layers share one cache, no RGB head
   decoder::model_forward(ws.model, n, w.appearance(), c.appearance, images, h, wd, g.features.data(), g.feature_h,
                          g.feature_w, g.view_geometry());
   const auto t2 = clock::now();
