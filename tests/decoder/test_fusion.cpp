@@ -49,8 +49,12 @@ TEST_CASE("fusion forward only: the same fused features without backward caches,
   decoder::FusionCache<double> kept, bare;
   bare.keep_for_backward = false;
   std::vector<double> a(V * 4 * h * w), b(a.size()), dp(params.size());
-  decoder::fusion_forward(a.data(), (double*)nullptr, kept, depth.data(), dh, dw, unet.data(), V, h, w, params.data(), c);
-  decoder::fusion_forward(b.data(), (double*)nullptr, bare, depth.data(), dh, dw, unet.data(), V, h, w, params.data(), c);
+  const auto forward = [&](std::vector<double>& out, decoder::FusionCache<double>& k) {
+    decoder::fusion_forward(out.data(), (double*)nullptr, k, depth.data(), dh, dw, unet.data(), V, h, w, params.data(),
+                            c);
+  };
+  forward(a, kept);
+  forward(b, bare);
   CHECK(a == b);
   CHECK(bare.refined_pre.empty());
   CHECK(bare.fused.empty());

@@ -72,6 +72,7 @@ TEST_CASE("UNet forward only: the same output with each GELU in place, backward 
   CHECK(a == b);
   const auto convs = decoder::unet_convs(c);
   for (std::size_t i = 0; i < convs.size(); ++i) CHECK(bare.pre[i].empty() != convs[i].transposed);
-  CHECK_THROWS_WITH(decoder::unet_backward((double*)nullptr, dp.data(), a.data(), bare, images.data(), params.data(), c),
-                    Catch::Contains("keep_for_backward"));
+  CHECK_THROWS_WITH(
+      decoder::unet_backward((double*)nullptr, dp.data(), a.data(), bare, images.data(), params.data(), c),
+      Catch::Contains("keep_for_backward"));
 }

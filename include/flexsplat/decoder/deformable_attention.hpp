@@ -82,15 +82,15 @@ struct FeatureMaps {
 template <class T>
 struct MVDeformCache {
   index_t n = 0, views = 0;
-  AlignedVector<T> value;          // [V*h*w, dim] = [1, S, heads, head_dim]: a bilinear tap reads head_dim contiguous values
-  AlignedVector<T> offsets;        // [N, V*heads*points*2] (linear output, view-major)
-  AlignedVector<T> logits;         // [N, V*heads*points]
-  AlignedVector<T> reference;      // [N, V, 2] normalised reference points
+  AlignedVector<T> value;      // [V*h*w, dim] = [1, S, heads, head_dim]: one bilinear tap reads head_dim in a row
+  AlignedVector<T> offsets;    // [N, V*heads*points*2] (linear output, view-major)
+  AlignedVector<T> logits;     // [N, V*heads*points]
+  AlignedVector<T> reference;  // [N, V, 2] normalised reference points
   std::vector<unsigned char> visible;  // [N, V]
   std::vector<unsigned char> any_visible;  // [N]
-  AlignedVector<T> locations;      // [N, heads, V, points, 2]
-  AlignedVector<T> weights;        // [N, heads, V, points]
-  AlignedVector<T> sampled;        // [N, dim]
+  AlignedVector<T> locations;  // [N, heads, V, points, 2]
+  AlignedVector<T> weights;    // [N, heads, V, points]
+  AlignedVector<T> sampled;    // [N, dim]
   std::vector<index_t> order;                    // [N] queries along a Morton curve of their centres (cache locality)
   std::vector<MortonKey> morton_keys, morton_scratch;  // [N] sort items
   DeformCoreLayout core;

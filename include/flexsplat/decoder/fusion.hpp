@@ -87,7 +87,8 @@ void fusion_forward(T* fused, T* rgb, FusionCache<T>& k, const T* depth_features
     k.refined_pre.resize(k.sum.size());
     refine_out = k.refined_pre.data();
   }
-  nn::conv2d_forward(refine_out, k.sum.data(), params + L.refine_w, params + L.refine_b, refine, std::span<T>(k.scratch));
+  nn::conv2d_forward(refine_out, k.sum.data(), params + L.refine_w, params + L.refine_b, refine,
+                     std::span<T>(k.scratch));
   nn::gelu_forward(k.refined.data(), refine_out, static_cast<index_t>(k.refined.size()));
   nn::conv2d_forward(fused, k.refined.data(), params + L.reduce_w, params + L.reduce_b, reduce, std::span<T>(k.scratch));
   if (k.keep_for_backward) k.fused.assign(fused, fused + views * c.out_channels * hw);

@@ -103,7 +103,8 @@ void model_backward(T* d_params, T* d_depth_features, const ViewGeometryGrad<T>&
                     const std::vector<GaussianSetGrad<T>>& d_gaussians, const T* d_rgb, ModelWorkspace<T>& ws,
                     const T* params, const ModelConfig& c, const T* images, const T* depth_features,
                     const ViewGeometry<T>& g) {
-  require(ws.keep_for_backward, "model_backward: the forward kept no caches (ModelWorkspace::keep_for_backward is false)");
+  require(ws.keep_for_backward,
+          "model_backward: the forward kept no caches (ModelWorkspace::keep_for_backward is false)");
   const ModelParamLayout L(c);
   ws.d_fused.resize(ws.fused.size());
   ws.d_appearance.resize(ws.appearance.size());

@@ -154,7 +154,8 @@ void unet_forward(T* out, UNetCache<T>& cache, const T* images, index_t views, i
 template <class T>
 void unet_backward(T* d_images, T* d_params, const T* d_out, UNetCache<T>& cache, const T* images, const T* params,
                    const UNetConfig& c) {
-  require(cache.keep_for_backward, "unet_backward: the forward kept no pre-activation outputs (UNetCache::keep_for_backward is false)");
+  require(cache.keep_for_backward,
+          "unet_backward: the forward kept no pre-activation outputs (UNetCache::keep_for_backward is false)");
   const auto convs = unet_convs(c);
   const index_t views = cache.views;
   std::vector<AlignedVector<T>> d_post(convs.size());
