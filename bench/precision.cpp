@@ -122,15 +122,15 @@ void model_table(const std::string& model_path, const std::string& object_dir, i
   const double depth_scale = max_abs(ref.geometry.depth.data(), depth_n);
   const double means_scale = max_abs(ref.gaussians.means.data(), 3 * n);
   model::EvalWorkspace ews;
-  auto psnr = [&](const std::vector<float>& w2c, const GaussianSet<float>& g) {
-    return model::score_prediction(rec, in, targets, w2c.data(), g, c.image_h, c.image_w, eo, ews).model.psnr;
+  auto psnr = [&](const float* w2c, const GaussianSet<float>& g) {
+    return model::score_prediction(rec, in, targets, w2c, g, c.image_h, c.image_w, eo, ews).model.psnr;
   };
   std::vector<Row> rows;
   {
     Row r;
     r.name = "float64 (reference)";
-    r.psnr = psnr(std::vector<float>(ref.geometry.extrinsics.begin(), ref.geometry.extrinsics.end()),
-                  to_float(ref.gaussians));
+    const std::vector<float> w2c(ref.geometry.extrinsics.begin(), ref.geometry.extrinsics.end());
+    r.psnr = psnr(w2c.data(), to_float(ref.gaussians));
     rows.push_back(r);
   }
   for (int b = 0; b < 2; ++b) {
@@ -148,7 +148,7 @@ void model_table(const std::string& model_path, const std::string& object_dir, i
     } else {
       r.means_rel = r.opacity = r.sh = std::nan("");
     }
-    r.psnr = psnr(p.geometry.extrinsics, p.gaussians);
+    r.psnr = psnr(p.geometry.extrinsics.data(), p.gaussians);
     rows.push_back(r);
   }
   std::printf("model %s (%lld x %lld, %lld Gaussians), object %s, input views", model_path.c_str(),
