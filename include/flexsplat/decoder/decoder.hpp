@@ -224,9 +224,9 @@ struct DecoderWorkspace {
     for (auto& st : states) st.resize(z * splat_values);
     gaussians.resize(sets);
     for (auto& g : gaussians) resize_gaussian_set(g, n_queries, 1);
-    if (layers.size() < static_cast<std::size_t>(keep_for_backward ? c.layers : 1))
-      layers.resize(static_cast<std::size_t>(keep_for_backward ? c.layers : 1));
-    for (auto& k : layers) k.resize(c, n_queries, views, feat_h, feat_w, global_pool().size());
+    const auto used = static_cast<std::size_t>(keep_for_backward ? c.layers : 1);  // forward only: layers[0]
+    if (layers.size() < used) layers.resize(used);
+    for (std::size_t l = 0; l < used; ++l) layers[l].resize(c, n_queries, views, feat_h, feat_w, global_pool().size());
   }
   // Sizes everything (forward and backward) for up to n_queries Gaussians.
   void reserve(const DecoderConfig& c, index_t n_queries, index_t views, index_t feat_h, index_t feat_w,
