@@ -7,7 +7,13 @@
 #include <string>
 #include <vector>
 
+#if defined(__linux__)
+#include <sys/mman.h>
+#include <unistd.h>
+#endif
+
 #include "flexsplat/core/memory.hpp"
+#include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/tensor.hpp"
 
 using namespace flexsplat;
@@ -64,3 +70,43 @@ TEST_CASE("memory: AlignedAllocator vectors grow across the huge-page threshold"
   AlignedAllocator<double> a;
   CHECK_THROWS_AS(a.allocate(std::numeric_limits<std::size_t>::max() / 4), std::bad_array_new_length);
 }
+
+#if defined(__linux__)
+namespace {
+// Pages of [p, p + bytes) the kernel has mapped in (mincore).
+std::size_t resident_pages(void* p, std::size_t bytes) {
+  const auto page = static_cast<std::size_t>(::sysconf(_SC_PAGESIZE));
+  std::vector<unsigned char> in((bytes + page - 1) / page);
+  if (::mincore(p, bytes, in.data()) != 0) return 0;
+  std::size_t n = 0;
+  for (unsigned char c : in) n += c & 1u;
+  return n;
+}
+}  // namespace
+
+TEST_CASE("memory: populate_pages maps a fresh range in on the pool's workers, and declines on one", "[core][memory]") {
+  const auto page = static_cast<std::size_t>(::sysconf(_SC_PAGESIZE));
+  const std::size_t bytes = 5 * huge_page_bytes + 3 * page, pages = bytes / page;
+  for (int threads : {1, 2, 3}) {
+    INFO(threads << " workers");
+    ThreadPool pool(threads);
+    void* p = ::mmap(nullptr, bytes, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    REQUIRE(p != MAP_FAILED);
+    REQUIRE(resident_pages(p, bytes) == 0);
+    const bool done = populate_pages(p, bytes, pool);
+    CHECK(done == (threads > 1));
+    CHECK(resident_pages(p, bytes) == (done ? pages : 0));
+    ::munmap(p, bytes);
+  }
+}
+
+TEST_CASE("memory: a large AlignedAllocator vector is mapped in before its elements are written", "[core][memory]") {
+  AlignedAllocator<float> a;
+  const std::size_t n = 3 * huge_page_bytes / sizeof(float);
+  float* p = a.allocate(n);
+  // populated only where the global pool can run (more than one worker, no region running)
+  const auto page = static_cast<std::size_t>(::sysconf(_SC_PAGESIZE));
+  if (global_pool().size() > 1) CHECK(resident_pages(p, n * sizeof(float)) == n * sizeof(float) / page);
+  a.deallocate(p, n);
+}
+#endif

@@ -3,6 +3,7 @@
 #include <atomic>
 #include <cstdlib>
 #include <string>
+#include <thread>
 #include <tuple>
 #include <vector>
 
@@ -147,4 +148,36 @@ TEST_CASE("parallel_for ignores empty ranges and a single-thread pool runs inlin
     CHECK((b == 0 && e == 7 && w == 0));
   }, single);
   CHECK(calls == 1);
+}
+
+TEST_CASE("try_run_on_all runs every worker when the pool is free and declines otherwise", "[parallel]") {
+  ThreadPool pool(3);
+  std::vector<std::atomic<int>> ran(3);
+  CHECK(pool.try_run_on_all([&](int w) { ++ran[static_cast<std::size_t>(w)]; }));
+  for (auto& r : ran) CHECK(r == 1);
+  // inside a region (of any pool) and on one worker it declines without running the task
+  std::atomic<int> inner_ran{0}, inner_ok{0};
+  pool.run_on_all([&](int) { inner_ok += pool.try_run_on_all([&](int) { ++inner_ran; }) ? 1 : 0; });
+  CHECK(inner_ok == 0);
+  CHECK(inner_ran == 0);
+  ThreadPool one(1);
+  CHECK_FALSE(one.try_run_on_all([&](int) { ++inner_ran; }));
+  CHECK(inner_ran == 0);
+  // while another thread's region runs it declines at once instead of waiting
+  std::atomic<bool> started{false}, release{false};
+  std::thread other([&] {
+    pool.run_on_all([&](int w) {
+      if (w != 0) return;
+      started = true;
+      while (!release) std::this_thread::yield();
+    });
+  });
+  while (!started) std::this_thread::yield();
+  const bool ran_while_busy = pool.try_run_on_all([&](int) { ++inner_ran; });
+  release = true;
+  other.join();
+  CHECK_FALSE(ran_while_busy);
+  CHECK(inner_ran == 0);
+  CHECK(pool.try_run_on_all([&](int) { ++inner_ran; }));
+  CHECK(inner_ran == 3);
 }

@@ -169,7 +169,7 @@ TEST_CASE("decoder workspace: reserved once, repeated forward/backward neither g
   }
 }
 
-TEST_CASE("decoder forward without layer caches: same Gaussians from one cache, backward refused",
+TEST_CASE("decoder forward without layer caches: same Gaussians from one cache, FFN GELU in place, backward refused",
           "[decoder][decoder][workspace]") {
   for (bool local : {false, true}) {
     Tiny t(2, local);
@@ -179,6 +179,8 @@ TEST_CASE("decoder forward without layer caches: same Gaussians from one cache, 
     decoder::decoder_forward(shared, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry());
     REQUIRE(kept.layers.size() == 2);
     REQUIRE(shared.layers.size() == 1);
+    CHECK(shared.layers[0].hidden_pre.empty());
+    CHECK(kept.layers[0].hidden_pre.size() == kept.layers[0].hidden.size());
     REQUIRE(shared.gaussians.size() == kept.gaussians.size());
     for (std::size_t s = 0; s < kept.gaussians.size(); ++s) {
       CHECK(std::ranges::equal(shared.gaussians[s].means.span(), kept.gaussians[s].means.span()));

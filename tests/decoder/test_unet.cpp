@@ -58,20 +58,32 @@ TEST_CASE("UNet cache: a repeated forward reuses its buffers, and another size i
   for (std::size_t i = 0; i < buffers.size(); ++i) CHECK(cache.post[i].data() == buffers[i]);
 }
 
-TEST_CASE("UNet forward only: the same output with each GELU in place, backward refused", "[decoder][unet]") {
+TEST_CASE("UNet forward only: the same output from the skips and two spare buffers, any size order, backward refused",
+          "[decoder][unet]") {
   decoder::UNetConfig c{3, 2, 2};
   std::mt19937_64 rng(7);
   std::vector<double> params(decoder::unet_param_count(c));
   decoder::unet_init(params.data(), c, rng);
-  const auto images = random_normal(2 * 3 * 9 * 7, 75);
+  const auto images = random_normal(2 * 3 * 9 * 7, 75), small = random_normal(3 * 5 * 6, 76);
   decoder::UNetCache<double> kept, bare;
   bare.keep_for_backward = false;
   std::vector<double> a(2 * 2 * 9 * 7), b(a.size()), dp(params.size());
   decoder::unet_forward(a.data(), kept, images.data(), 2, 9, 7, params.data(), c);
   decoder::unet_forward(b.data(), bare, images.data(), 2, 9, 7, params.data(), c);
   CHECK(a == b);
+  // only the skips (the first conv's and the first down level's outputs) keep a buffer of their own
   const auto convs = decoder::unet_convs(c);
-  for (std::size_t i = 0; i < convs.size(); ++i) CHECK(bare.pre[i].empty() != convs[i].transposed);
+  for (std::size_t i = 0; i < convs.size(); ++i) {
+    INFO("conv " << i);
+    CHECK(bare.pre[i].empty());
+    CHECK(bare.post[i].empty() == (i != 0 && i != 2));
+  }
+  std::vector<double> other(2 * 5 * 6), expected(other.size()), again(a.size());
+  decoder::unet_forward(other.data(), bare, small.data(), 1, 5, 6, params.data(), c);
+  decoder::unet_forward(expected.data(), kept, small.data(), 1, 5, 6, params.data(), c);
+  CHECK(other == expected);
+  decoder::unet_forward(again.data(), bare, images.data(), 2, 9, 7, params.data(), c);
+  CHECK(again == a);
   CHECK_THROWS_WITH(
       decoder::unet_backward((double*)nullptr, dp.data(), a.data(), bare, images.data(), params.data(), c),
       Catch::Contains("keep_for_backward"));

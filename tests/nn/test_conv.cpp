@@ -183,3 +183,29 @@ TEST_CASE("conv2d takes the shifted path for large stride-1 maps when the scratc
   const auto ref = direct_conv(x, w, b, s);
   for (std::size_t i = 0; i < ref.size(); ++i) REQUIRE(y[i] == Approx(ref[i]).margin(1e-12));
 }
+
+TEST_CASE("conv2d_forward_scratch_size: the same output as the full column scratch, from no more memory",
+          "[nn][conv]") {
+  index_t side = 1;
+  while (side * side < std::max<index_t>(nn::detail::conv2d_shifted_min_pixels, 1)) ++side;
+  // few input channels (the column matrix is the smaller), many (the shifted band is), strided, 1 x 1, a small map
+  const nn::Conv2dShape shapes[] = {{2, 1, 6, side, side + 3, 3, 3, 1, 1}, {1, 8, 8, side, side, 3, 3, 1, 1},
+                                    {2, 4, 5, side, side, 3, 3, 2, 1},     {2, 4, 5, side, side, 1, 1, 1, 0},
+                                    {2, 4, 5, 9, 7, 3, 3, 1, 1}};
+  for (const auto& s : shapes) {
+    INFO(s.in_channels << "->" << s.out_channels << " " << s.in_h << "x" << s.in_w << " k" << s.kernel_h << " s"
+                       << s.stride);
+    const index_t full = nn::conv2d_scratch_size(s), least = nn::conv2d_forward_scratch_size(s);
+    CHECK(least <= full);
+    const auto x = random_vector(s.batch * s.in_channels * s.in_h * s.in_w, 81);
+    const auto w = random_vector(s.out_channels * s.in_channels * s.kernel_h * s.kernel_w, 82);
+    const auto b = random_vector(s.out_channels, 83);
+    std::vector<double> a(s.batch * s.out_channels * s.conv_out_h() * s.conv_out_w()), c(a.size());
+    std::vector<double> big(static_cast<std::size_t>(full)), small(static_cast<std::size_t>(least));
+    nn::conv2d_forward(a.data(), x.data(), w.data(), b.data(), s, std::span<double>(big));
+    nn::conv2d_forward(c.data(), x.data(), w.data(), b.data(), s, std::span<double>(small));
+    CHECK(a == c);
+  }
+  const nn::Conv2dShape wide{1, 8, 8, side, side, 3, 3, 1, 1};
+  CHECK(nn::conv2d_forward_scratch_size(wide) < nn::conv2d_scratch_size(wide));
+}

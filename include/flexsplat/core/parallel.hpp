@@ -12,7 +12,7 @@
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
-#include "flexsplat/core/tensor.hpp"
+#include "flexsplat/core/index.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -65,6 +65,23 @@ public:
       return;
     }
     std::lock_guard submit(submit_mutex_);  // one parallel region at a time from outside the pool
+    run_locked(task);
+  }
+
+  // As run_on_all, but only when that runs at once on every worker: outside any region, with more than one worker and
+  // no region submitted by another thread. Returns false, without running task, otherwise.
+  template <class Task>
+  bool try_run_on_all(Task&& task) {
+    if (worker_index() >= 0 || size_ == 1) return false;
+    std::unique_lock submit(submit_mutex_, std::try_to_lock);
+    if (!submit.owns_lock()) return false;
+    run_locked(task);
+    return true;
+  }
+
+private:
+  template <class Task>
+  void run_locked(Task& task) {
     auto trampoline = [](void* context, int worker) { (*static_cast<std::remove_reference_t<Task>*>(context))(worker); };
     {
       std::lock_guard lock(mutex_);
@@ -92,7 +109,6 @@ public:
     if (error_) std::rethrow_exception(error_);
   }
 
-private:
   static int& worker_index() {
     thread_local int index = -1;
     return index;

@@ -13,12 +13,11 @@
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/index.hpp"
 #include "flexsplat/core/memory.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
-
-using index_t = std::int64_t;
 
 template <std::size_t Rank>
 using Shape = std::array<index_t, Rank>;
@@ -153,7 +152,9 @@ struct AlignedAllocator {
   AlignedAllocator(const AlignedAllocator<U>&) noexcept {}
   T* allocate(std::size_t n) {
     if (n > std::numeric_limits<std::size_t>::max() / sizeof(T)) throw std::bad_array_new_length();
-    return static_cast<T*>(allocate_aligned(n * sizeof(T), alignment));
+    void* p = allocate_aligned(n * sizeof(T), alignment);
+    if (n * sizeof(T) >= huge_page_min_bytes) populate_pages(p, n * sizeof(T));  // resize() then writes mapped pages
+    return static_cast<T*>(p);
   }
   void deallocate(T* p, std::size_t n) noexcept { deallocate_aligned(p, n * sizeof(T), alignment); }
   template <class U>

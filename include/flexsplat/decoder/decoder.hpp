@@ -150,11 +150,13 @@ struct DecoderLayerCache {
   AlignedVector<T> r1, mean1, rstd1, x1, r2, mean2, rstd2, x2, hidden_pre, hidden, r3, mean3, rstd3, x3, delta;
   MVDeformCache<T> deform;
   SelfAttentionCache<T> attention;
-  void resize(const DecoderConfig& c, index_t n, index_t views, index_t feat_h, index_t feat_w, int workers) {
+  // keep = false (forward only): the FFN's GELU runs in place in `hidden`, hidden_pre stays empty.
+  void resize(const DecoderConfig& c, index_t n, index_t views, index_t feat_h, index_t feat_w, int workers,
+              bool keep = true) {
     const auto nc = static_cast<std::size_t>(n * c.dim), z = static_cast<std::size_t>(n);
     for (auto* v : {&r1, &x1, &r2, &x2, &r3, &x3}) v->resize(nc);
     for (auto* v : {&mean1, &rstd1, &mean2, &rstd2, &mean3, &rstd3}) v->resize(z);
-    hidden_pre.resize(static_cast<std::size_t>(n * c.ffn));
+    hidden_pre.resize(keep ? static_cast<std::size_t>(n * c.ffn) : 0);
     hidden.resize(static_cast<std::size_t>(n * c.ffn));
     delta.resize(static_cast<std::size_t>(n * splat_values));
     deform.resize(n, views, feat_h, feat_w, c.deform());
@@ -226,7 +228,8 @@ struct DecoderWorkspace {
     for (auto& g : gaussians) resize_gaussian_set(g, n_queries, 1);
     const auto used = static_cast<std::size_t>(keep_for_backward ? c.layers : 1);  // forward only: layers[0]
     if (layers.size() < used) layers.resize(used);
-    for (std::size_t l = 0; l < used; ++l) layers[l].resize(c, n_queries, views, feat_h, feat_w, global_pool().size());
+    for (std::size_t l = 0; l < used; ++l)
+      layers[l].resize(c, n_queries, views, feat_h, feat_w, global_pool().size(), keep_for_backward);
   }
   // Sizes everything (forward and backward) for up to n_queries Gaussians.
   void reserve(const DecoderConfig& c, index_t n_queries, index_t views, index_t feat_h, index_t feat_w,
@@ -315,8 +318,9 @@ void decoder_forward(DecoderWorkspace<T>& ws, index_t n_queries, const T* params
     }
     {
       detail::ProfileScope t(prof, DecoderProfile::ffn);
-      nn::linear_forward(k.hidden_pre.data(), k.x2.data(), params + o.ffn_w1, params + o.ffn_b1, n, C, c.ffn);
-      nn::gelu_forward(k.hidden.data(), k.hidden_pre.data(), n * c.ffn);
+      T* pre = ws.keep_for_backward ? k.hidden_pre.data() : k.hidden.data();
+      nn::linear_forward(pre, k.x2.data(), params + o.ffn_w1, params + o.ffn_b1, n, C, c.ffn);
+      nn::gelu_forward(k.hidden.data(), pre, n * c.ffn);
       nn::linear_forward(k.r3.data(), k.hidden.data(), params + o.ffn_w2, params + o.ffn_b2, n, c.ffn, C);
     }
     {

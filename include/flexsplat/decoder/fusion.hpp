@@ -74,7 +74,8 @@ void fusion_forward(T* fused, T* rgb, FusionCache<T>& k, const T* depth_features
   const auto refine = detail::fusion_conv(views, c.unet_channels, c.unet_channels, h, w, 3);
   const auto reduce = detail::fusion_conv(views, c.unet_channels, c.out_channels, h, w, 1);
   const auto head = detail::fusion_conv(views, c.out_channels, 3, h, w, 1);
-  k.scratch.resize(static_cast<std::size_t>(nn::conv2d_scratch_size(refine)));
+  k.scratch.resize(static_cast<std::size_t>(k.keep_for_backward ? nn::conv2d_scratch_size(refine)
+                                                                 : nn::conv2d_forward_scratch_size(refine)));
   const index_t hw = h * w;
   k.projected.resize(static_cast<std::size_t>(views * c.unet_channels * dh * dw));
   nn::conv2d_forward(k.projected.data(), depth_features, params + L.proj_w, params + L.proj_b, proj, std::span<T>(k.scratch));

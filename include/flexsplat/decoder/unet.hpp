@@ -69,6 +69,7 @@ struct UNetCache {
   std::vector<AlignedVector<T>> pre, post;  // per conv: output before and after GELU / skip addition
   std::vector<index_t> out_h, out_w, in_h, in_w;
   AlignedVector<T> scratch;
+  AlignedVector<T> spare[2];  // forward only: the outputs no later conv reads again (all but the skips) alternate here
   bool keep_for_backward = true;  // false: forward only (predict), each GELU in place; unet_backward is refused
 };
 
@@ -104,6 +105,13 @@ void unet_forward(T* out, UNetCache<T>& cache, const T* images, index_t views, i
   std::vector<index_t> skip_h, skip_w;
   const T* x = images;
   index_t ch = h, cw = w;
+  const bool keep = cache.keep_for_backward;
+  // Forward only: a spare buffer of n elements other than `avoid`.
+  auto spare = [&](std::size_t n, const T* avoid) {
+    auto& b = cache.spare[0].data() != avoid ? cache.spare[0] : cache.spare[1];
+    if (b.size() < n) b.resize(n);
+    return b.data();
+  };
   for (std::size_t i = 0; i < convs.size(); ++i) {
     const UNetConv& v = convs[i];
     const nn::Conv2dShape s = detail::unet_shape(v, views, ch, cw);
@@ -111,43 +119,44 @@ void unet_forward(T* out, UNetCache<T>& cache, const T* images, index_t views, i
     const index_t oh = v.transposed ? s.transposed_out_h() : s.conv_out_h();
     const index_t ow = v.transposed ? s.transposed_out_w() : s.conv_out_w();
     cache.in_h[i] = ch, cache.in_w[i] = cw, cache.out_h[i] = oh, cache.out_w[i] = ow;
-    cache.scratch.resize(static_cast<std::size_t>(std::max(v.transposed ? nn::conv_transpose2d_scratch_size(s)
-                                                                         : nn::conv2d_scratch_size(s),
-                                                           static_cast<index_t>(cache.scratch.size()))));
-    auto& pre = cache.pre[i];
+    const index_t need = v.transposed ? nn::conv_transpose2d_scratch_size(s)
+                         : keep       ? nn::conv2d_scratch_size(s)
+                                      : nn::conv2d_forward_scratch_size(s);
+    cache.scratch.resize(static_cast<std::size_t>(std::max(need, static_cast<index_t>(cache.scratch.size()))));
+    const bool last = i + 1 == convs.size();
     const auto out_n = static_cast<std::size_t>(views * v.out_c * oh * ow);
+    T* y = nullptr;  // this conv's output after GELU / skip addition
     if (v.transposed) {
-      pre.resize(out_n);
-      nn::conv_transpose2d_forward(pre.data(), x, params + v.weight, params + v.bias, s, std::span<T>(cache.scratch));
+      T* pre = keep ? (cache.pre[i].resize(out_n), cache.pre[i].data()) : spare(out_n, x);
+      nn::conv_transpose2d_forward(pre, x, params + v.weight, params + v.bias, s, std::span<T>(cache.scratch));
       // crop to the skip's size and add the skip
       const T* skip = skips.back();
       const index_t sh = skip_h.back(), sw = skip_w.back();
       skips.pop_back(), skip_h.pop_back(), skip_w.pop_back();
-      auto& post = cache.post[i];
-      post.resize(static_cast<std::size_t>(views * v.out_c * sh * sw));
-      detail::crop_planes(post.data(), pre.data(), views * v.out_c, oh, ow, sh, sw, false);
-      for (std::size_t k = 0; k < post.size(); ++k) post[k] += skip[k];
+      const auto post_n = static_cast<std::size_t>(views * v.out_c * sh * sw);
+      y = keep ? (cache.post[i].resize(post_n), cache.post[i].data()) : last ? out : spare(post_n, pre);
+      detail::crop_planes(y, pre, views * v.out_c, oh, ow, sh, sw, false);
+      for (std::size_t k = 0; k < post_n; ++k) y[k] += skip[k];
       ch = sh, cw = sw;
     } else {
-      auto& post = cache.post[i];
-      post.resize(out_n);
-      T* conv_out = post.data();
-      if (cache.keep_for_backward) {
-        pre.resize(out_n);
-        conv_out = pre.data();
-      }
-      nn::conv2d_forward(conv_out, x, params + v.weight, params + v.bias, s, std::span<T>(cache.scratch));
-      nn::gelu_forward(post.data(), conv_out, static_cast<index_t>(out_n));
-      ch = oh, cw = ow;
       // encoder outputs at each resolution are the skips (the first conv and every second down conv)
       const bool encoder = i < static_cast<std::size_t>(1 + 2 * c.levels);
-      if (encoder && (i == 0 || i % 2 == 0) && i + 1 < static_cast<std::size_t>(1 + 2 * c.levels)) {
-        skips.push_back(post.data()), skip_h.push_back(ch), skip_w.push_back(cw);
+      const bool is_skip = encoder && (i == 0 || i % 2 == 0) && i + 1 < static_cast<std::size_t>(1 + 2 * c.levels);
+      T* conv_out = nullptr;
+      if (keep) {
+        cache.post[i].resize(out_n), cache.pre[i].resize(out_n);
+        y = cache.post[i].data(), conv_out = cache.pre[i].data();
+      } else {
+        y = conv_out = is_skip ? (cache.post[i].resize(out_n), cache.post[i].data()) : last ? out : spare(out_n, x);
       }
+      nn::conv2d_forward(conv_out, x, params + v.weight, params + v.bias, s, std::span<T>(cache.scratch));
+      nn::gelu_forward(y, conv_out, static_cast<index_t>(out_n));
+      ch = oh, cw = ow;
+      if (is_skip) skips.push_back(y), skip_h.push_back(ch), skip_w.push_back(cw);
     }
-    x = cache.post[i].data();
+    x = y;
   }
-  std::copy(cache.post.back().begin(), cache.post.back().end(), out);
+  if (keep) std::copy(cache.post.back().begin(), cache.post.back().end(), out);
 }
 
 // Adds into d_images (may be null) and d_params.

@@ -243,6 +243,15 @@ inline bool conv2d_use_shifted(const Conv2dShape& s, std::size_t scratch) {
 }
 }  // namespace detail
 
+// The least scratch with which conv2d_forward runs as with conv2d_scratch_size(s): the shifted path's band of every
+// output row where that is smaller; for callers with no conv2d_backward to follow.
+inline index_t conv2d_forward_scratch_size(const Conv2dShape& s) {
+  if (detail::conv2d_pointwise(s)) return 0;
+  const index_t full = conv2d_scratch_size(s);
+  if (!detail::conv2d_use_shifted(s, static_cast<std::size_t>(full))) return full;
+  return std::min(full, conv2d_shifted_scratch_size(s, s.conv_out_h()));
+}
+
 // out [B, C_out, OH, OW]; bias may be null. Stride-1 convolutions with at least detail::conv2d_shifted_min_pixels
 // output pixels run detail::conv2d_forward_shifted when scratch >= conv2d_shifted_scratch_size(s, 1); the others
 // im2col, which needs scratch >= conv2d_row_scratch_size(s) unless the kernel is 1 x 1, stride 1, no padding.
