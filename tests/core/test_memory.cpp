@@ -107,6 +107,7 @@ TEST_CASE("memory: a large AlignedAllocator vector is mapped in before its eleme
   // populated only where the global pool can run (more than one worker, no region running)
   const auto page = static_cast<std::size_t>(::sysconf(_SC_PAGESIZE));
   if (global_pool().size() > 1) CHECK(resident_pages(p, n * sizeof(float)) == n * sizeof(float) / page);
+  else WARN("one-worker global pool: AlignedAllocator does not populate, nothing checked here");
   a.deallocate(p, n);
 }
 #endif

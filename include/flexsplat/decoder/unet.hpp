@@ -78,6 +78,11 @@ inline nn::Conv2dShape unet_shape(const UNetConv& v, index_t batch, index_t h, i
   nn::Conv2dShape s{batch, v.in_c, v.out_c, h, w, v.kernel, v.kernel, v.stride, v.padding, 0};
   return s;
 }
+// Whether conv i's output is a skip: the encoder's output at each resolution but the deepest (the first conv and
+// every second down conv), which the decoder side adds back.
+inline bool unet_is_skip(std::size_t i, index_t levels) {
+  return i % 2 == 0 && i + 1 < static_cast<std::size_t>(1 + 2 * levels);
+}
 // Copies the top-left oh x ow window of every [h, w] plane (or adds its adjoint).
 template <class T>
 void crop_planes(T* out, const T* in, index_t planes, index_t h, index_t w, index_t oh, index_t ow, bool adjoint_add) {
@@ -112,6 +117,10 @@ void unet_forward(T* out, UNetCache<T>& cache, const T* images, index_t views, i
     if (b.size() < n) b.resize(n);
     return b.data();
   };
+  auto sized = [](AlignedVector<T>& v, std::size_t n) {
+    v.resize(n);
+    return v.data();
+  };
   for (std::size_t i = 0; i < convs.size(); ++i) {
     const UNetConv& v = convs[i];
     const nn::Conv2dShape s = detail::unet_shape(v, views, ch, cw);
@@ -127,28 +136,22 @@ void unet_forward(T* out, UNetCache<T>& cache, const T* images, index_t views, i
     const auto out_n = static_cast<std::size_t>(views * v.out_c * oh * ow);
     T* y = nullptr;  // this conv's output after GELU / skip addition
     if (v.transposed) {
-      T* pre = keep ? (cache.pre[i].resize(out_n), cache.pre[i].data()) : spare(out_n, x);
+      T* pre = keep ? sized(cache.pre[i], out_n) : spare(out_n, x);
       nn::conv_transpose2d_forward(pre, x, params + v.weight, params + v.bias, s, std::span<T>(cache.scratch));
       // crop to the skip's size and add the skip
       const T* skip = skips.back();
       const index_t sh = skip_h.back(), sw = skip_w.back();
       skips.pop_back(), skip_h.pop_back(), skip_w.pop_back();
       const auto post_n = static_cast<std::size_t>(views * v.out_c * sh * sw);
-      y = keep ? (cache.post[i].resize(post_n), cache.post[i].data()) : last ? out : spare(post_n, pre);
+      y = keep ? sized(cache.post[i], post_n) : last ? out : spare(post_n, pre);
       detail::crop_planes(y, pre, views * v.out_c, oh, ow, sh, sw, false);
       for (std::size_t k = 0; k < post_n; ++k) y[k] += skip[k];
       ch = sh, cw = sw;
     } else {
-      // encoder outputs at each resolution are the skips (the first conv and every second down conv)
-      const bool encoder = i < static_cast<std::size_t>(1 + 2 * c.levels);
-      const bool is_skip = encoder && (i == 0 || i % 2 == 0) && i + 1 < static_cast<std::size_t>(1 + 2 * c.levels);
+      const bool is_skip = detail::unet_is_skip(i, c.levels);
       T* conv_out = nullptr;
-      if (keep) {
-        cache.post[i].resize(out_n), cache.pre[i].resize(out_n);
-        y = cache.post[i].data(), conv_out = cache.pre[i].data();
-      } else {
-        y = conv_out = is_skip ? (cache.post[i].resize(out_n), cache.post[i].data()) : last ? out : spare(out_n, x);
-      }
+      if (keep) y = sized(cache.post[i], out_n), conv_out = sized(cache.pre[i], out_n);
+      else y = conv_out = is_skip ? sized(cache.post[i], out_n) : last ? out : spare(out_n, x);
       nn::conv2d_forward(conv_out, x, params + v.weight, params + v.bias, s, std::span<T>(cache.scratch));
       nn::gelu_forward(y, conv_out, static_cast<index_t>(out_n));
       ch = oh, cw = ow;
@@ -172,8 +175,8 @@ void unet_backward(T* d_images, T* d_params, const T* d_out, UNetCache<T>& cache
   std::copy(d_out, d_out + d_post.back().size(), d_post.back().begin());
   // skip producers, in the order the transposed convs consume them (last pushed first)
   std::vector<std::size_t> producers;
-  for (std::size_t i = 0; i + 1 < static_cast<std::size_t>(1 + 2 * c.levels); ++i)
-    if (i == 0 || i % 2 == 0) producers.push_back(i);
+  for (std::size_t i = 0; i < convs.size(); ++i)
+    if (detail::unet_is_skip(i, c.levels)) producers.push_back(i);
   std::vector<std::size_t> consumer_skip(convs.size(), 0);
   {
     std::vector<std::size_t> stack = producers;
