@@ -284,6 +284,34 @@ int main(int argc, char** argv) {
                      detail::bf16_gemm(Trans::no, Trans::yes, m, n, k, 1.0f, a, k, b, k, 0.0f, c, n);
                    });
     }
+    // VGGT's linear layers (1316 tokens split over two workers, and the camera head's 4 rows) with B the weights:
+    // reordered per call, or packed once by a GemmWeightCache (what predict does with keep_packed_weights).
+    std::printf("\nC = A B^T, B [N, K] fixed weights, one thread, microseconds per call (best of %d rounds)\n", rounds);
+    std::printf("%16s  %9s  %9s  %11s  %11s\n", "M x N x K", "fp32 us", "bf16 us", "packed us", "fp32/packed");
+    const index_t layers[][3] = {{658, 3072, 1024}, {658, 1024, 1024}, {658, 4096, 1024}, {658, 1024, 4096},
+                                 {329, 1024, 1024}, {4, 4096, 1024}};
+    for (const auto& shape : layers) {
+      const index_t M = shape[0], N = shape[1], K = shape[2];
+      const auto A = random_floats(M * K, 5), B = random_floats(N * K, 6);
+      std::vector<float> C(M * N);
+      GemmWeightCache cache;
+      cache.freeze(B.data(), B.size());
+      double t[3] = {1e300, 1e300, 1e300};
+      for (int r = 0; r < rounds; ++r) {
+        t[0] = std::min(t[0], seconds_per_call([&] {
+          detail::gemm_block(fp32, Trans::no, Trans::yes, M, N, K, 1.0f, A.data(), K, B.data(), K, 0.0f, C.data(), N);
+        }, 0.05));
+        t[1] = std::min(t[1], seconds_per_call([&] {
+          detail::bf16_gemm(Trans::no, Trans::yes, M, N, K, 1.0f, A.data(), K, B.data(), K, 0.0f, C.data(), N);
+        }, 0.05));
+        t[2] = std::min(t[2], seconds_per_call([&] {
+          cache.multiply(Trans::no, Trans::yes, M, N, K, 1.0f, A.data(), K, B.data(), K, 0.0f, C.data(), N);
+        }, 0.05));
+      }
+      char label[32];
+      std::snprintf(label, sizeof label, "%lldx%lldx%lld", (long long)M, (long long)N, (long long)K);
+      std::printf("%16s  %9.1f  %9.1f  %11.1f  %11.2f\n", label, t[0] * 1e6, t[1] * 1e6, t[2] * 1e6, t[0] / t[2]);
+    }
   }
 #endif
   std::printf("\nagreement within 1e-5 relative: %s\n", all_agree ? "yes" : "NO");

@@ -297,6 +297,7 @@ int eval_command(Args args) {
   const std::vector<data::ObjectRecord> objects = data::load_objects(dirs);
   eo.lpips = lpips ? &*lpips : nullptr;
   model::PredictWorkspace<float> ws;
+  ws.keep_packed_weights = true;  // one fixed model for every object: under bf16, pack it once
   model::EvalWorkspace ews;
   std::vector<ObjectResult> results;
   for (std::size_t i = 0; i < objects.size(); ++i) {

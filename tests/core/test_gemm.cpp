@@ -4,6 +4,7 @@
 #include <cstring>
 #include <limits>
 #include <random>
+#include <thread>
 #include <vector>
 
 #include "flexsplat/core/gemm.hpp"
@@ -235,6 +236,107 @@ TEST_CASE("bf16 gemm is the fp32-accumulated product of the bf16-rounded operand
       // The operands were rounded (8-bit significands): further from the exact product than any fp32 summation order.
       CHECK(worst_vs_exact > fp32_bound);
     }
+}
+
+TEST_CASE("GemmWeightCache: covers only operands wholly inside a frozen range", "[gemm]") {
+  std::vector<float> w(100);
+  GemmWeightCache cache;
+  CHECK(cache.empty());
+  CHECK_FALSE(cache.covers(w.data(), Trans::no, 10, 10, 10));
+  cache.freeze(w.data(), w.size());
+  CHECK_FALSE(cache.empty());
+  CHECK(cache.covers(w.data(), Trans::no, 10, 10, 10));       // exactly the range
+  CHECK(cache.covers(w.data() + 1, Trans::no, 10, 9, 10));    // ends on the last value
+  CHECK_FALSE(cache.covers(w.data() + 1, Trans::no, 10, 10, 10));  // one past the end
+  CHECK(cache.covers(w.data(), Trans::yes, 20, 5, 20));       // op(B) 20 x 5 stored as 5 rows of 20
+  CHECK_FALSE(cache.covers(w.data(), Trans::yes, 21, 5, 21));
+  std::vector<float> other(100);
+  CHECK_FALSE(cache.covers(other.data(), Trans::no, 2, 2, 2));
+  CHECK_THROWS_WITH(cache.freeze(nullptr, 3), Catch::Contains("null data"));
+  cache.reset();
+  CHECK(cache.empty());
+}
+
+TEST_CASE("bf16 gemm with a GemmWeightCache is bitwise the product without it and packs each B once", "[gemm]") {
+  if constexpr (!have_bf16_gemm) {
+    WARN("this build has no oneDNN: GemmBackend::bf16 is not available");
+    return;
+  }
+  // Row splits (tall), column splits (4 rows: a camera-head shape) and a single call, every transpose of B, alpha and
+  // beta, padded strides, on 1 and 2 threads.
+  struct Shape {
+    index_t M, N, K;
+  };
+  ThreadPool one(1), two(2);
+  for (const Shape sh : {Shape{130, 110, 96}, Shape{4, 640, 512}, Shape{300, 64, 80}})
+    for (Trans ta : {Trans::no, Trans::yes})
+      for (Trans tb : {Trans::no, Trans::yes}) {
+        const index_t M = sh.M, N = sh.N, K = sh.K, pad = 5;
+        REQUIRE(M * N * K >= gemm_bf16_min_madds);
+        const index_t lda = (ta == Trans::no ? K : M) + pad, ldb = (tb == Trans::no ? N : K) + pad, ldc = N + pad;
+        const auto A = random_vector<float>((ta == Trans::no ? M : K) * lda, 61);
+        auto B = random_vector<float>((tb == Trans::no ? K : N) * ldb, 62);
+        const auto C0 = random_vector<float>(M * ldc, 63);
+        for (ThreadPool* pool : {&one, &two})
+          for (float beta : {0.0f, 0.75f}) {
+            INFO("M " << M << " ta " << int(ta) << " tb " << int(tb) << " threads " << pool->size() << " beta " << beta);
+            std::vector<float> plain = C0;
+            gemm(GemmBackend::bf16, ta, tb, M, N, K, 0.5f, A.data(), lda, B.data(), ldb, beta, plain.data(), ldc, *pool);
+            GemmWeightCache cache;
+            cache.freeze(B.data(), B.size());
+            UseGemmWeightCache use(cache);
+            std::vector<float> first = C0, second = C0;
+            gemm(GemmBackend::bf16, ta, tb, M, N, K, 0.5f, A.data(), lda, B.data(), ldb, beta, first.data(), ldc, *pool);
+            const std::size_t packed = cache.packed_bytes();
+            CHECK(packed >= std::size_t(K * N * 2));  // every value of op(B) in bf16
+            gemm(GemmBackend::bf16, ta, tb, M, N, K, 0.5f, A.data(), lda, B.data(), ldb, beta, second.data(), ldc, *pool);
+            CHECK(cache.packed_bytes() == packed);  // reused, not packed again
+            CHECK(std::memcmp(first.data(), plain.data(), plain.size() * sizeof(float)) == 0);
+            CHECK(std::memcmp(second.data(), plain.data(), plain.size() * sizeof(float)) == 0);
+          }
+      }
+}
+
+TEST_CASE("GemmWeightCache: unfrozen operands, parallel regions and other threads leave it alone, clear() repacks",
+          "[gemm]") {
+  if constexpr (!have_bf16_gemm) return;
+  const index_t M = 130, N = 110, K = 96;
+  const auto A = random_vector<float>(M * K, 71);
+  auto B = random_vector<float>(K * N, 72);
+  const auto copy = B;
+  GemmWeightCache cache;
+  cache.freeze(B.data(), B.size());
+  std::vector<float> c(M * N);
+  {
+    UseGemmWeightCache use(cache);
+    gemm(GemmBackend::bf16, Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, copy.data(), N, 0.0f, c.data(), N);
+    CHECK(cache.packed_bytes() == 0);  // B outside the frozen range
+    gemm(GemmBackend::onednn, Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, c.data(), N);
+    CHECK(cache.packed_bytes() == 0);  // fp32 products never use it
+    ThreadPool two(2);
+    parallel_for(2, [&](index_t, index_t, int) {
+      std::vector<float> local(M * N);
+      gemm(GemmBackend::bf16, Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, local.data(), N);
+    }, two);
+    CHECK(cache.packed_bytes() == 0);  // inside a parallel region
+  }
+  std::thread([&] {
+    gemm(GemmBackend::bf16, Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, c.data(), N);
+  }).join();
+  CHECK(cache.packed_bytes() == 0);  // no scope on that thread (nor on this one any more)
+  UseGemmWeightCache use(cache);
+  gemm(GemmBackend::bf16, Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, c.data(), N);
+  CHECK(cache.packed_bytes() > 0);
+  // Changed weights: the stale copy until clear(), then the new values.
+  for (float& v : B) v = -v;
+  std::vector<float> stale(M * N), fresh(M * N), want(M * N);
+  gemm(GemmBackend::bf16, Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, stale.data(), N);
+  CHECK(std::memcmp(stale.data(), c.data(), c.size() * sizeof(float)) == 0);
+  cache.clear();
+  CHECK(cache.packed_bytes() == 0);
+  gemm(GemmBackend::bf16, Trans::no, Trans::no, M, N, K, 1.0f, A.data(), K, B.data(), N, 0.0f, fresh.data(), N);
+  for (std::size_t i = 0; i < c.size(); ++i) want[i] = -c[i];  // bf16 rounding is symmetric
+  CHECK(std::memcmp(fresh.data(), want.data(), want.size() * sizeof(float)) == 0);
 }
 
 TEST_CASE("bf16 gemm: double products and small float ones keep full precision", "[gemm]") {

@@ -1,6 +1,7 @@
 #include <catch2/catch.hpp>
 
 #include <cmath>
+#include <cstring>
 #include <filesystem>
 #include <limits>
 
@@ -71,6 +72,42 @@ TEST_CASE("predict gives the cameras, depth and Gaussians of the training path's
   const auto q = model::predict<float>(ws, *w, e.images.data(), e.views, 40);
   CHECK(max_rel_diff(q.gaussians.means.data(), s.means.data(), static_cast<std::size_t>(s.means.size())) == 0);
   CHECK(q.geometry.extrinsics == g.extrinsics);
+}
+
+TEST_CASE("predict under bf16 with kept packed weights is bitwise the per-call bf16 prediction", "[model][predict]") {
+  if constexpr (!have_bf16_gemm) {
+    WARN("this build has no oneDNN: GemmBackend::bf16 is not available");
+    return;
+  }
+  auto w = model::load_flexsplat<float>(std::filesystem::path(FLEXSPLAT_SOURCE_DIR) / "models/flexsplat-small.safetensors");
+  const auto& c = w->config();
+  Tensor<float, 4> images(Shape<4>{4, 3, c.image_h, c.image_w});
+  for (index_t i = 0; i < images.size(); ++i) images.data()[i] = float((i * 2654435761u) % 1000) / 999.0f;
+  struct Restore {
+    GemmBackend backend = default_gemm_backend();
+    ~Restore() { set_default_gemm_backend(backend); }
+  } restore;
+  set_default_gemm_backend(GemmBackend::bf16);
+  model::PredictWorkspace<float> per_call, kept;
+  kept.keep_packed_weights = true;
+  const auto a = model::predict<float>(per_call, *w, images.data(), 4);
+  CHECK(per_call.packed_weights == nullptr);
+  const auto b = model::predict<float>(kept, *w, images.data(), 4);
+  REQUIRE(kept.packed_weights != nullptr);
+  const std::size_t bytes = kept.packed_weights->packed_bytes();
+  CHECK(bytes > 0);
+  const auto b2 = model::predict<float>(kept, *w, images.data(), 4);
+  CHECK(kept.packed_weights->packed_bytes() == bytes);  // reused
+  auto same = [](const auto& x, const auto& y) {
+    return x.size() == y.size() && std::memcmp(x.data(), y.data(), static_cast<std::size_t>(x.size()) * sizeof(float)) == 0;
+  };
+  for (const auto* p : {&b, &b2}) {
+    CHECK(same(p->geometry.depth, a.geometry.depth));
+    CHECK(same(p->geometry.extrinsics, a.geometry.extrinsics));
+    CHECK(same(p->gaussians.means, a.gaussians.means));
+    CHECK(same(p->gaussians.sh, a.gaussians.sh));
+    CHECK(same(p->gaussians.opacities, a.gaussians.opacities));
+  }
 }
 
 TEST_CASE("predict refuses wrong view counts, sizes, values and non-finite weights", "[model][predict]") {

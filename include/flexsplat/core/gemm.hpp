@@ -7,9 +7,17 @@
 
 #include <algorithm>
 #include <atomic>
+#include <bit>
 #include <climits>
+#include <cstdint>
 #include <cstdlib>
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
 #include <string>
+#include <tuple>
+#include <vector>
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/parallel.hpp"
@@ -124,8 +132,222 @@ inline constexpr index_t gemm_bf16_min_madds = index_t(1) << 20;
 // set-up is about 9 us; it lost at 64^3 = 2^18 (0.74-0.95x) and won from 96^3 (1.5x) in bench/gemm's fp32 table.
 inline constexpr index_t gemm_onednn_min_madds = index_t(1) << 19;
 
-namespace detail {
+class GemmWeightCache;
 
+namespace detail {
+// The cache of the thread that made the innermost UseGemmWeightCache (null outside any).
+inline GemmWeightCache*& active_gemm_weight_cache() noexcept {
+  thread_local GemmWeightCache* cache = nullptr;
+  return cache;
+}
+
+#if defined(FLEXSPLAT_HAVE_DNNL)
+inline const dnnl::engine& onednn_engine() {
+  static const dnnl::engine engine(dnnl::engine::kind::cpu, 0);
+  return engine;
+}
+#endif
+
+// A stored matrix of `rows` x `cols` with row stride ld; with one row the stride is never used, but CBLAS checks it.
+inline int blas_ld(index_t rows, index_t cols, index_t ld) {
+  return static_cast<int>(rows <= 1 ? std::max<index_t>({ld, cols, 1}) : ld);
+}
+}  // namespace detail
+
+// Weights that stay fixed while products use them (inference). Under GemmBackend::bf16, a float product whose whole
+// op(B) lies inside a range given to freeze() reorders that B to bf16 once, into the layout oneDNN's matmul prefers,
+// and reuses it; the matmul primitive and the reorder of A are kept per shape, so a call converts only A (bench/gemm,
+// one thread at VGGT's shapes: 2.1-2.4x fp32 against 1.9x when every call converts both; at 4 rows 7.7x against
+// 0.95x). The results are bitwise those without it. Costs 2 bytes per packed value (2.25 GB for VGGT-1B).
+// Used by products called, outside parallel regions, on a thread inside a UseGemmWeightCache; thread-safe. The frozen
+// values must not change while packed copies exist: clear() after changing them.
+class GemmWeightCache {
+public:
+  GemmWeightCache() = default;
+  GemmWeightCache(const GemmWeightCache&) = delete;
+  GemmWeightCache& operator=(const GemmWeightCache&) = delete;
+
+  void freeze(const float* data, std::size_t count) {
+    require(data != nullptr || count == 0, "GemmWeightCache::freeze: null data for ", count, " values");
+    std::lock_guard lock(mutex_);
+    if (count > 0) ranges_.push_back({data, data + count});
+  }
+  // Drops the packed copies and primitives (after the frozen values changed); the ranges stay.
+  void clear() {
+    std::lock_guard lock(mutex_);
+#if defined(FLEXSPLAT_HAVE_DNNL)
+    kernels_.clear();
+    packed_.clear();
+#endif
+    bytes_ = 0;
+  }
+  // Drops everything, ranges included.
+  void reset() {
+    clear();
+    std::lock_guard lock(mutex_);
+    ranges_.clear();
+  }
+  bool empty() const {
+    std::lock_guard lock(mutex_);
+    return ranges_.empty();
+  }
+  // Bytes of the bf16 copies held.
+  std::size_t packed_bytes() const {
+    std::lock_guard lock(mutex_);
+    return bytes_;
+  }
+  // Whether every value of op(B) (K x N, row stride ldb) lies inside one frozen range.
+  bool covers(const float* B, Trans tb, index_t K, index_t N, index_t ldb) const {
+    if (!B || K <= 0 || N <= 0) return false;
+    const index_t rows = tb == Trans::no ? K : N, cols = tb == Trans::no ? N : K;
+    const float* end = B + (rows - 1) * ldb + cols;
+    const std::less<const float*> less;
+    std::lock_guard lock(mutex_);
+    for (const Range& r : ranges_)
+      if (!less(B, r.begin) && !less(r.end, end)) return true;
+    return false;
+  }
+
+#if defined(FLEXSPLAT_HAVE_DNNL)
+  // Makes the primitive of this block's shape and the packed copy of its B if missing; the packing's reorder runs on
+  // `threads` OpenMP threads (gemm() calls this on the calling thread before splitting, with the pool's size).
+  void prepare(Trans ta, Trans tb, index_t M, index_t N, index_t K, float alpha, index_t lda, const float* B,
+               index_t ldb, float beta, index_t ldc, int threads) {
+    entry(ta, tb, M, N, K, alpha, lda, B, ldb, beta, ldc, threads);
+  }
+
+  // C[:M, :N] = alpha op(A) op(B) + beta C on the calling thread, B from the cache (packed on first use).
+  void multiply(Trans ta, Trans tb, index_t M, index_t N, index_t K, float alpha, const float* A, index_t lda,
+                const float* B, index_t ldb, float beta, float* C, index_t ldc) {
+    const dnnl::engine& engine = detail::onednn_engine();
+    thread_local dnnl::stream stream(engine);
+    omp_set_num_threads(1);  // the pool splits the work
+    try {
+      const auto [kernel, packed] = entry(ta, tb, M, N, K, alpha, lda, B, ldb, beta, ldc, 1);
+      thread_local AlignedVector<std::byte> a_buffer, scratch_buffer;
+      const std::size_t a_bytes = kernel->pd.src_desc().get_size(), s_bytes = kernel->pd.scratchpad_desc().get_size();
+      if (a_buffer.size() < a_bytes) a_buffer.resize(a_bytes);
+      if (scratch_buffer.size() < s_bytes) scratch_buffer.resize(s_bytes);
+      dnnl::memory a_in(kernel->a_f32, engine, const_cast<float*>(A)), c(kernel->c_f32, engine, C);
+      dnnl::memory a(kernel->pd.src_desc(), engine, a_buffer.data());
+      dnnl::memory scratch(kernel->pd.scratchpad_desc(), engine, scratch_buffer.data());
+      kernel->a_reorder.execute(stream, a_in, a);
+      kernel->matmul.execute(stream, {{DNNL_ARG_SRC, a}, {DNNL_ARG_WEIGHTS, *packed}, {DNNL_ARG_DST, c},
+                                      {DNNL_ARG_SCRATCHPAD, scratch}});
+      stream.wait();
+    } catch (const dnnl::error& e) {
+      fail("gemm (bf16, oneDNN, cached weights): M ", M, " N ", N, " K ", K, " lda ", lda, " ldb ", ldb, " ldc ", ldc,
+           ": ", e.what());
+    }
+  }
+#endif
+
+private:
+  struct Range {
+    const float* begin;
+    const float* end;
+  };
+  mutable std::mutex mutex_;
+  std::vector<Range> ranges_;
+  std::size_t bytes_ = 0;
+#if defined(FLEXSPLAT_HAVE_DNNL)
+  struct Shape {
+    index_t M, N, K, lda, ldc;
+    int ta;
+    std::uint32_t alpha, beta;  // bit patterns
+    auto operator<=>(const Shape&) const = default;
+  };
+  struct Operand {
+    const float* data;
+    index_t K, N, ldb;
+    int tb;
+    bool operator<(const Operand& o) const {
+      if (data != o.data) return std::less<const float*>()(data, o.data);
+      return std::tie(K, N, ldb, tb) < std::tie(o.K, o.N, o.ldb, o.tb);
+    }
+  };
+  struct Kernel {
+    dnnl::memory::desc a_f32, c_f32;
+    dnnl::matmul::primitive_desc pd;
+    dnnl::matmul matmul;
+    dnnl::reorder a_reorder;
+  };
+  std::map<Shape, std::unique_ptr<Kernel>> kernels_;  // by pointer: other threads run them while the map grows
+  struct Packed {
+    AlignedVector<std::byte> bytes;
+    dnnl::memory memory;
+  };
+  std::map<Operand, std::vector<std::unique_ptr<Packed>>> packed_;
+
+  std::pair<const Kernel*, const dnnl::memory*> entry(Trans ta, Trans tb, index_t M, index_t N, index_t K,
+                                                      float alpha, index_t lda, const float* B, index_t ldb,
+                                                      float beta, index_t ldc, int threads) {
+    using dims = dnnl::memory::dims;
+    using dt = dnnl::memory::data_type;
+    const dnnl::engine& engine = detail::onednn_engine();
+    thread_local dnnl::stream stream(engine);
+    const index_t a_ld = ta == Trans::no ? detail::blas_ld(M, K, lda) : detail::blas_ld(K, M, lda);
+    const index_t b_ld = tb == Trans::no ? detail::blas_ld(K, N, ldb) : detail::blas_ld(N, K, ldb);
+    const index_t c_ld = detail::blas_ld(M, N, ldc);
+    std::lock_guard lock(mutex_);
+    std::unique_ptr<Kernel>& slot = kernels_[Shape{M, N, K, a_ld, c_ld, int(ta), std::bit_cast<std::uint32_t>(alpha),
+                                                   std::bit_cast<std::uint32_t>(beta)}];
+    if (!slot) {
+      dnnl::primitive_attr attr;
+      attr.set_scratchpad_mode(dnnl::scratchpad_mode::user);  // per-thread scratch: calls run concurrently
+      if (alpha != 1.0f) attr.set_output_scales(0, {alpha});
+      if (beta != 0.0f) {
+        dnnl::post_ops ops;
+        ops.append_sum(beta);
+        attr.set_post_ops(ops);
+      }
+      const auto any = dnnl::memory::format_tag::any;
+      const dnnl::memory::desc a_f32({M, K}, dt::f32, ta == Trans::no ? dims{a_ld, 1} : dims{1, a_ld});
+      const dnnl::memory::desc c_f32({M, N}, dt::f32, dims{c_ld, 1});
+      const dnnl::matmul::primitive_desc pd(
+          dnnl::matmul::desc(dnnl::memory::desc({M, K}, dt::bf16, any), dnnl::memory::desc({K, N}, dt::bf16, any),
+                             c_f32),
+          attr, engine);
+      slot.reset(new Kernel{a_f32, c_f32, pd, dnnl::matmul(pd),
+                            dnnl::reorder(dnnl::reorder::primitive_desc(engine, a_f32, engine, pd.src_desc()))});
+    }
+    const Kernel* kernel = slot.get();
+    auto& copies = packed_[Operand{B, K, N, b_ld, int(tb)}];
+    const dnnl::memory::desc want = kernel->pd.weights_desc();
+    for (const auto& m : copies)
+      if (m->memory.get_desc() == want) return {kernel, &m->memory};
+    const dnnl::memory::desc b_f32({K, N}, dt::f32, tb == Trans::no ? dims{b_ld, 1} : dims{1, b_ld});
+    dnnl::memory in(b_f32, engine, const_cast<float*>(B));
+    auto out = std::make_unique<Packed>();
+    const std::size_t size = want.get_size();
+    out->bytes.resize(size);  // huge pages, mapped in on the pool's cores (AlignedAllocator)
+    out->memory = dnnl::memory(want, engine, out->bytes.data());
+    omp_set_num_threads(threads);
+    dnnl::reorder(in, out->memory).execute(stream, in, out->memory);
+    stream.wait();
+    omp_set_num_threads(1);  // the pool splits the products
+    bytes_ += size;
+    copies.push_back(std::move(out));
+    return {kernel, &copies.back()->memory};
+  }
+#endif
+};
+
+// Makes `cache` the one gemm() uses on this thread until destroyed (scopes nest; the previous one comes back).
+class UseGemmWeightCache {
+public:
+  explicit UseGemmWeightCache(GemmWeightCache& cache) noexcept : previous_(detail::active_gemm_weight_cache()) {
+    detail::active_gemm_weight_cache() = &cache;
+  }
+  ~UseGemmWeightCache() { detail::active_gemm_weight_cache() = previous_; }
+  UseGemmWeightCache(const UseGemmWeightCache&) = delete;
+  UseGemmWeightCache& operator=(const UseGemmWeightCache&) = delete;
+
+private:
+  GemmWeightCache* previous_;
+};
+
+namespace detail {
 #if defined(FLEXSPLAT_HAVE_OPENBLAS)
 // Once per process, before flexsplat's first BLAS call: OpenBLAS runs single-threaded, since the pool splits the work
 // and OpenBLAS's own threads would oversubscribe the cores (Debian's libopenblas0-pthread keeps them spinning for a
@@ -138,11 +360,6 @@ inline void openblas_single_threaded() {
   (void)done;
 }
 #endif
-
-// A stored matrix of `rows` x `cols` with row stride ld; with one row the stride is never used, but CBLAS checks it.
-inline int blas_ld(index_t rows, index_t cols, index_t ld) {
-  return static_cast<int>(rows <= 1 ? std::max<index_t>({ld, cols, 1}) : ld);
-}
 
 #if defined(FLEXSPLAT_HAVE_CBLAS)
 
@@ -165,14 +382,14 @@ void blas_gemm(Trans ta, Trans tb, index_t M, index_t N, index_t K, T alpha, con
 
 #if defined(FLEXSPLAT_HAVE_DNNL)
 // C[:M, :N] = alpha op(A) op(B) + beta C on the calling thread with oneDNN's matmul. fp32: on the operands in place.
-// bf16: oneDNN reorders A and B to bf16 (round to nearest even) in the layouts its matmul prefers, which accumulates
-// in fp32 (AVX-512 BF16 kernels where the CPU has them).
+// bf16: oneDNN reorders A (into the layout its matmul prefers) and B (in its own orientation) to bf16, rounding to
+// nearest even; the matmul accumulates in fp32 (AVX-512 BF16 kernels where the CPU has them).
 inline void onednn_gemm(bool bf16, Trans ta, Trans tb, index_t M, index_t N, index_t K, float alpha, const float* A,
                         index_t lda, const float* B, index_t ldb, float beta, float* C, index_t ldc) {
   using dims = dnnl::memory::dims;
   using dt = dnnl::memory::data_type;
   try {
-    static const dnnl::engine engine(dnnl::engine::kind::cpu, 0);
+    const dnnl::engine& engine = onednn_engine();
     thread_local dnnl::stream stream(engine);
     omp_set_num_threads(1);  // the pool splits the work, as with OpenBLAS: no OpenMP team per worker
     const index_t a_ld = ta == Trans::no ? blas_ld(M, K, lda) : blas_ld(K, M, lda);
@@ -195,11 +412,16 @@ inline void onednn_gemm(bool bf16, Trans ta, Trans tb, index_t M, index_t N, ind
       stream.wait();
       return;
     }
+    // B converted in its own orientation (plain bf16): oneDNN's reorder into its blocked layout took 12x as long
+    // (4.0 against 0.32 ms for 3072 x 1024 on one thread), more than the blocked kernel saves per call.
     const auto any = dnnl::memory::format_tag::any;
-    const dnnl::matmul::desc desc(dnnl::memory::desc({M, K}, dt::bf16, any), dnnl::memory::desc({K, N}, dt::bf16, any),
-                                  c_f32);
+    const dnnl::memory::desc b_bf16({K, N}, dt::bf16, tb == Trans::no ? dims{N, 1} : dims{1, K});
+    const dnnl::matmul::desc desc(dnnl::memory::desc({M, K}, dt::bf16, any), b_bf16, c_f32);
     const dnnl::matmul::primitive_desc pd(desc, attr, engine);
-    dnnl::memory a(pd.src_desc(), engine), b(pd.weights_desc(), engine);
+    thread_local AlignedVector<std::byte> a_buffer, b_buffer;
+    if (a_buffer.size() < pd.src_desc().get_size()) a_buffer.resize(pd.src_desc().get_size());
+    if (b_buffer.size() < b_bf16.get_size()) b_buffer.resize(b_bf16.get_size());
+    dnnl::memory a(pd.src_desc(), engine, a_buffer.data()), b(b_bf16, engine, b_buffer.data());
     dnnl::reorder(a_in, a).execute(stream, a_in, a);
     dnnl::reorder(b_in, b).execute(stream, b_in, b);
     dnnl::matmul(pd).execute(stream, {{DNNL_ARG_SRC, a}, {DNNL_ARG_WEIGHTS, b}, {DNNL_ARG_DST, c}});
@@ -219,7 +441,7 @@ inline void bf16_gemm(Trans ta, Trans tb, index_t M, index_t N, index_t K, float
 // One block on one thread: C[:M, :N] = alpha op(A) op(B) + beta C, A/B/C already offset to the block.
 template <class T>
 void gemm_block(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, index_t K, T alpha, const T* A,
-                index_t lda, const T* B, index_t ldb, T beta, T* C, index_t ldc) {
+                index_t lda, const T* B, index_t ldb, T beta, T* C, index_t ldc, GemmWeightCache* cache = nullptr) {
   MatMap<T> c(C, M, N, Eigen::OuterStride<>(ldc));
   if (K <= 0 || alpha == T(0)) {
     if (beta == T(0)) c.setZero();
@@ -228,6 +450,10 @@ void gemm_block(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, i
   }
 #if defined(FLEXSPLAT_HAVE_DNNL)
   if constexpr (std::is_same_v<T, float>) {
+    if (backend == GemmBackend::bf16 && cache) {
+      cache->multiply(ta, tb, M, N, K, alpha, A, lda, B, ldb, beta, C, ldc);
+      return;
+    }
     if (backend == GemmBackend::bf16 || backend == GemmBackend::onednn) {
       onednn_gemm(backend == GemmBackend::bf16, ta, tb, M, N, K, alpha, A, lda, B, ldb, beta, C, ldc);
       return;
@@ -307,10 +533,18 @@ void gemm(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, index_t
       fail("gemm: M ", M, " N ", N, " K ", K, " with lda ", lda, " ldb ", ldb, " ldc ", ldc,
            " is not a valid BLAS call (strides shorter than rows, or beyond 32-bit)");
   }
+  // The weight cache of the calling thread, never inside a parallel region (the other workers' threads have none).
+  GemmWeightCache* cache = nullptr;
+  if constexpr (std::is_same_v<T, float>) {
+    GemmWeightCache* active = detail::active_gemm_weight_cache();
+    if (backend == GemmBackend::bf16 && active && ThreadPool::current_worker() < 0 && active->covers(B, tb, K, N, ldb))
+      cache = active;
+  }
   auto block = [&](index_t r0, index_t r1, index_t c0, index_t c1) {
     const T* a = ta == Trans::no ? A + r0 * lda : A + r0;
     const T* b = tb == Trans::no ? B + c0 : B + c0 * ldb;
-    detail::gemm_block(backend, ta, tb, r1 - r0, c1 - c0, K, alpha, a, lda, b, ldb, beta, C + r0 * ldc + c0, ldc);
+    detail::gemm_block(backend, ta, tb, r1 - r0, c1 - c0, K, alpha, a, lda, b, ldb, beta, C + r0 * ldc + c0, ldc,
+                       cache);
   };
   const index_t flops = M * N * (K > 0 ? K : 1);
   const index_t workers = pool.size();
@@ -325,6 +559,18 @@ void gemm(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, index_t
   const bool by_columns = (M < 4 * workers && N >= 16 * workers) || N >= 4 * M;
   const index_t extent = by_columns ? N : M;
   const index_t chunks = std::min<index_t>(workers, extent);
+#if defined(FLEXSPLAT_HAVE_DNNL)
+  if constexpr (std::is_same_v<T, float>) {
+    if (cache && K > 0 && alpha != 0.0f)  // primitives and copies made here, packing on all cores, not under a lock
+      for (index_t k = 0; k < chunks; ++k) {
+        const index_t lo = extent * k / chunks, hi = extent * (k + 1) / chunks;
+        if (by_columns)
+          cache->prepare(ta, tb, M, hi - lo, K, alpha, lda, tb == Trans::no ? B + lo : B + lo * ldb, ldb, beta, ldc,
+                         int(workers));
+        else cache->prepare(ta, tb, hi - lo, N, K, alpha, lda, B, ldb, beta, ldc, int(workers));
+      }
+  }
+#endif
   parallel_for(chunks, [&](index_t k0, index_t k1, int) {
     for (index_t k = k0; k < k1; ++k) {
       const index_t lo = extent * k / chunks, hi = extent * (k + 1) / chunks;

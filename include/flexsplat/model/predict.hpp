@@ -9,10 +9,13 @@
 #include <chrono>
 #include <cmath>
 #include <functional>
+#include <memory>
+#include <optional>
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gaussians.hpp"
+#include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/model.hpp"
 #include "flexsplat/geometry/pose_encoding.hpp"
@@ -38,6 +41,12 @@ template <class T>
 struct PredictWorkspace {
   GeometryStage<T> geometry;
   decoder::ModelWorkspace<T> model;
+  // Under GemmBackend::bf16: pack the weights to bf16 once (GemmWeightCache, 2 bytes per weight) and keep them for
+  // later calls with the same weights object, which must then not change (packed_weights->clear() after changing
+  // them). Pays when many predictions share fixed weights (eval): packing costs more than one call's reorders.
+  bool keep_packed_weights = false;
+  std::unique_ptr<GemmWeightCache> packed_weights;
+  const void* packed_for = nullptr;
 };
 
 namespace detail {
@@ -70,6 +79,19 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
   for (index_t i = 0; i < values; ++i)
     require(images[i] >= T(0) && images[i] <= T(1), "predict: image value ", static_cast<double>(images[i]),
             " at flat index ", i, " of [", views, ", 3, ", h, ", ", wd, "] is outside [0, 1]");
+  std::optional<UseGemmWeightCache> use_packed;
+  if (!ws.keep_packed_weights) ws.packed_weights.reset();
+  if (std::is_same_v<T, float> && ws.keep_packed_weights && default_gemm_backend() == GemmBackend::bf16) {
+    if (!ws.packed_weights) ws.packed_weights = std::make_unique<GemmWeightCache>();
+    if (ws.packed_for != &w || ws.packed_weights->empty()) {
+      ws.packed_weights->reset();
+      const train::ParamStore<T>& store = w.store();
+      if constexpr (std::is_same_v<T, float>)
+        ws.packed_weights->freeze(store.params(), static_cast<std::size_t>(store.size()));
+      ws.packed_for = &w;
+    }
+    use_packed.emplace(*ws.packed_weights);
+  }
   using clock = std::chrono::steady_clock;
   const auto t0 = clock::now();
   geometry_stage_forward(ws.geometry, w, images, views, /*train=*/false);
