@@ -119,7 +119,7 @@ int main(int argc, char** argv) {
       const GemmBackend backend = backends[b];
       set_default_gemm_backend(backend);
       VggtWorkspace<float> ws;
-      // bf16-kept packs the weights once (round 1 pays it); plain bf16 packs each product's B per call.
+      // bf16-kept packs the weights once (round 1 pays it); plain bf16 converts each product's B per call.
       GemmWeightCache packed;
       std::optional<UseGemmWeightCache> use_packed;
       if (kept[b]) {

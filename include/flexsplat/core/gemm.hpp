@@ -213,7 +213,12 @@ public:
   // `threads` OpenMP threads (gemm() calls this on the calling thread before splitting, with the pool's size).
   void prepare(Trans ta, Trans tb, index_t M, index_t N, index_t K, float alpha, index_t lda, const float* B,
                index_t ldb, float beta, index_t ldc, int threads) {
-    entry(ta, tb, M, N, K, alpha, lda, B, ldb, beta, ldc, threads);
+    try {
+      entry(ta, tb, M, N, K, alpha, lda, B, ldb, beta, ldc, threads);
+    } catch (const dnnl::error& e) {
+      fail("gemm (bf16, oneDNN, packing weights): M ", M, " N ", N, " K ", K, " lda ", lda, " ldb ", ldb, " ldc ", ldc,
+           ": ", e.what());
+    }
   }
 
   // C[:M, :N] = alpha op(A) op(B) + beta C on the calling thread, B from the cache (packed on first use).
@@ -561,7 +566,7 @@ void gemm(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, index_t
   const index_t chunks = std::min<index_t>(workers, extent);
 #if defined(FLEXSPLAT_HAVE_DNNL)
   if constexpr (std::is_same_v<T, float>) {
-    if (cache && K > 0 && alpha != 0.0f)  // primitives and copies made here, packing on all cores, not under a lock
+    if (cache && K > 0 && alpha != 0.0f)  // made here, packed on all cores, not by one worker while the other waits
       for (index_t k = 0; k < chunks; ++k) {
         const index_t lo = extent * k / chunks, hi = extent * (k + 1) / chunks;
         if (by_columns)

@@ -81,16 +81,16 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
             " at flat index ", i, " of [", views, ", 3, ", h, ", ", wd, "] is outside [0, 1]");
   std::optional<UseGemmWeightCache> use_packed;
   if (!ws.keep_packed_weights) ws.packed_weights.reset();
-  if (std::is_same_v<T, float> && ws.keep_packed_weights && default_gemm_backend() == GemmBackend::bf16) {
-    if (!ws.packed_weights) ws.packed_weights = std::make_unique<GemmWeightCache>();
-    if (ws.packed_for != &w || ws.packed_weights->empty()) {
-      ws.packed_weights->reset();
-      const train::ParamStore<T>& store = w.store();
-      if constexpr (std::is_same_v<T, float>)
-        ws.packed_weights->freeze(store.params(), static_cast<std::size_t>(store.size()));
-      ws.packed_for = &w;
+  if constexpr (std::is_same_v<T, float>) {
+    if (ws.keep_packed_weights && default_gemm_backend() == GemmBackend::bf16) {
+      if (!ws.packed_weights) ws.packed_weights = std::make_unique<GemmWeightCache>();
+      if (ws.packed_for != &w || ws.packed_weights->empty()) {
+        ws.packed_weights->reset();
+        ws.packed_weights->freeze(w.store().params(), static_cast<std::size_t>(w.store().size()));
+        ws.packed_for = &w;
+      }
+      use_packed.emplace(*ws.packed_weights);
     }
-    use_packed.emplace(*ws.packed_weights);
   }
   using clock = std::chrono::steady_clock;
   const auto t0 = clock::now();
