@@ -60,12 +60,12 @@ int main(int argc, char** argv) {
           std::fprintf(stderr, "--gemm: '%s' is not a backend of this build\n", name.c_str());
           return 2;
         }
-        kept.resize(backends.size(), false);
-        kept.back() = name == "bf16-kept";
+        kept.push_back(name == "bf16-kept");
       }
     } else {
       std::fprintf(stderr,
-                   "usage: %s [--frames S] [--size N]... [--depth D] [--gemm onednn,blas,eigen,bf16,bf16-kept] [--rounds R]\n",
+                   "usage: %s [--frames S] [--size N]... [--depth D] [--gemm onednn,blas,eigen,bf16,bf16-kept] "
+                   "[--rounds R]\n",
                    argv[0]);
       return 2;
     }
@@ -87,12 +87,7 @@ int main(int argc, char** argv) {
   ParamSource<float> src;
   const auto specs = vggt_parameter_specs(cfg);
   add_random_parameters(src, specs, 1234);
-  double params = 0;
-  for (auto& s : specs) {
-    double n = 1;
-    for (auto e : s.shape) n *= double(e);
-    params += n;
-  }
+  const double params = double(flat_size(specs));
   const auto weights = load_vggt_weights(src, cfg);
   const double weight_gb = params * 4 / 1e9;
   std::printf("random weights: %.0f M parameters (%.2f GB fp32) in %.1f s, RSS %.2f GB\n", params / 1e6, weight_gb,
@@ -123,11 +118,7 @@ int main(int argc, char** argv) {
       GemmWeightCache packed;
       std::optional<UseGemmWeightCache> use_packed;
       if (kept[b]) {
-        for (const auto& s : specs) {
-          std::size_t n = 1;
-          for (auto e : s.shape) n *= static_cast<std::size_t>(e);
-          packed.freeze(src.get(s.name, s.shape), n);
-        }
+        for (const auto& s : specs) packed.freeze(src.get(s.name, s.shape), static_cast<std::size_t>(spec_numel(s)));
         use_packed.emplace(packed);
       }
       Run first, fastest;

@@ -6,6 +6,7 @@
 #include <Eigen/Core>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <bit>
 #include <climits>
@@ -141,17 +142,38 @@ inline GemmWeightCache*& active_gemm_weight_cache() noexcept {
   return cache;
 }
 
+// A stored matrix of `rows` x `cols` with row stride ld; with one row the stride is never used, but CBLAS checks it.
+inline int blas_ld(index_t rows, index_t cols, index_t ld) {
+  return static_cast<int>(rows <= 1 ? std::max<index_t>({ld, cols, 1}) : ld);
+}
+
 #if defined(FLEXSPLAT_HAVE_DNNL)
 inline const dnnl::engine& onednn_engine() {
   static const dnnl::engine engine(dnnl::engine::kind::cpu, 0);
   return engine;
 }
-#endif
-
-// A stored matrix of `rows` x `cols` with row stride ld; with one row the stride is never used, but CBLAS checks it.
-inline int blas_ld(index_t rows, index_t cols, index_t ld) {
-  return static_cast<int>(rows <= 1 ? std::max<index_t>({ld, cols, 1}) : ld);
+inline dnnl::stream& onednn_stream() {
+  thread_local dnnl::stream stream(onednn_engine());
+  return stream;
 }
+// The fp32 matrix op(X) (rows x cols) stored row-major with row stride ld, as oneDNN describes it.
+inline dnnl::memory::desc onednn_f32(index_t rows, index_t cols, Trans t, index_t ld) {
+  using dims = dnnl::memory::dims;
+  const index_t stride = t == Trans::no ? blas_ld(rows, cols, ld) : blas_ld(cols, rows, ld);
+  return {{rows, cols}, dnnl::memory::data_type::f32, t == Trans::no ? dims{stride, 1} : dims{1, stride}};
+}
+// alpha as an output scale and beta C as a sum post-op.
+inline dnnl::primitive_attr onednn_attr(float alpha, float beta) {
+  dnnl::primitive_attr attr;
+  if (alpha != 1.0f) attr.set_output_scales(0, {alpha});
+  if (beta != 0.0f) {
+    dnnl::post_ops ops;
+    ops.append_sum(beta);
+    attr.set_post_ops(ops);
+  }
+  return attr;
+}
+#endif
 }  // namespace detail
 
 // Weights that stay fixed while products use them (inference). Under GemmBackend::bf16, a float product whose whole
@@ -225,7 +247,7 @@ public:
   void multiply(Trans ta, Trans tb, index_t M, index_t N, index_t K, float alpha, const float* A, index_t lda,
                 const float* B, index_t ldb, float beta, float* C, index_t ldc) {
     const dnnl::engine& engine = detail::onednn_engine();
-    thread_local dnnl::stream stream(engine);
+    dnnl::stream& stream = detail::onednn_stream();
     omp_set_num_threads(1);  // the pool splits the work
     try {
       const auto [kernel, packed] = entry(ta, tb, M, N, K, alpha, lda, B, ldb, beta, ldc, 1);
@@ -287,10 +309,8 @@ private:
   std::pair<const Kernel*, const dnnl::memory*> entry(Trans ta, Trans tb, index_t M, index_t N, index_t K,
                                                       float alpha, index_t lda, const float* B, index_t ldb,
                                                       float beta, index_t ldc, int threads) {
-    using dims = dnnl::memory::dims;
     using dt = dnnl::memory::data_type;
     const dnnl::engine& engine = detail::onednn_engine();
-    thread_local dnnl::stream stream(engine);
     const index_t a_ld = ta == Trans::no ? detail::blas_ld(M, K, lda) : detail::blas_ld(K, M, lda);
     const index_t b_ld = tb == Trans::no ? detail::blas_ld(K, N, ldb) : detail::blas_ld(N, K, ldb);
     const index_t c_ld = detail::blas_ld(M, N, ldc);
@@ -298,17 +318,11 @@ private:
     std::unique_ptr<Kernel>& slot = kernels_[Shape{M, N, K, a_ld, c_ld, int(ta), std::bit_cast<std::uint32_t>(alpha),
                                                    std::bit_cast<std::uint32_t>(beta)}];
     if (!slot) {
-      dnnl::primitive_attr attr;
+      dnnl::primitive_attr attr = detail::onednn_attr(alpha, beta);
       attr.set_scratchpad_mode(dnnl::scratchpad_mode::user);  // per-thread scratch: calls run concurrently
-      if (alpha != 1.0f) attr.set_output_scales(0, {alpha});
-      if (beta != 0.0f) {
-        dnnl::post_ops ops;
-        ops.append_sum(beta);
-        attr.set_post_ops(ops);
-      }
       const auto any = dnnl::memory::format_tag::any;
-      const dnnl::memory::desc a_f32({M, K}, dt::f32, ta == Trans::no ? dims{a_ld, 1} : dims{1, a_ld});
-      const dnnl::memory::desc c_f32({M, N}, dt::f32, dims{c_ld, 1});
+      const dnnl::memory::desc a_f32 = detail::onednn_f32(M, K, ta, lda);
+      const dnnl::memory::desc c_f32 = detail::onednn_f32(M, N, Trans::no, ldc);
       const dnnl::matmul::primitive_desc pd(
           dnnl::matmul::desc(dnnl::memory::desc({M, K}, dt::bf16, any), dnnl::memory::desc({K, N}, dt::bf16, any),
                              c_f32),
@@ -321,8 +335,8 @@ private:
     const dnnl::memory::desc want = kernel->pd.weights_desc();
     for (const auto& m : copies)
       if (m->memory.get_desc() == want) return {kernel, &m->memory};
-    const dnnl::memory::desc b_f32({K, N}, dt::f32, tb == Trans::no ? dims{b_ld, 1} : dims{1, b_ld});
-    dnnl::memory in(b_f32, engine, const_cast<float*>(B));
+    dnnl::memory in(detail::onednn_f32(K, N, tb, ldb), engine, const_cast<float*>(B));
+    dnnl::stream& stream = detail::onednn_stream();
     auto out = std::make_unique<Packed>();
     const std::size_t size = want.get_size();
     out->bytes.resize(size);  // huge pages, mapped in on the pool's cores (AlignedAllocator)
@@ -395,20 +409,11 @@ inline void onednn_gemm(bool bf16, Trans ta, Trans tb, index_t M, index_t N, ind
   using dt = dnnl::memory::data_type;
   try {
     const dnnl::engine& engine = onednn_engine();
-    thread_local dnnl::stream stream(engine);
+    dnnl::stream& stream = onednn_stream();
     omp_set_num_threads(1);  // the pool splits the work, as with OpenBLAS: no OpenMP team per worker
-    const index_t a_ld = ta == Trans::no ? blas_ld(M, K, lda) : blas_ld(K, M, lda);
-    const index_t b_ld = tb == Trans::no ? blas_ld(K, N, ldb) : blas_ld(N, K, ldb);
-    const dnnl::memory::desc a_f32({M, K}, dt::f32, ta == Trans::no ? dims{a_ld, 1} : dims{1, a_ld});
-    const dnnl::memory::desc b_f32({K, N}, dt::f32, tb == Trans::no ? dims{b_ld, 1} : dims{1, b_ld});
-    const dnnl::memory::desc c_f32({M, N}, dt::f32, dims{blas_ld(M, N, ldc), 1});
-    dnnl::primitive_attr attr;
-    if (alpha != 1.0f) attr.set_output_scales(0, {alpha});
-    if (beta != 0.0f) {
-      dnnl::post_ops ops;
-      ops.append_sum(beta);
-      attr.set_post_ops(ops);
-    }
+    const dnnl::memory::desc a_f32 = onednn_f32(M, K, ta, lda), b_f32 = onednn_f32(K, N, tb, ldb);
+    const dnnl::memory::desc c_f32 = onednn_f32(M, N, Trans::no, ldc);
+    const dnnl::primitive_attr attr = onednn_attr(alpha, beta);
     dnnl::memory a_in(a_f32, engine, const_cast<float*>(A)), b_in(b_f32, engine, const_cast<float*>(B));
     dnnl::memory c(c_f32, engine, C);
     if (!bf16) {
@@ -545,9 +550,10 @@ void gemm(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, index_t
     if (backend == GemmBackend::bf16 && active && ThreadPool::current_worker() < 0 && active->covers(B, tb, K, N, ldb))
       cache = active;
   }
+  auto b_at = [&](index_t c0) { return tb == Trans::no ? B + c0 : B + c0 * ldb; };  // op(B)'s column c0
   auto block = [&](index_t r0, index_t r1, index_t c0, index_t c1) {
     const T* a = ta == Trans::no ? A + r0 * lda : A + r0;
-    const T* b = tb == Trans::no ? B + c0 : B + c0 * ldb;
+    const T* b = b_at(c0);
     detail::gemm_block(backend, ta, tb, r1 - r0, c1 - c0, K, alpha, a, lda, b, ldb, beta, C + r0 * ldc + c0, ldc,
                        cache);
   };
@@ -564,23 +570,24 @@ void gemm(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, index_t
   const bool by_columns = (M < 4 * workers && N >= 16 * workers) || N >= 4 * M;
   const index_t extent = by_columns ? N : M;
   const index_t chunks = std::min<index_t>(workers, extent);
+  // Chunk k's rows [r0, r1) and columns [c0, c1).
+  auto part = [&](index_t k) -> std::array<index_t, 4> {
+    const index_t lo = extent * k / chunks, hi = extent * (k + 1) / chunks;
+    return by_columns ? std::array<index_t, 4>{0, M, lo, hi} : std::array<index_t, 4>{lo, hi, 0, N};
+  };
 #if defined(FLEXSPLAT_HAVE_DNNL)
   if constexpr (std::is_same_v<T, float>) {
     if (cache && K > 0 && alpha != 0.0f)  // made here, packed on all cores, not by one worker while the other waits
       for (index_t k = 0; k < chunks; ++k) {
-        const index_t lo = extent * k / chunks, hi = extent * (k + 1) / chunks;
-        if (by_columns)
-          cache->prepare(ta, tb, M, hi - lo, K, alpha, lda, tb == Trans::no ? B + lo : B + lo * ldb, ldb, beta, ldc,
-                         int(workers));
-        else cache->prepare(ta, tb, hi - lo, N, K, alpha, lda, B, ldb, beta, ldc, int(workers));
+        const auto [r0, r1, c0, c1] = part(k);
+        cache->prepare(ta, tb, r1 - r0, c1 - c0, K, alpha, lda, b_at(c0), ldb, beta, ldc, int(workers));
       }
   }
 #endif
   parallel_for(chunks, [&](index_t k0, index_t k1, int) {
     for (index_t k = k0; k < k1; ++k) {
-      const index_t lo = extent * k / chunks, hi = extent * (k + 1) / chunks;
-      if (by_columns) block(0, M, lo, hi);
-      else block(lo, hi, 0, N);
+      const auto [r0, r1, c0, c1] = part(k);
+      block(r0, r1, c0, c1);
     }
   }, pool);
 }
