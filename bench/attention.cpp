@@ -1,7 +1,8 @@
 // nn::attention_forward / attention_backward throughput on VGGT shapes (16 heads x 64, q/k/v read from one fused
 // [rows, 3 * 1024] buffer as geometry/block.hpp does), next to the SGEMM rate of the same (n x 64) x (64 x n) product
 // in the same run, and the max error of the float kernels against a dense float64 reference on a smaller shape.
-//   bench/attention [--reps R] [--no-backward] [--shape batch:tokens]...
+//   bench/attention [--reps R] [--no-backward] [--heads H] [--head-dim D] [--shape batch:tokens]...
+//   (defaults 16 x 64, VGGT-1B; the small model's decoder self-attention is --heads 4 --head-dim 12 --shape 4:1024)
 //   bench/attention --elementwise [--reps R]: instead, GELU (nn/activations) and layer norm (nn/layernorm) forward and
 //   backward on VGGT-1B's tensors at 4 frames of 252^2 (1316 token rows; GELU on [1316, 4096], layer norm on
 //   [1316, 1024]) in every lane type the CPU runs, scalar first: ns per element and GB/s of the tensors read and
@@ -126,8 +127,8 @@ double max_abs(const std::vector<double>& b) {
   return m;
 }
 
-void accuracy_check() {
-  const index_t batch = 1, tokens = 333, heads = 2, d = 64, C = heads * d;
+void accuracy_check(index_t d) {
+  const index_t batch = 1, tokens = 333, heads = 2, C = heads * d;
   const auto L = fused_layout(batch, tokens, heads, d);
   const double scale = 1.0 / std::sqrt(double(d));
   // sigma 2 makes the softmax peaked (scores up to ~30), which exercises the running-max rescaling.
@@ -195,6 +196,7 @@ void elementwise_table(int reps) {
 
 int main(int argc, char** argv) {
   int reps = 3;
+  index_t heads = 16, d = 64;
   bool backward = true, elementwise = false;
   std::vector<std::pair<index_t, index_t>> shapes;
   for (int i = 1; i < argc; ++i) {
@@ -202,6 +204,8 @@ int main(int argc, char** argv) {
     if (a == "--reps" && i + 1 < argc) reps = std::atoi(argv[++i]);
     else if (a == "--no-backward") backward = false;
     else if (a == "--elementwise") elementwise = true;
+    else if (a == "--heads" && i + 1 < argc) heads = std::atol(argv[++i]);
+    else if (a == "--head-dim" && i + 1 < argc) d = std::atol(argv[++i]);
     else if (a == "--shape" && i + 1 < argc) {
       const std::string s = argv[++i];
       const auto colon = s.find(':');
@@ -211,28 +215,34 @@ int main(int argc, char** argv) {
       }
       shapes.emplace_back(std::atol(s.substr(0, colon).c_str()), std::atol(s.substr(colon + 1).c_str()));
     } else {
-      std::fprintf(stderr, "usage: %s [--reps R] [--no-backward] [--shape batch:tokens]... | --elementwise [--reps R]\n", argv[0]);
+      std::fprintf(stderr, "usage: %s [--reps R] [--no-backward] [--heads H] [--head-dim D] [--shape batch:tokens]... | "
+                           "--elementwise [--reps R]\n", argv[0]);
       return 2;
     }
   }
   // VGGT at 518^2 with 4 frames: frame attention (4 x 1374), global attention over 2 and 4 frames.
   if (shapes.empty()) shapes = {{4, 1374}, {1, 2 * 1374}, {1, 4 * 1374}};
   simd::require_cpu_supports_build();
-  std::printf("attention bench: float, 16 heads x 64, %d threads, arch %s%s, cpu: %s\n", global_pool().size(),
+  if (heads < 1 || d < 1) {
+    std::fprintf(stderr, "--heads and --head-dim must be positive, got %lld and %lld\n", (long long)heads, (long long)d);
+    return 2;
+  }
+  std::printf("attention bench: float, %lld heads x %lld, %d threads, arch %s%s, cpu: %s\n", (long long)heads,
+              (long long)d, global_pool().size(),
               simd::compiled_arch_name(), simd::enabled() ? "" : " (FLEXSPLAT_SIMD=scalar)",
               simd::describe(simd::cpu_features()).c_str());
   if (elementwise) {
     elementwise_table(reps);
     return 0;
   }
-  accuracy_check();
+  accuracy_check(d);
   // The compute-bound reference bench/geometry uses, for comparison with its "of SGEMM" column.
   const bench::SgemmRate sgemm_rate = bench::best_sgemm(reps);
   std::printf("%s: %.1f GFLOP/s\n", bench::sgemm_label(sgemm_rate.backend).c_str(), sgemm_rate.gflops);
 
-  const index_t heads = 16, d = 64, C = heads * d;
-  std::printf("%-14s %9s %10s %10s %9s %10s %9s %10s\n", "batch x tokens", "fwd s", "fwd GF/s", "SGEMM GF/s",
-              "fwd/SGEMM", "bwd s", "bwd GF/s", "bwd/SGEMM");
+  const index_t C = heads * d;
+  std::printf("%-14s %9s %10s %10s %9s %10s %9s %10s %8s\n", "batch x tokens", "fwd s", "fwd GF/s", "SGEMM GF/s",
+              "fwd/SGEMM", "bwd s", "bwd GF/s", "bwd/SGEMM", "bwd/fwd");
   for (const auto& shape : shapes) {
     const index_t batch = shape.first, tokens = shape.second;
     const auto L = fused_layout(batch, tokens, heads, d);
@@ -264,8 +274,8 @@ int main(int argc, char** argv) {
     const double fwd = flops / t_fwd / 1e9, bwd = backward ? 2 * flops / t_bwd / 1e9 : 0.0;
     char label[32];
     std::snprintf(label, sizeof label, "%lld x %lld", (long long)batch, (long long)tokens);
-    std::printf("%-14s %9.3f %10.1f %10.1f %9.2f %10.3f %9.1f %10.2f\n", label, t_fwd, fwd, sgemm, fwd / sgemm, t_bwd, bwd,
-                bwd / sgemm);
+    std::printf("%-14s %9.4f %10.1f %10.1f %9.2f %10.4f %9.1f %10.2f %8.2f\n", label, t_fwd, fwd, sgemm, fwd / sgemm, t_bwd,
+                bwd, bwd / sgemm, t_bwd / t_fwd);
     std::fflush(stdout);
   }
   return 0;

@@ -1,8 +1,13 @@
 // One FlexSplat training step (geometry + appearance, every decoder layer rendered at every view, the paper's losses,
 // backward through everything, AdamW): time per phase, and the GEMM-heavy phases' GFLOP/s next to the machine's SGEMM
 // rate measured in the same run.
+//   bench/train_step --recipe FILE.train.json [--state STATE] [--stage NAME] [--start STEP] [--steps K]
 //   bench/train_step [--config tiny|paper] [--views V] [--targets M] [--size N] [--gaussians N] [--steps K]
 //                    [--recompute] [--depth D]
+// --recipe: the steps `flexsplat train` runs for that recipe (its scenes, view counts, stage objective, batch) in one
+// process, from --state (a run's state.safetensors) or fresh weights; steps START.. (default: the state's step, else
+// the first step of --stage, default the last stage). Prints scenes/s, time and profiled FLOPs per phase, time per op family (self time:
+// a GEMM inside a convolution counts as GEMM) and the step as a fraction of the same run's SGEMM rate.
 // tiny: the test configuration (28x28); paper: VGGT-1B layout with random weights, the paper's decoder, 20K Gaussians.
 // --depth D keeps D of the 24 DINO blocks and D aggregator block pairs (full widths), for machines whose memory does
 // not hold the full model's training state (params, grads and Adam moments: 16 bytes per parameter).
@@ -11,10 +16,19 @@
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <fstream>
+#include <memory>
+#include <sstream>
 #include <string>
 
+#include <nlohmann/json.hpp>
+
 #include "flexsplat/geometry/flops.hpp"
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/model/train.hpp"
+#include "flexsplat/model/train_data.hpp"
+#include "flexsplat/model/weights.hpp"
+#include "flexsplat/train/run_config.hpp"
 #include "sgemm_rate.hpp"
 
 using namespace flexsplat;
@@ -37,28 +51,173 @@ static double decoder_flops(const decoder::DecoderConfig& d, double n, double vi
   return double(d.layers) * per_layer;
 }
 
+
+struct RecipeOptions {
+  std::string recipe, state, stage;
+  long long start = -1;
+  index_t steps = 10;
+};
+
+// The recipe's own steps in one process with one communicator (the global batch on this process, as one MPI rank).
+static int run_recipe(const RecipeOptions& ro) {
+  std::ifstream f(ro.recipe);
+  require(f.good(), "train_step bench: cannot read --recipe '", ro.recipe, "'");
+  std::stringstream text;
+  text << f.rdbuf();
+  nlohmann::json raw;
+  try {
+    raw = nlohmann::json::parse(text.str());
+  } catch (const nlohmann::json::exception& e) {
+    fail("train_step bench: '", ro.recipe, "' is not valid JSON: ", e.what());
+  }
+  const train::TrainRunConfig cfg = train::parse_train_config(raw);
+  std::size_t si = cfg.stages.size() - 1;
+  if (!ro.stage.empty()) {
+    si = cfg.stages.size();
+    for (std::size_t i = 0; i < cfg.stages.size(); ++i)
+      if (cfg.stages[i].name == ro.stage) si = i;
+    require(si < cfg.stages.size(), "train_step bench: the recipe has no stage '", ro.stage, "'");
+  }
+  auto w = model::FlexSplatWeights<float>::create(cfg.model, true);
+  w->init(cfg.seed);
+  std::uint64_t state_step = 0;
+  if (!ro.state.empty()) {
+    const train::CheckpointInfo info = w->load(ro.state, true);
+    require(info.format == "training_state", "train_step bench: '", ro.state, "' is not a training state");
+    state_step = info.state.step;
+  }
+  std::uint64_t stage_start = 0;
+  for (std::size_t i = 0; i < si; ++i) stage_start += cfg.stages[i].steps;
+  const std::uint64_t start = ro.start >= 0           ? static_cast<std::uint64_t>(ro.start)
+                              : ro.state.empty() || !ro.stage.empty() ? stage_start
+                                                                       : state_step;
+  std::uint64_t at_start = 0;
+  const train::TrainStage& stage = cfg.stages[cfg.stage_at(start, at_start)];
+  std::unique_ptr<loss::LpipsWeights<float>> lpips;
+  if (!cfg.lpips_weights.empty())
+    lpips = std::make_unique<loss::LpipsWeights<float>>(
+        loss::lpips_load_weights<float>(safetensors::File::open(cfg.lpips_weights)));
+  model::TrainData data;
+  data.generator.size = static_cast<int>(cfg.model.image_h);
+  data::check_generator(data.generator);
+
+  const bench::SgemmRate sgemm = bench::best_sgemm();
+  std::printf("flexsplat train_step bench: recipe %s, stage '%s', steps %llu..%llu, batch %lld, %d thread(s), "
+              "%.2f M parameters%s\n",
+              ro.recipe.c_str(), stage.name.c_str(), (unsigned long long)start,
+              (unsigned long long)(start + static_cast<std::uint64_t>(ro.steps) - 1), (long long)cfg.batch,
+              global_pool().size(), double(w->store().size()) / 1e6, ro.state.empty() ? ", fresh weights" : "");
+  std::printf("%s: %.1f GFLOP/s\n", bench::sgemm_label(sgemm.backend).c_str(), sgemm.gflops);
+
+  model::StepWorkspace<float> ws;
+  train::SoloCommunicator solo;
+  model::PhaseTimes phases;
+  double data_s = 0, step_s = 0;
+  index_t scenes = 0;
+  for (index_t k = -1; k < ro.steps; ++k) {  // k = -1: warm-up (workspaces, first-touch), not counted
+    const std::uint64_t step = start + static_cast<std::uint64_t>(std::max<index_t>(k, 0));
+    if (k == 0) {
+      profile::reset();
+      profile::set_enabled(true);
+    }
+    const auto t0 = std::chrono::steady_clock::now();
+    std::vector<model::TrainExample<float>> batch;
+    for (index_t b = 0; b < cfg.batch; ++b) batch.push_back(model::make_train_scene(data, cfg, step, b));
+    const auto t1 = std::chrono::steady_clock::now();
+    std::uint64_t s0 = 0;
+    const train::TrainStage& st = cfg.stages[cfg.stage_at(step, s0)];
+    const double lr = train::CosineSchedule{st.lr, 0.0, st.warmup, st.steps}.lr(step - s0);
+    model::PhaseTimes t;
+    const auto r = model::train_step<float>(ws, *w, batch, cfg.batch, st.step, lr, step, solo, lpips.get(), &t);
+    const auto t2 = std::chrono::steady_clock::now();
+    require(std::isfinite(r.loss), "train_step bench: the loss is ", r.loss, " at step ", step);
+    if (k < 0) continue;
+    data_s += std::chrono::duration<double>(t1 - t0).count();
+    step_s += std::chrono::duration<double>(t2 - t1).count();
+    scenes += cfg.batch;
+    for (double model::PhaseValues::*f :
+         {&model::PhaseValues::geometry_forward, &model::PhaseValues::geometry_backward,
+          &model::PhaseValues::decoder_forward, &model::PhaseValues::decoder_backward,
+          &model::PhaseValues::raster_forward, &model::PhaseValues::raster_backward, &model::PhaseValues::losses,
+          &model::PhaseValues::update}) {
+      phases.*f += t.*f;
+      phases.flops.*f += t.flops.*f;
+    }
+  }
+  profile::set_enabled(false);
+  const profile::Totals ops = profile::totals();
+  const double n = double(ro.steps), total_s = data_s + step_s;
+  std::printf("\n%lld steps, %lld scenes: %.2f scenes/s with data generation, %.2f without; %.1f ms per step "
+              "(data %.1f ms)\n", (long long)ro.steps, (long long)scenes, double(scenes) / total_s,
+              double(scenes) / step_s, total_s / n * 1e3, data_s / n * 1e3);
+  std::printf("\n%-20s %10s %7s %10s %9s\n", "phase", "ms/step", "share", "GFLOP", "GFLOP/s");
+  auto phase = [&](const char* name, double ms, double flops) {
+    std::printf("%-20s %10.2f %6.1f%% %10.3f %9.1f\n", name, ms / n, ms / 10 / total_s,
+                flops / n / 1e9, ms > 0 ? flops / (ms * 1e-3) / 1e9 : 0.0);
+  };
+  phase("data generation", data_s * 1e3, 0);
+  phase("geometry forward", phases.geometry_forward, phases.flops.geometry_forward);
+  phase("geometry backward", phases.geometry_backward, phases.flops.geometry_backward);
+  phase("decoder forward", phases.decoder_forward, phases.flops.decoder_forward);
+  phase("decoder backward", phases.decoder_backward, phases.flops.decoder_backward);
+  phase("raster forward", phases.raster_forward, phases.flops.raster_forward);
+  phase("raster backward", phases.raster_backward, phases.flops.raster_backward);
+  phase("losses", phases.losses, phases.flops.losses);
+  phase("update", phases.update, phases.flops.update);
+  const double step_flops = phases.flops.total();
+  std::printf("%-20s %10.2f %6.1f%% %10.3f %9.1f  (%.3f of SGEMM)\n", "whole step", total_s / n * 1e3, 100.0,
+              step_flops / n / 1e9, step_flops / total_s / 1e9, step_flops / total_s / 1e9 / sgemm.gflops);
+
+  std::printf("\n%-20s %10s %7s %10s %10s %9s\n", "op family (self)", "ms/step", "share", "calls/step", "GFLOP",
+              "GFLOP/s");
+  double profiled = 0;
+  for (int i = 0; i < profile::op_count; ++i) {
+    profiled += ops.seconds[i];
+    std::printf("%-20s %10.2f %6.1f%% %10.1f %10.3f %9.1f\n", profile::op_name(static_cast<profile::Op>(i)),
+                ops.seconds[i] / n * 1e3, ops.seconds[i] / total_s * 100, double(ops.calls[i]) / n,
+                ops.flops[i] / n / 1e9, ops.seconds[i] > 0 ? ops.flops[i] / ops.seconds[i] / 1e9 : 0.0);
+  }
+  std::printf("%-20s %10.2f %6.1f%%\n", "everything else", (total_s - profiled) / n * 1e3,
+              (total_s - profiled) / total_s * 100);
+  const double fwd = ops.seconds[int(profile::Op::attention_forward)], bwd = ops.seconds[int(profile::Op::attention_backward)];
+  std::printf("\nattention backward / forward: %.2f\n", fwd > 0 ? bwd / fwd : 0.0);
+  std::printf("peak RSS %.2f GB\n", peak_rss_gb());
+  return 0;
+}
+
 int main(int argc, char** argv) {
   std::string config = "tiny";
+  RecipeOptions ro;
   index_t views = 4, targets = 2, size = 0, gaussians = 0, steps = 3, depth = 0;
-  bool recompute = false;
+  bool recompute = false, steps_given = false;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--config" && i + 1 < argc) config = argv[++i];
+    else if (a == "--recipe" && i + 1 < argc) ro.recipe = argv[++i];
+    else if (a == "--state" && i + 1 < argc) ro.state = argv[++i];
+    else if (a == "--stage" && i + 1 < argc) ro.stage = argv[++i];
+    else if (a == "--start" && i + 1 < argc) ro.start = std::atoll(argv[++i]);
     else if (a == "--views" && i + 1 < argc) views = std::atol(argv[++i]);
     else if (a == "--targets" && i + 1 < argc) targets = std::atol(argv[++i]);
     else if (a == "--size" && i + 1 < argc) size = std::atol(argv[++i]);
     else if (a == "--gaussians" && i + 1 < argc) gaussians = std::atol(argv[++i]);
-    else if (a == "--steps" && i + 1 < argc) steps = std::atol(argv[++i]);
+    else if (a == "--steps" && i + 1 < argc) steps = std::atol(argv[++i]), steps_given = true;
     else if (a == "--recompute") recompute = true;
     else if (a == "--depth" && i + 1 < argc) depth = std::atol(argv[++i]);
     else {
-      std::fprintf(stderr, "usage: %s [--config tiny|paper] [--views V] [--targets M] [--size N] [--gaussians N] "
-                           "[--steps K] [--recompute] [--depth D]\n", argv[0]);
+      std::fprintf(stderr, "usage: %s --recipe FILE.train.json [--state STATE] [--stage NAME] [--start STEP] [--steps K]\n"
+                           "       %s [--config tiny|paper] [--views V] [--targets M] [--size N] [--gaussians N] "
+                           "[--steps K] [--recompute] [--depth D]\n", argv[0], argv[0]);
       return 2;
     }
   }
   try {
     simd::require_cpu_supports_build();
+    if (!ro.recipe.empty()) {
+      ro.steps = steps_given ? steps : 10;
+      require(ro.steps >= 1, "train_step bench: --steps must be >= 1");
+      return run_recipe(ro);
+    }
     model::FlexSplatConfig c = config == "paper" ? model::flexsplat_paper_config() : model::flexsplat_tiny_config();
     require(config == "paper" || config == "tiny", "--config '", config, "': expected tiny or paper");
     if (config == "paper") c.image_h = c.image_w = 252, c.gaussians = 20000;

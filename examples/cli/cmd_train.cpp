@@ -22,6 +22,7 @@
 #include "flexsplat/loss/lpips.hpp"
 #include "flexsplat/model/config.hpp"
 #include "flexsplat/model/train.hpp"
+#include "flexsplat/model/train_data.hpp"
 #include "flexsplat/model/validate.hpp"
 #include "flexsplat/model/weights.hpp"
 #include "flexsplat/train/checkpoint.hpp"
@@ -40,33 +41,7 @@ using train::parse_train_config;
 using train::TrainRunConfig;
 using train::TrainStage;
 
-// A per-(seed, step, scene) view count: a pure function, so resumed and multi-rank runs draw the same counts.
-int scene_view_count(const TrainRunConfig& c, std::uint64_t step, index_t scene) {
-  std::uint64_t x = c.seed ^ (step * 0x9E3779B97F4A7C15ull) ^ (static_cast<std::uint64_t>(scene) * 0xD1B54A32D192ED03ull);
-  x ^= x >> 31, x *= 0xBF58476D1CE4E5B9ull, x ^= x >> 27, x *= 0x94D049BB133111EBull, x ^= x >> 31;
-  return c.inputs_min + static_cast<int>(x % static_cast<std::uint64_t>(c.inputs_max - c.inputs_min + 1));
-}
-
-struct TrainData {
-  bool procedural = true;
-  data::GeneratorConfig generator;
-  std::vector<data::ObjectRecord> objects;
-};
-
-model::TrainExample<float> make_scene(const TrainData& d, const TrainRunConfig& c, std::uint64_t step, index_t scene) {
-  data::BatchOptions o;
-  o.inputs = scene_view_count(c, step, scene);
-  o.targets = c.targets;
-  const std::uint64_t index = step * static_cast<std::uint64_t>(c.batch) + static_cast<std::uint64_t>(scene);
-  std::vector<data::SceneSample> s;
-  if (d.procedural) {
-    s = data::generate_batch(d.generator, 1, c.seed, index, o);
-  } else {
-    o.crop = static_cast<int>(c.model.image_h);
-    s = data::sample_batch(d.objects, 1, c.seed, index, o);
-  }
-  return model::make_train_example<float>(s[0], c.model);
-}
+using model::TrainData;
 
 std::string read_text(const fs::path& p);
 
@@ -365,7 +340,7 @@ int train_command(Args args) {
     train::CosineSchedule schedule{stage.lr, 0.0, stage.warmup, stage.steps};
     const double lr = schedule.lr(step - stage_start);
     std::vector<model::TrainExample<float>> local;
-    for (index_t b = share.first; b < share.first + share.count; ++b) local.push_back(make_scene(data, cfg, step, b));
+    for (index_t b = share.first; b < share.first + share.count; ++b) local.push_back(model::make_train_scene(data, cfg, step, b));
     const model::StepReport r = model::train_step<float>(ws, *w, local, cfg.batch, stage.step, lr, step, comm, lpips.get());
     require(std::isfinite(r.loss), "train: the loss is ", r.loss, " at step ", step, " (stage '", stage.name,
             "'); lower the learning rate");

@@ -183,8 +183,8 @@ TEST_CASE("attention over several key blocks, fused q|k|v rows: scalar and SIMD 
           "[nn][attention][simd]") {
   // 520 keys = two full 256-key blocks and a partial one; 300 = one full and a partial one; 2 heads: the one-pass
   // backward on 1 or 2 workers.
-  // head_dim 64 (VGGT), 20 (vector tiles plus a lane tail on wide targets) and 5 (tail only).
-  for (index_t head_dim : {64, 20, 5}) {
+  // head_dim 64 (VGGT), 20 (vector tiles plus a lane tail on wide targets), 12 (the small model's decoder) and 5.
+  for (index_t head_dim : {64, 20, 12, 5}) {
     CAPTURE(head_dim);
     const index_t tokens = head_dim == 64 ? 520 : 300;
     FusedCase c(1, 2, tokens, head_dim, 31 + unsigned(head_dim));

@@ -22,6 +22,7 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/tensor.hpp"
 
 #if defined(FLEXSPLAT_HAVE_DNNL)
@@ -528,6 +529,7 @@ template <class T>
 void gemm(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, index_t K, T alpha, const T* A, index_t lda,
           const T* B, index_t ldb, T beta, T* C, index_t ldc, ThreadPool& pool = global_pool()) {
   if (M <= 0 || N <= 0) return;
+  const profile::Scope timed(profile::Op::gemm, 2.0 * double(M) * double(N) * double(K));
   require(backend != GemmBackend::blas || have_blas, "gemm: the BLAS backend was requested but this build has none");
   require(backend != GemmBackend::bf16 || have_bf16_gemm, "gemm: bf16 was requested but this build has no oneDNN");
   require(backend != GemmBackend::onednn || have_onednn_gemm, "gemm: oneDNN was requested but this build has none");

@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/core/tensor.hpp"
 
@@ -212,6 +213,7 @@ void deform_core_backward_impl(T* d_value, T* d_locations, T* d_weights, const T
 template <class T>
 void deform_core_forward(T* out, const T* value, const T* locations, const T* weights, const DeformCoreLayout& L,
                          ThreadPool& pool = global_pool(), const index_t* query_order = nullptr) {
+  const profile::Scope timed(profile::Op::deformable_forward);
   if (simd::enabled()) deform_core_forward_impl<T, true>(out, value, locations, weights, L, pool, query_order);
   else deform_core_forward_impl<T, false>(out, value, locations, weights, L, pool, query_order);
 }
@@ -220,6 +222,7 @@ template <class T>
 void deform_core_backward(T* d_value, T* d_locations, T* d_weights, const T* d_out, const T* value, const T* locations,
                           const T* weights, const DeformCoreLayout& L, ThreadPool& pool = global_pool(),
                           const index_t* query_order = nullptr) {
+  const profile::Scope timed(profile::Op::deformable_backward);
   if (simd::enabled())
     deform_core_backward_impl<T, true>(d_value, d_locations, d_weights, d_out, value, locations, weights, L, pool, query_order);
   else

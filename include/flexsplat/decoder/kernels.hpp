@@ -14,6 +14,7 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/core/tensor.hpp"
 
@@ -186,6 +187,7 @@ void window_attention_backward_impl(T* d_qkv, const T* d_out, const T* out, cons
 template <class T>
 void window_attention_forward(T* out, T* lse, const T* qkv, const WindowAttentionShape& s, T scale,
                               std::span<T> scratch, ThreadPool& pool = global_pool()) {
+  const profile::Scope timed(profile::Op::attention_forward);
   if (simd::enabled()) window_attention_forward_impl<T, true>(out, lse, qkv, s, scale, scratch, pool);
   else window_attention_forward_impl<T, false>(out, lse, qkv, s, scale, scratch, pool);
 }
@@ -194,6 +196,7 @@ template <class T>
 void window_attention_backward(T* d_qkv, const T* d_out, const T* out, const T* lse, const T* qkv,
                                const WindowAttentionShape& s, T scale, std::span<T> scratch,
                                ThreadPool& pool = global_pool()) {
+  const profile::Scope timed(profile::Op::attention_backward);
   if (simd::enabled()) window_attention_backward_impl<T, true>(d_qkv, d_out, out, lse, qkv, s, scale, scratch, pool);
   else window_attention_backward_impl<T, false>(d_qkv, d_out, out, lse, qkv, s, scale, scratch, pool);
 }

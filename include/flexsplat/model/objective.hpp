@@ -15,6 +15,7 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gaussians.hpp"
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/model.hpp"
 #include "flexsplat/image/layout.hpp"
@@ -87,8 +88,8 @@ struct LossParts {
   double psnr_last = 0;  // mean PSNR of the last decoder layer's renders (a metric; a view counts at most 100 dB)
 };
 
-// Wall time per phase in milliseconds, accumulated (benchmarks and the training log read it).
-struct PhaseTimes {
+// One value per phase of a training step.
+struct PhaseValues {
   double geometry_forward = 0, geometry_backward = 0, decoder_forward = 0, decoder_backward = 0;
   double raster_forward = 0, raster_backward = 0, losses = 0, update = 0;
   double total() const {
@@ -97,19 +98,38 @@ struct PhaseTimes {
   }
 };
 
-// Adds the time since construction (or the last lap) to a PhaseTimes field.
+// Wall time per phase in milliseconds, accumulated (benchmarks and the training log read it), and the GEMM and
+// attention FLOPs each phase ran while profile:: is enabled.
+struct PhaseTimes : PhaseValues {
+  PhaseValues flops;
+};
+
+// Adds the time (and profiled FLOPs) since construction or the last lap to a PhaseTimes field.
 class PhaseClock {
 public:
-  explicit PhaseClock(PhaseTimes* times) : times_(times), last_(std::chrono::steady_clock::now()) {}
-  void lap(double PhaseTimes::*field) {
+  explicit PhaseClock(PhaseTimes* times)
+      : times_(times), last_(std::chrono::steady_clock::now()), last_flops_(profiled_flops()) {}
+  void lap(double PhaseValues::*field) {
     const auto now = std::chrono::steady_clock::now();
-    if (times_) times_->*field += std::chrono::duration<double, std::milli>(now - last_).count();
-    last_ = now;
+    const double flops = profiled_flops();
+    if (times_) {
+      times_->*field += std::chrono::duration<double, std::milli>(now - last_).count();
+      times_->flops.*field += flops - last_flops_;
+    }
+    last_ = now, last_flops_ = flops;
   }
 
 private:
+  static double profiled_flops() {
+    if (!profile::enabled()) return 0;
+    const profile::Totals t = profile::totals();
+    double sum = 0;
+    for (double f : t.flops) sum += f;
+    return sum;
+  }
   PhaseTimes* times_;
   std::chrono::steady_clock::time_point last_;
+  double last_flops_;
 };
 
 template <class T>

@@ -14,6 +14,7 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/core/simd_dispatch.hpp"  // its lane overloads must be visible where the lane templates are used
 #include "flexsplat/core/tensor.hpp"
@@ -35,10 +36,16 @@ struct AttentionLayout {
 inline constexpr index_t attention_q_block = 64;
 inline constexpr index_t attention_kv_block = 256;
 
+// Backward's packed query / dO rows and its dK / dV accumulators have rows of whole 64-byte float vectors, so the
+// outer products run in full lanes for any head_dim (12 would otherwise fall to scalar code).
+inline index_t attention_padded_dim(index_t head_dim) { return (head_dim + 15) / 16 * 16; }
+
 // Scratch elements one worker needs; pass at least this times the pool size. Key and value rows are then copied into
 // contiguous tiles once per (query block, key block).
 inline index_t attention_scratch_per_worker(index_t head_dim) {
-  return 5 * attention_q_block * head_dim + 2 * attention_kv_block * (attention_q_block + head_dim) + 4 * attention_q_block;
+  constexpr index_t Bq = attention_q_block, Bk = attention_kv_block;
+  const index_t dp = attention_padded_dim(head_dim);
+  return 3 * Bq * head_dim + 2 * Bq * dp + 2 * Bk * (Bq + head_dim + dp) + 4 * Bq;
 }
 
 // Scratch per worker for sequences of at most `tokens` queries and keys (linear in tokens). With at least this times
@@ -184,10 +191,25 @@ void outer_block(T* y, index_t y_row, index_t cols, const T* zt, index_t ld, con
     if (full * W < d) outer_block<T>(y + full * W, y_row, cols, zt, ld, x + full * W, x_row, rows, d - full * W);
 }
 
-// dst [rows][d] contiguous <- rows of src: strided key / value rows would cost a TLB miss per row in the kernels.
+// dst [rows][ld] contiguous <- rows of src, zero past d: strided key / value rows would cost a TLB miss per row in the
+// kernels.
+template <class T>
+void pack_rows(T* dst, const T* src, index_t row, index_t rows, index_t d, index_t ld) {
+  for (index_t r = 0; r < rows; ++r) {
+    std::copy(src + r * row, src + r * row + d, dst + r * ld);
+    std::fill(dst + r * ld + d, dst + (r + 1) * ld, T(0));
+  }
+}
 template <class T>
 void pack_rows(T* dst, const T* src, index_t row, index_t rows, index_t d) {
-  for (index_t r = 0; r < rows; ++r) std::copy(src + r * row, src + r * row + d, dst + r * d);
+  pack_rows(dst, src, row, rows, d, d);
+}
+
+// y [rows, d] (row stride y_row) += the first d columns of acc [rows][ld].
+template <class T>
+void add_rows(T* y, index_t y_row, const T* acc, index_t ld, index_t rows, index_t d) {
+  for (index_t r = 0; r < rows; ++r)
+    for (index_t j = 0; j < d; ++j) y[r * y_row + j] += acc[r * ld + j];
 }
 
 // dst[j*ld + r] = scale * src[r*row + j] for r < rows, zero for rows <= r < ld.
@@ -253,6 +275,8 @@ template <class T>
 void attention_forward_impl(T* out, T* lse, const T* q, const T* k, const T* v, const AttentionLayout& L, T scale,
                             std::span<T> scratch, simd::Lanes lanes, ThreadPool& pool = global_pool()) {
   using namespace detail;
+  const profile::Scope timed(profile::Op::attention_forward,
+                             4.0 * double(L.batch * L.heads) * double(L.n_q) * double(L.n_kv) * double(L.head_dim));
   constexpr index_t Bq = attention_q_block, Bk = attention_kv_block;
   const index_t d = L.head_dim;
   const index_t q_blocks = (L.n_q + Bq - 1) / Bq;
@@ -315,6 +339,8 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
                              const T* v, const AttentionLayout& L, T scale, std::span<T> scratch, simd::Lanes lanes,
                              ThreadPool& pool = global_pool()) {
   using namespace detail;
+  const profile::Scope timed(profile::Op::attention_backward,
+                             8.0 * double(L.batch * L.heads) * double(L.n_q) * double(L.n_kv) * double(L.head_dim));
   constexpr index_t Bq = attention_q_block, Bk = attention_kv_block;
   const index_t d = L.head_dim;
   const index_t q_blocks = (L.n_q + Bq - 1) / Bq;
@@ -323,8 +349,9 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
   if (L.n_q == 0 || L.n_kv == 0) return;
 
   struct Buffers {
-    T *qt, *dot, *dqt, *qp, *dop, *st, *dst, *lse, *delta, *kp, *vp, *dq_head;
+    T *qt, *dot, *dqt, *qp, *dop, *st, *dst, *lse, *delta, *dk, *dv, *kp, *vp, *dq_head;
   };
+  const index_t dp = attention_padded_dim(d);
   // One pass per (batch, head) when the scratch holds a head's dQ^T and the heads spread evenly over the workers;
   // otherwise key-block tasks (dK, dV) then query-block tasks (dQ). Both sum every gradient in the same order.
   const index_t base = attention_scratch_per_worker(d), heads_total = L.batch * L.heads, workers = pool.size();
@@ -338,13 +365,15 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
     s.qt = scratch.data() + worker * per_worker;  // [d][Bq] scale * Q^T
     s.dot = s.qt + d * Bq;                                              // [d][Bq] dO^T
     s.dqt = s.dot + d * Bq;                                             // [d][Bq] dQ^T of pass 2
-    s.qp = s.dqt + d * Bq;                                              // [Bq][d] Q rows
-    s.dop = s.qp + d * Bq;                                              // [Bq][d] dO rows
-    s.st = s.dop + d * Bq;                                              // [Bk][Bq] scores^T, then P^T
+    s.qp = s.dqt + d * Bq;                                              // [Bq][dp] Q rows
+    s.dop = s.qp + dp * Bq;                                             // [Bq][dp] dO rows
+    s.st = s.dop + dp * Bq;                                             // [Bk][Bq] scores^T, then P^T
     s.dst = s.st + Bk * Bq;                                             // [Bk][Bq] dP^T, then scale * dS^T
     s.lse = s.dst + Bk * Bq;
     s.delta = s.lse + Bq;
-    s.kp = s.delta + Bq;                                // [Bk][d] key block, or [n_kv][d] whole head (dQ pass)
+    s.dk = s.delta + Bq;                                                // [Bk][dp] dK of one key block
+    s.dv = s.dk + Bk * dp;                                              // [Bk][dp] dV of one key block
+    s.kp = s.dv + Bk * dp;                              // [Bk][d] key block, or [n_kv][d] whole head (dQ pass)
     s.vp = s.kp + (whole_heads ? L.n_kv : Bk) * d;       // the same for values
     s.dq_head = s.qt + base;                            // [q_blocks][d][Bq] dQ^T of one head (one pass)
     return s;
@@ -356,8 +385,8 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
     const T* o = out + b * L.out.batch + h * L.out.head + r0 * L.out.row;
     pack_transposed(s.qt, Bq, q + b * L.q.batch + h * L.q.head + r0 * L.q.row, L.q.row, rows, d, scale);
     pack_transposed(s.dot, Bq, d_o, L.out.row, rows, d, T(1));
-    pack_rows(s.qp, q + b * L.q.batch + h * L.q.head + r0 * L.q.row, L.q.row, rows, d);
-    pack_rows(s.dop, d_o, L.out.row, rows, d);
+    pack_rows(s.qp, q + b * L.q.batch + h * L.q.head + r0 * L.q.row, L.q.row, rows, d, dp);
+    pack_rows(s.dop, d_o, L.out.row, rows, d, dp);
     for (index_t r = 0; r < Bq; ++r) {
       const T row_lse = r < rows ? lse[(b * L.heads + h) * L.n_q + r0 + r] : T(0);
       s.lse[r] = r < rows && std::isfinite(row_lse) ? row_lse : std::numeric_limits<T>::infinity();
@@ -381,6 +410,21 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
     softmax_grad_t<V>(s.st, s.dst, cols, s.lse, s.delta, scale);
   };
 
+  // dK and dV of key block kb of head (b, h): zeroed, summed over every query block, then added into d_k and d_v.
+  auto start_keys = [&](const Buffers& s, index_t cols) {
+    std::fill(s.dk, s.dk + cols * dp, T(0));
+    std::fill(s.dv, s.dv + cols * dp, T(0));
+  };
+  auto add_tile_dkv = [&](auto* lane_type, const Buffers& s, index_t cols, index_t rows) {
+    using V = std::remove_pointer_t<decltype(lane_type)>;
+    if (d_v) outer_block<V>(s.dv, dp, cols, s.st, Bq, s.dop, dp, rows, dp);
+    if (d_k) outer_block<V>(s.dk, dp, cols, s.dst, Bq, s.qp, dp, rows, dp);
+  };
+  auto finish_keys = [&](const Buffers& s, index_t b, index_t h, index_t c0, index_t cols) {
+    if (d_v) add_rows(d_v + b * L.v.batch + h * L.v.head + c0 * L.v.row, L.v.row, s.dv, dp, cols, d);
+    if (d_k) add_rows(d_k + b * L.k.batch + h * L.k.head + c0 * L.k.row, L.k.row, s.dk, dp, cols, d);
+  };
+
   // dQ^T of query block qb of head (b, h) added into d_q.
   auto add_dq = [&](const T* dqt, index_t b, index_t h, index_t qb) {
     const index_t r0 = qb * Bq, rows = std::min(Bq, L.n_q - r0);
@@ -400,13 +444,14 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
         for (index_t kb = 0; kb < kv_blocks; ++kb) {
           const index_t c0 = kb * Bk, cols = std::min(Bk, L.n_kv - c0);
           load_keys(s, b, h, c0, cols);
+          start_keys(s, cols);
           for (index_t qb = 0; qb < q_blocks; ++qb) {
             const index_t rows = load_queries(s, b, h, qb);
             tile(lane_type, s, s.kp, s.vp, cols);
-            if (d_v) outer_block<V>(d_v + b * L.v.batch + h * L.v.head + c0 * L.v.row, L.v.row, cols, s.st, Bq, s.dop, d, rows, d);
-            if (d_k) outer_block<V>(d_k + b * L.k.batch + h * L.k.head + c0 * L.k.row, L.k.row, cols, s.dst, Bq, s.qp, d, rows, d);
+            add_tile_dkv(lane_type, s, cols, rows);
             axpy_t_block<V>(s.dq_head + qb * d * Bq, Bq, static_cast<const T*>(nullptr), s.kp, d, s.dst, cols, d);
           }
+          finish_keys(s, b, h, c0, cols);
         }
         for (index_t qb = 0; qb < q_blocks; ++qb) add_dq(s.dq_head + qb * d * Bq, b, h, qb);
       }
@@ -417,18 +462,18 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
   if (d_k || d_v) {
     parallel_for(L.batch * L.heads * kv_blocks, [&](index_t t0, index_t t1, int worker) {
      simd::with_lanes<T>(lanes, [&](auto* lane_type) {
-      using V = std::remove_pointer_t<decltype(lane_type)>;
       const Buffers s = buffers(worker);
       for (index_t t = t0; t < t1; ++t) {
         const index_t bh = t / kv_blocks, kb = t % kv_blocks, b = bh / L.heads, h = bh % L.heads;
         const index_t c0 = kb * Bk, cols = std::min(Bk, L.n_kv - c0);
         load_keys(s, b, h, c0, cols);
+        start_keys(s, cols);
         for (index_t qb = 0; qb < q_blocks; ++qb) {
           const index_t rows = load_queries(s, b, h, qb);
           tile(lane_type, s, s.kp, s.vp, cols);
-          if (d_v) outer_block<V>(d_v + b * L.v.batch + h * L.v.head + c0 * L.v.row, L.v.row, cols, s.st, Bq, s.dop, d, rows, d);
-          if (d_k) outer_block<V>(d_k + b * L.k.batch + h * L.k.head + c0 * L.k.row, L.k.row, cols, s.dst, Bq, s.qp, d, rows, d);
+          add_tile_dkv(lane_type, s, cols, rows);
         }
+        finish_keys(s, b, h, c0, cols);
       }
      });
     }, pool);

@@ -6,6 +6,7 @@
 
 #include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/profile.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -113,7 +114,12 @@ void col2im_add(T* image, const T* cols, index_t channels, index_t h, index_t w,
             const index_t y = oy * stride - pad + i;
             if (y < 0 || y >= h) continue;
             T* dst = image + (c * h + y) * w;
-            for (index_t ox = lo; ox < hi; ++ox) dst[ox * stride + j - pad] += src[ox];
+            if (stride == 1) {  // contiguous: the compiler vectorises it
+              const index_t shift = j - pad;
+              for (index_t ox = lo; ox < hi; ++ox) dst[ox + shift] += src[ox];
+            } else {
+              for (index_t ox = lo; ox < hi; ++ox) dst[ox * stride + j - pad] += src[ox];
+            }
           }
         }
   });
@@ -257,6 +263,7 @@ inline index_t conv2d_forward_scratch_size(const Conv2dShape& s) {
 // im2col, which needs scratch >= conv2d_row_scratch_size(s) unless the kernel is 1 x 1, stride 1, no padding.
 template <class T>
 void conv2d_forward(T* out, const T* in, const T* weight, const T* bias, const Conv2dShape& s, std::span<T> scratch) {
+  const profile::Scope timed(profile::Op::conv_forward);
   validate_conv(s, false, "conv2d");
   if (!detail::conv2d_use_shifted(s, scratch.size()))
     return detail::conv2d_forward_im2col(out, in, weight, bias, s, scratch);
@@ -269,6 +276,7 @@ void conv2d_forward(T* out, const T* in, const T* weight, const T* bias, const C
 template <class T>
 void conv2d_backward(T* d_in, T* d_weight, T* d_bias, const T* d_out, const T* in, const T* weight,
                      const Conv2dShape& s, std::span<T> scratch) {
+  const profile::Scope timed(profile::Op::conv_backward);
   validate_conv(s, false, "conv2d");
   const index_t oh = s.conv_out_h(), ow = s.conv_out_w(), K = s.in_channels * s.kernel_h * s.kernel_w;
   const bool pointwise = detail::conv2d_pointwise(s);
@@ -304,6 +312,7 @@ void conv2d_backward(T* d_in, T* d_weight, T* d_bias, const T* d_out, const T* i
 template <class T>
 void conv_transpose2d_forward(T* out, const T* in, const T* weight, const T* bias, const Conv2dShape& s,
                               std::span<T> scratch) {
+  const profile::Scope timed(profile::Op::conv_forward);
   validate_conv(s, true, "conv_transpose2d");
   const index_t oh = s.transposed_out_h(), ow = s.transposed_out_w(), K = s.out_channels * s.kernel_h * s.kernel_w;
   const index_t hw = s.in_h * s.in_w;
@@ -321,6 +330,7 @@ void conv_transpose2d_forward(T* out, const T* in, const T* weight, const T* bia
 template <class T>
 void conv_transpose2d_backward(T* d_in, T* d_weight, T* d_bias, const T* d_out, const T* in, const T* weight,
                                const Conv2dShape& s, std::span<T> scratch) {
+  const profile::Scope timed(profile::Op::conv_backward);
   validate_conv(s, true, "conv_transpose2d");
   const index_t oh = s.transposed_out_h(), ow = s.transposed_out_w(), K = s.out_channels * s.kernel_h * s.kernel_w;
   const index_t hw = s.in_h * s.in_w;

@@ -30,6 +30,7 @@
 #include "flexsplat/core/gaussians.hpp"
 #include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/core/simd_dispatch.hpp"  // its lane overloads must be visible where the lane templates are defined
 #include "flexsplat/core/tensor.hpp"
@@ -732,6 +733,7 @@ void ensure_shape(Tensor_& t, const Shape<R>& shape) {
 template <class T>
 void render_forward(const GaussianSet<T>& in, const Camera<T>& camera, const RenderOptions& opt,
                     RenderWorkspace<T>& ws, RenderOutputs<T>& out) {
+  const profile::Scope timed(profile::Op::raster_forward);
   using clock = std::chrono::steady_clock;
   auto stage_end = [last = clock::now()](double& ms) mutable {
     const auto now = clock::now();
@@ -838,6 +840,7 @@ template <class T>
 void render_backward(const GaussianSet<T>& in, const Camera<T>& camera, const RenderOptions& opt,
                      RenderWorkspace<T>& ws, const RenderOutputGrads<T>& d_out, GaussianSetGrad<T>& grads,
                      CameraGrad<T>* d_camera = nullptr) {
+  const profile::Scope timed(profile::Op::raster_backward);
   using clock = std::chrono::steady_clock;
   auto stage_end = [last = clock::now()](double& ms) mutable {
     const auto now = clock::now();

@@ -12,6 +12,7 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/parallel.hpp"
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/train/params.hpp"
 
@@ -41,6 +42,7 @@ FLEXSPLAT_ALWAYS_INLINE void adamw_lane(V& p, V& m, V& v, V g, T b1, T b2, T shr
 template <class T>
 void adamw_step(ParamStore<T>& store, const AdamWConfig& c, double lr, std::uint64_t step,
                 ThreadPool& pool = global_pool()) {
+  const profile::Scope timed(profile::Op::update);
   require(step >= 1, "adamw: step must be >= 1 (1-based), got ", step);
   require(std::isfinite(lr) && lr >= 0, "adamw: learning rate ", lr, " must be finite and >= 0");
   require(c.beta1 >= 0 && c.beta1 < 1 && c.beta2 >= 0 && c.beta2 < 1 && c.eps > 0 && c.weight_decay >= 0,

@@ -1,0 +1,129 @@
+#pragma once
+// Op-family profiler: self time (a GEMM inside a convolution counts as GEMM, not twice), calls and FLOPs per family,
+// summed over threads. Off by default; a disabled scope costs one relaxed atomic load. bench/train_step turns it on.
+//   profile::set_enabled(true); ... profile::Scope s(profile::Op::gemm, 2.0 * m * n * k); ...
+//   const profile::Totals t = profile::totals();
+#include <array>
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+
+namespace flexsplat {
+inline namespace v0 {
+namespace profile {
+
+enum class Op : int {
+  attention_forward,
+  attention_backward,
+  deformable_forward,
+  deformable_backward,
+  conv_forward,
+  conv_backward,
+  gemm,
+  raster_forward,
+  raster_backward,
+  data,
+  update,
+  count
+};
+
+inline constexpr const char* op_name(Op op) {
+  constexpr const char* names[] = {"attention forward",  "attention backward", "deformable forward",
+                                   "deformable backward", "conv forward",       "conv backward",
+                                   "GEMM",                "raster forward",     "raster backward",
+                                   "data generation",     "optimizer update"};
+  static_assert(sizeof(names) / sizeof(names[0]) == static_cast<int>(Op::count));
+  return names[static_cast<int>(op)];
+}
+
+inline constexpr int op_count = static_cast<int>(Op::count);
+
+struct Totals {
+  std::array<double, op_count> seconds{}, flops{};
+  std::array<std::uint64_t, op_count> calls{};
+};
+
+namespace detail {
+
+struct Counters {
+  std::atomic<bool> enabled{false};
+  std::array<std::atomic<std::int64_t>, op_count> nanoseconds{}, calls{};
+  std::array<std::atomic<double>, op_count> flops{};
+};
+
+inline Counters& counters() {
+  static Counters c;
+  return c;
+}
+
+// The innermost open scope of this thread: its clock pauses while a nested scope runs.
+struct Frame {
+  Op op = Op::count;
+  std::chrono::steady_clock::time_point since;
+};
+inline thread_local Frame* current = nullptr;
+
+inline void add_time(Op op, std::chrono::steady_clock::duration d) {
+  counters().nanoseconds[static_cast<int>(op)].fetch_add(
+      std::chrono::duration_cast<std::chrono::nanoseconds>(d).count(), std::memory_order_relaxed);
+}
+
+}  // namespace detail
+
+inline void set_enabled(bool on) { detail::counters().enabled.store(on, std::memory_order_relaxed); }
+inline bool enabled() { return detail::counters().enabled.load(std::memory_order_relaxed); }
+
+inline void reset() {
+  auto& c = detail::counters();
+  for (int i = 0; i < op_count; ++i) {
+    c.nanoseconds[i].store(0, std::memory_order_relaxed);
+    c.calls[i].store(0, std::memory_order_relaxed);
+    c.flops[i].store(0.0, std::memory_order_relaxed);
+  }
+}
+
+inline Totals totals() {
+  const auto& c = detail::counters();
+  Totals t;
+  for (int i = 0; i < op_count; ++i) {
+    t.seconds[i] = double(c.nanoseconds[i].load(std::memory_order_relaxed)) * 1e-9;
+    t.calls[i] = static_cast<std::uint64_t>(c.calls[i].load(std::memory_order_relaxed));
+    t.flops[i] = c.flops[i].load(std::memory_order_relaxed);
+  }
+  return t;
+}
+
+// Times its lifetime as `op` on this thread, minus the nested scopes' time; `flops` are added to the family.
+class Scope {
+public:
+  explicit Scope(Op op, double flops = 0) {
+    if (!enabled()) return;
+    active_ = true;
+    const auto now = std::chrono::steady_clock::now();
+    if (detail::current) detail::add_time(detail::current->op, now - detail::current->since);
+    frame_ = {op, now};
+    parent_ = detail::current;
+    detail::current = &frame_;
+    auto& c = detail::counters();
+    c.calls[static_cast<int>(op)].fetch_add(1, std::memory_order_relaxed);
+    if (flops > 0) c.flops[static_cast<int>(op)].fetch_add(flops, std::memory_order_relaxed);
+  }
+  Scope(const Scope&) = delete;
+  Scope& operator=(const Scope&) = delete;
+  ~Scope() {
+    if (!active_) return;
+    const auto now = std::chrono::steady_clock::now();
+    detail::add_time(frame_.op, now - frame_.since);
+    detail::current = parent_;
+    if (parent_) parent_->since = now;
+  }
+
+private:
+  bool active_ = false;
+  detail::Frame frame_;
+  detail::Frame* parent_ = nullptr;
+};
+
+}  // namespace profile
+}  // namespace v0
+}  // namespace flexsplat

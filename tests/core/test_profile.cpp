@@ -1,0 +1,76 @@
+#include <catch2/catch.hpp>
+
+#include <chrono>
+#include <thread>
+
+#include "flexsplat/core/gemm.hpp"
+#include "flexsplat/core/profile.hpp"
+
+using namespace flexsplat;
+
+namespace {
+void busy(std::chrono::milliseconds d) {
+  const auto until = std::chrono::steady_clock::now() + d;
+  while (std::chrono::steady_clock::now() < until) {
+  }
+}
+double seconds(const profile::Totals& t, profile::Op op) { return t.seconds[static_cast<int>(op)]; }
+std::uint64_t calls(const profile::Totals& t, profile::Op op) { return t.calls[static_cast<int>(op)]; }
+}  // namespace
+
+TEST_CASE("profile scopes count nothing while disabled", "[core][profile]") {
+  profile::set_enabled(false);
+  profile::reset();
+  {
+    const profile::Scope s(profile::Op::conv_forward, 1e6);
+    busy(std::chrono::milliseconds(2));
+  }
+  const auto t = profile::totals();
+  for (int i = 0; i < profile::op_count; ++i) {
+    CHECK(t.seconds[i] == 0.0);
+    CHECK(t.calls[i] == 0);
+    CHECK(t.flops[i] == 0.0);
+  }
+}
+
+TEST_CASE("profile scopes record self time: a nested scope's time goes to its own family only", "[core][profile]") {
+  profile::reset();
+  profile::set_enabled(true);
+  {
+    const profile::Scope outer(profile::Op::conv_backward);
+    busy(std::chrono::milliseconds(20));
+    {
+      const profile::Scope inner(profile::Op::gemm, 1234.0);
+      busy(std::chrono::milliseconds(40));
+    }
+    busy(std::chrono::milliseconds(20));
+  }
+  profile::set_enabled(false);
+  const auto t = profile::totals();
+  CHECK(calls(t, profile::Op::conv_backward) == 1);
+  CHECK(calls(t, profile::Op::gemm) == 1);
+  CHECK(t.flops[static_cast<int>(profile::Op::gemm)] == 1234.0);
+  // Busy-waits are at least as long as asked; a preempted thread only makes a scope longer.
+  CHECK(seconds(t, profile::Op::gemm) >= 0.040);
+  CHECK(seconds(t, profile::Op::conv_backward) >= 0.040);
+  // Inclusive timing would give the outer scope >= 80 ms (busy-waits end at wall-clock deadlines); self time is
+  // about 40 ms, more only if the thread is descheduled between a deadline and the end of its scope.
+  CHECK(seconds(t, profile::Op::conv_backward) < 0.075);
+  profile::reset();
+  CHECK(profile::totals().calls[static_cast<int>(profile::Op::gemm)] == 0);
+}
+
+TEST_CASE("gemm reports its calls and 2 M N K FLOPs to the profiler", "[core][profile]") {
+  const index_t M = 7, N = 5, K = 3;
+  std::vector<float> a(M * K, 1.0f), b(K * N, 1.0f), c(M * N, 0.0f);
+  profile::reset();
+  profile::set_enabled(true);
+  gemm(Trans::no, Trans::no, M, N, K, 1.0f, a.data(), K, b.data(), N, 0.0f, c.data(), N);
+  gemm(Trans::no, Trans::no, M, N, K, 1.0f, a.data(), K, b.data(), N, 0.0f, c.data(), N);
+  profile::set_enabled(false);
+  const auto t = profile::totals();
+  CHECK(calls(t, profile::Op::gemm) == 2);
+  CHECK(t.flops[static_cast<int>(profile::Op::gemm)] == 2 * 2.0 * M * N * K);
+  CHECK(c[0] == 3.0f);
+  profile::reset();
+}
