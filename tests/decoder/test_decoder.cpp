@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <new>
+#include <tuple>
 
 #include "decoder_test_util.hpp"
 #include "flexsplat/decoder/decoder.hpp"
@@ -19,9 +20,9 @@ struct Tiny {
   TestRig rig;
   index_t n = 6, fh = 5, fw = 4;
   std::vector<double> params, features;
-  Tiny(index_t views, bool local) : rig(make_rig(views)) {
-    cfg.dim = 8, cfg.ffn = 12, cfg.heads = 2, cfg.layers = 2, cfg.points = 2, cfg.max_views = 2, cfg.value_dim = 3;
-    cfg.max_queries = 9, cfg.local_attention = local, cfg.window = 4;
+  Tiny(index_t views, bool local, index_t view_slots = 0) : rig(make_rig(views)) {
+    cfg.dim = 8, cfg.ffn = 12, cfg.heads = 2, cfg.layers = 2, cfg.points = 2, cfg.max_views = std::max<index_t>(2, views);
+    cfg.value_dim = 3, cfg.max_queries = 9, cfg.local_attention = local, cfg.window = 4, cfg.view_slots = view_slots;
     params.resize(decoder::DecoderParamLayout(cfg).size);
     decoder::decoder_init(params.data(), cfg, 7);
     auto noise = random_normal(params.size(), 61, 0.1);
@@ -48,8 +49,10 @@ TEST_CASE("decoder returns every layer's Gaussians, finite", "[decoder][decoder]
 }
 
 TEST_CASE("decoder passes the float64 gradient check end to end", "[decoder][decoder]") {
-  for (bool local : {false, true}) {
-    Tiny t(2, local);
+  // Two views with a slot each (global and local self-attention), and three views over two slots: views 2 and 3 share
+  // the deformable-attention slot and their queries' embedding rows, whose gradients add.
+  for (auto [local, views, view_slots] : {std::tuple<bool, index_t, index_t>{false, 2, 0}, {true, 2, 0}, {false, 3, 2}}) {
+    Tiny t(views, local, view_slots);
     decoder::DecoderWorkspace<double> st;
     std::vector<double> dp(t.params.size()), df(t.features.size()), dK(t.rig.K.size()), dE(t.rig.E.size()),
         dD(t.rig.depth.size());
@@ -69,7 +72,7 @@ TEST_CASE("decoder passes the float64 gradient check end to end", "[decoder][dec
                                     t.maps(), t.rig.geometry());
         },
         {1e-6, 1e-7, 1e-5, 400});
-    INFO((local ? "local: " : "full: ") << result.summary());
+    INFO((local ? "local, " : "full, ") << views << " views, view_slots " << view_slots << ": " << result.summary());
     CHECK(result.ok());
   }
 }
@@ -211,4 +214,26 @@ TEST_CASE("decoder_layer_offsets agrees with DecoderParamLayout", "[decoder][dec
     CHECK(a.ln3_g == b.ln3_g);
   }
   CHECK(decoder::decoder_layer_offsets(c, c.layers - 1).head_b + decoder::splat_values == L.size);
+}
+
+TEST_CASE("query embedding rows: one per query with a slot per view, shared by views 2..V with two slots",
+          "[decoder][decoder]") {
+  decoder::DecoderConfig c;
+  c.max_views = 8;
+  for (index_t i = 0; i < 20; ++i) CHECK(c.query_row(i, 4) == i);
+  CHECK(c.query_rows_used(20, 4) == 20);
+  c.view_slots = 2;
+  // 4 views: queries 0..3 are cell 0 of views 0..3, queries 4..7 cell 1.
+  CHECK(c.query_row(0, 4) == 0);
+  CHECK(c.query_row(1, 4) == 1);
+  CHECK(c.query_row(2, 4) == 1);
+  CHECK(c.query_row(3, 4) == 1);
+  CHECK(c.query_row(4, 4) == 2);
+  CHECK(c.query_row(7, 4) == 3);
+  CHECK(c.query_rows_used(20, 4) == 10);
+  CHECK(c.query_rows_used(20, 1) == 40);  // one view reads every other row
+  Tiny t(1, false, 2);  // 6 queries of one view read rows 0, 2, ..., 10 of a table of 9
+  decoder::DecoderWorkspace<double> st;
+  CHECK_THROWS_WITH(decoder::decoder_forward(st, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry()),
+                    Catch::Contains("reads 12 query embeddings, the table has 9"));
 }

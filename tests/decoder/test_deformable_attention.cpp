@@ -1,6 +1,8 @@
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cmath>
+#include <utility>
 
 #include "decoder_test_util.hpp"
 #include "flexsplat/decoder/deformable_attention.hpp"
@@ -14,7 +16,8 @@ struct Setup {
   TestRig rig;
   index_t n = 5, fh = 5, fw = 6;
   std::vector<double> x, centres, params, features;
-  explicit Setup(index_t views) : rig(make_rig(views)) {
+  explicit Setup(index_t views, index_t view_slots = 0) : rig(make_rig(views)) {
+    cfg.view_slots = view_slots;
     x = random_normal(n * cfg.dim, 31);
     centres = random_normal(n * 3, 32, 0.4);
     params = random_normal(decoder::MVDeformParamLayout(cfg).size, 33, 0.3);
@@ -25,8 +28,9 @@ struct Setup {
 }  // namespace
 
 TEST_CASE("multi-view deformable attention passes the float64 gradient check", "[decoder][deformable_attention]") {
-  for (index_t views : {1, 2}) {
-    Setup s(views);
+  // {views, view_slots}: one slot per view, and two slots with views 2 and 3 sharing the second (gradients add).
+  for (auto [views, view_slots] : {std::pair<index_t, index_t>{1, 0}, {2, 0}, {3, 2}}) {
+    Setup s(views, view_slots);
     decoder::MVDeformCache<double> cache;
     std::vector<double> dx(s.x.size()), dc(s.centres.size()), dp(s.params.size()), df(s.features.size()),
         dK(s.rig.K.size()), dE(s.rig.E.size());
@@ -44,7 +48,7 @@ TEST_CASE("multi-view deformable attention passes the float64 gradient check", "
                                       s.rig.geometry());
         },
         {1e-6, 1e-7, 1e-5, 120});
-    INFO(views << " views: " << result.summary());
+    INFO(views << " views, view_slots " << view_slots << ": " << result.summary());
     CHECK(result.ok());
   }
 }
@@ -116,4 +120,47 @@ TEST_CASE("identical cameras and bad feature maps", "[decoder][deformable_attent
   CHECK_THROWS_WITH(decoder::mv_deform_forward(out.data(), cache, s.x.data(), s.centres.data(), s.n, s.params.data(), s.cfg,
                                                maps, s.rig.geometry()),
                     Catch::Contains("have 5 channels"));
+}
+
+TEST_CASE("with two view slots, reordering views 2..V leaves the update unchanged, with one slot per view it does not",
+          "[decoder][deformable_attention]") {
+  const index_t views = 3;
+  for (index_t view_slots : {2, 0}) {
+    Setup s(views, view_slots);
+    // The same views in the order 0, 2, 1: features, K and world-to-camera permuted together.
+    const index_t order[3] = {0, 2, 1}, fsize = s.cfg.value_dim * s.fh * s.fw;
+    TestRig r = s.rig;
+    std::vector<double> features(s.features.size());
+    for (index_t v = 0; v < views; ++v) {
+      const index_t from = order[v];
+      std::copy(s.rig.K.begin() + 9 * from, s.rig.K.begin() + 9 * (from + 1), r.K.begin() + 9 * v);
+      std::copy(s.rig.E.begin() + 12 * from, s.rig.E.begin() + 12 * (from + 1), r.E.begin() + 12 * v);
+      std::copy(s.features.begin() + fsize * from, s.features.begin() + fsize * (from + 1), features.begin() + fsize * v);
+    }
+    decoder::MVDeformCache<double> cache;
+    std::vector<double> a(s.n * s.cfg.dim), b(a.size());
+    decoder::mv_deform_forward(a.data(), cache, s.x.data(), s.centres.data(), s.n, s.params.data(), s.cfg, s.maps(),
+                               s.rig.geometry());
+    decoder::mv_deform_forward(b.data(), cache, s.x.data(), s.centres.data(), s.n, s.params.data(), s.cfg,
+                               {views, s.cfg.value_dim, s.fh, s.fw, features.data()}, r.geometry());
+    double diff = 0, scale = 0;
+    for (std::size_t i = 0; i < a.size(); ++i) diff = std::max(diff, std::abs(a[i] - b[i])), scale = std::max(scale, std::abs(a[i]));
+    INFO("view_slots " << view_slots << ": max |difference| " << diff << ", max |update| " << scale);
+    REQUIRE(scale > 1e-3);
+    if (view_slots == 2) CHECK(diff <= 1e-12 * scale);
+    else CHECK(diff > 1e-3 * scale);  // slot identity: the order matters
+  }
+}
+
+TEST_CASE("view slots: layout size, slot of a view, and more views than slots", "[decoder][deformable_attention]") {
+  decoder::MVDeformConfig c{8, 3, 2, 2, 8, 2};
+  CHECK(c.slot_count() == 2);
+  CHECK(c.slot(0) == 0);
+  CHECK(c.slot(1) == 1);
+  CHECK(c.slot(7) == 1);
+  CHECK(c.used_slots(1) == 1);
+  CHECK(c.used_slots(8) == 2);
+  decoder::MVDeformConfig per_view{8, 3, 2, 2, 8};
+  // Offsets (2 per row) and logits: 3 rows per slot-head-point fewer for every slot not kept.
+  CHECK(decoder::MVDeformParamLayout(per_view).size - decoder::MVDeformParamLayout(c).size == 6 * 2 * 2 * (3 * 8 + 3));
 }

@@ -9,6 +9,7 @@
 #include "flexsplat/model/evaluate.hpp"
 #include "flexsplat/model/predict.hpp"
 #include "flexsplat/model/train.hpp"
+#include "flexsplat/raster/render.hpp"
 
 using namespace flexsplat;
 
@@ -266,4 +267,70 @@ TEST_CASE("the evaluation protocol undoes a known similarity and scores ground-t
   CHECK_THROWS_WITH(model::eval_views(rec, two, in, targets), Catch::Contains("input view 3 is listed twice"));
   two.view_list = {40};
   CHECK_THROWS_WITH(model::eval_views(rec, two, in, targets), Catch::Contains("input view 40 is not a frame"));
+}
+
+TEST_CASE("with VGGT's two frame-token sets and two decoder view slots, reordering views 2..V reorders the cameras "
+          "and leaves the renders unchanged",
+          "[model][predict][permutation]") {
+  auto c = model::flexsplat_tiny_config();
+  c.appearance.decoder.view_slots = 2;
+  c.appearance.decoder.max_queries = 128;  // 64 Gaussians of one view read rows 0, 2, ..., 126
+  REQUIRE(c.geometry.aggregator.frame_tokens == 2);
+  const index_t V = 4;
+  c.appearance.decoder.max_views = V;
+  c.validate();
+  auto w = model::FlexSplatWeights<float>::create(c, false);
+  w->init(23);
+  const auto e = model::make_train_example<float>(predict_scene(int(V), 1, 9), c);
+  const index_t plane = 3 * c.image_h * c.image_w;
+  const index_t order[V] = {0, 3, 1, 2};  // the reference view stays first
+  std::vector<float> permuted(e.images.size());
+  for (index_t v = 0; v < V; ++v)
+    std::copy(e.images.data() + order[v] * plane, e.images.data() + (order[v] + 1) * plane, permuted.data() + v * plane);
+  model::PredictWorkspace<float> ws;
+  const auto a = model::predict<float>(ws, *w, e.images.data(), V, 64);
+  const auto b = model::predict<float>(ws, *w, permuted.data(), V, 64);
+  for (index_t v = 0; v < V; ++v) {
+    CAPTURE(v);
+    CHECK(max_rel_diff(b.geometry.extrinsics.data() + 12 * v, a.geometry.extrinsics.data() + 12 * order[v], 12) <= 1e-4);
+    CHECK(max_rel_diff(b.geometry.K.data() + 9 * v, a.geometry.K.data() + 9 * order[v], 9) <= 1e-4);
+    const index_t px = c.image_h * c.image_w;
+    CHECK(max_rel_diff(b.geometry.depth.data() + px * v, a.geometry.depth.data() + px * order[v],
+                       static_cast<std::size_t>(px)) <= 1e-4);
+  }
+  // Each set rendered from every predicted camera of the first run: the same pictures.
+  raster::RenderWorkspace<float> rws;
+  raster::RenderOutputs<float> ra, rb;
+  raster::RenderOptions ro;
+  ro.background = {1, 1, 1};
+  double worst = 0, ink = 0;
+  for (index_t v = 0; v < V; ++v) {
+    raster::Camera<float> cam;
+    const float* E = a.geometry.extrinsics.data() + 12 * v;
+    const float* K = a.geometry.K.data() + 9 * v;
+    for (int i = 0; i < 12; ++i) cam.world_to_camera[i] = E[i];
+    cam.world_to_camera[12] = cam.world_to_camera[13] = cam.world_to_camera[14] = 0, cam.world_to_camera[15] = 1;
+    cam.fx = K[0], cam.fy = K[4], cam.cx = K[2], cam.cy = K[5];
+    cam.width = int(c.image_w), cam.height = int(c.image_h);
+    raster::render_forward(a.gaussians, cam, ro, rws, ra);
+    raster::render_forward(b.gaussians, cam, ro, rws, rb);
+    for (index_t i = 0; i < ra.image.size(); ++i) {
+      worst = std::max(worst, double(std::abs(ra.image.data()[i] - rb.image.data()[i])));
+      ink = std::max(ink, 1.0 - double(ra.image.data()[i]));
+    }
+  }
+  INFO("max pixel difference " << worst << ", darkest pixel below white " << ink);
+  REQUIRE(ink > 0.05);  // the renders show Gaussians, not only the background
+  CHECK(worst <= 1e-3);
+
+  // With one decoder slot per view (the shipped model's design) the same reorder changes the Gaussians.
+  auto per_view = c;
+  per_view.appearance.decoder.view_slots = 0;
+  auto w2 = model::FlexSplatWeights<float>::create(per_view, false);
+  w2->init(23);
+  model::PredictWorkspace<float> ws2;
+  const auto a2 = model::predict<float>(ws2, *w2, e.images.data(), V, 64);
+  const auto b2 = model::predict<float>(ws2, *w2, permuted.data(), V, 64);
+  CHECK(max_rel_diff(a2.gaussians.means.data(), b2.gaussians.means.data(),
+                     static_cast<std::size_t>(a2.gaussians.means.size())) > 1e-4);
 }

@@ -26,10 +26,21 @@ namespace decoder {
 
 struct DecoderConfig {
   index_t dim = 256, ffn = 1024, heads = 8, layers = 3, points = 4, max_views = 4, value_dim = 128;
+  index_t view_slots = 0;       // deformable attention's parameter slots (MVDeformConfig); 0: one per view
   index_t max_queries = 20480;  // rows of the query embedding table; a run uses the first N_G
   bool local_attention = false;
   index_t window = 512;
-  MVDeformConfig deform() const { return {dim, value_dim, heads, points, max_views}; }
+  MVDeformConfig deform() const { return {dim, value_dim, heads, points, max_views, view_slots}; }
+  // The query embedding row of query i of a run with `views` views. Query i is anchored in view i % views at grid
+  // cell i / views (make_anchors). One slot per view: row i. With view_slots S: row (i / views) * S + slot, so the
+  // queries of views 2..V at the same cell share a row and the input order carries no pose.
+  index_t query_row(index_t i, index_t views) const {
+    return view_slots > 0 ? (i / views) * view_slots + std::min(i % views, view_slots - 1) : i;
+  }
+  // Rows of the embedding table a run of n queries over `views` views reads.
+  index_t query_rows_used(index_t n, index_t views) const {
+    return view_slots > 0 ? (n + views - 1) / views * view_slots : n;
+  }
   SelfAttentionConfig self_attention() const { return {dim, heads, local_attention, window}; }
 };
 
@@ -202,6 +213,7 @@ struct DecoderWorkspace {
   Anchors anchors;
   SceneCentre scene_centre;
   AlignedVector<T> base_depth;
+  AlignedVector<T> queries;  // [N, dim] the gathered query embeddings when view_slots > 0
   std::vector<unsigned char> depth_used;
   std::vector<double> median_scratch;
   std::vector<AlignedVector<T>> states;  // [layers + 1][N, 24]
@@ -219,6 +231,7 @@ struct DecoderWorkspace {
     anchors.view.resize(z);
     anchors.pixel.resize(2 * z);
     base_depth.resize(z);
+    if (c.view_slots > 0) queries.resize(z * static_cast<std::size_t>(c.dim));
     depth_used.resize(z);
     if (median_scratch.capacity() < static_cast<std::size_t>(depth_pixels))
       median_scratch.reserve(static_cast<std::size_t>(depth_pixels));
@@ -239,7 +252,7 @@ struct DecoderWorkspace {
   }
   std::size_t capacity_bytes() const {
     std::size_t b = anchors.view.capacity() * sizeof(index_t) + anchors.pixel.capacity() * sizeof(double) +
-                    detail::capacity_bytes_of(base_depth) + depth_used.capacity() +
+                    detail::capacity_bytes_of(base_depth) + detail::capacity_bytes_of(queries) + depth_used.capacity() +
                     detail::capacity_bytes_of(median_scratch) + grad.capacity_bytes();
     for (const auto& st : states) b += detail::capacity_bytes_of(st);
     for (const auto& g : gaussians)
@@ -274,6 +287,9 @@ void decoder_forward(DecoderWorkspace<T>& ws, index_t n_queries, const T* params
   validate_features(features, c.deform(), g.views);
   require(n_queries >= 1 && n_queries <= c.max_queries, "decoder: Gaussian budget ", n_queries, " is outside [1, ",
           c.max_queries, "]");
+  require(c.query_rows_used(n_queries, g.views) <= c.max_queries, "decoder: Gaussian budget ", n_queries, " over ",
+          g.views, " views reads ", c.query_rows_used(n_queries, g.views), " query embeddings, the table has ",
+          c.max_queries, " (max_queries)");
   const index_t n = n_queries, C = c.dim;
   const T eps = static_cast<T>(layernorm_eps);
   DecoderProfile* prof = ws.profile;
@@ -281,6 +297,12 @@ void decoder_forward(DecoderWorkspace<T>& ws, index_t n_queries, const T* params
   {
     detail::ProfileScope t(prof, DecoderProfile::setup);
     ws.resize_forward(c, n, g.views, features.h, features.w, g.depth_w * g.depth_h);
+    if (c.view_slots > 0) {
+      for (index_t i = 0; i < n; ++i)
+        std::copy(params + c.query_row(i, g.views) * C, params + (c.query_row(i, g.views) + 1) * C,
+                  ws.queries.data() + i * C);
+      embeddings = ws.queries.data();
+    }
     make_anchors(ws.anchors, n, g.views, g.image_w, g.image_h);
     ws.scene_centre = scene_centre_from_axes(g, static_cast<const T*>(nullptr), &ws.median_scratch);
     const T centre[3] = {static_cast<T>(ws.scene_centre.centre[0]), static_cast<T>(ws.scene_centre.centre[1]),
@@ -366,7 +388,7 @@ void decoder_backward(T* d_params, T* d_features, const ViewGeometryGrad<T>& d_g
                        ws.anchors, g);
     zero(s.d_centres);
   };
-  const T* embeddings = params;
+  const T* embeddings = c.view_slots > 0 ? ws.queries.data() : params;  // as decoder_forward gathered them
   for (index_t l = c.layers - 1; l >= 0; --l) {
     const DecoderLayerOffsets o = decoder_layer_offsets(c, l);
     auto& k = ws.layers[static_cast<std::size_t>(l)];
@@ -411,7 +433,14 @@ void decoder_backward(T* d_params, T* d_features, const ViewGeometryGrad<T>& d_g
   const index_t init_w = c.max_queries * c.dim;
   splat_head_backward(s.d_x.data(), d_params + init_w, d_params + init_w + splat_values * c.dim, s.d_state.data(),
                       embeddings, params + init_w, n, C);
-  for (index_t i = 0; i < n * C; ++i) d_params[i] += s.d_x[static_cast<std::size_t>(i)];
+  if (c.view_slots > 0) {
+    for (index_t i = 0; i < n; ++i) {
+      T* row = d_params + c.query_row(i, g.views) * C;
+      for (index_t k = 0; k < C; ++k) row[k] += s.d_x[static_cast<std::size_t>(i * C + k)];
+    }
+  } else {
+    for (index_t i = 0; i < n * C; ++i) d_params[i] += s.d_x[static_cast<std::size_t>(i)];
+  }
 }
 
 }  // namespace decoder

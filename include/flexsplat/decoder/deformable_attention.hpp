@@ -27,15 +27,22 @@ struct MVDeformConfig {
   index_t value_dim = 128;  // fused feature channels C_f
   index_t heads = 8;
   index_t points = 4;
-  index_t max_views = 4;  // parameter slots; view v of a run uses slot v
+  index_t max_views = 4;   // views a run may have
+  index_t view_slots = 0;  // parameter slots; view v uses slot min(v, slots - 1). 0: max_views (slot v per view)
+
+  index_t slot_count() const { return view_slots > 0 ? view_slots : max_views; }
+  index_t slot(index_t view) const { return std::min(view, slot_count() - 1); }
+  // Slots a run with `views` views uses: the first min(views, slot_count()).
+  index_t used_slots(index_t views) const { return std::min(views, slot_count()); }
 };
 
-// Offsets of every tensor in the module's flat parameter block. Offset/logit rows are ordered (view, head, point[, xy])
-// so a run with V views uses the first rows only.
+// Offsets of every tensor in the module's flat parameter block. Offset/logit rows are ordered (slot, head, point[, xy])
+// so a run with V views uses the first rows only. With fewer slots than views (VGGT's two token sets: the reference
+// view, then one set every other view shares), views 2..V are interchangeable: the input order carries no pose.
 struct MVDeformParamLayout {
   index_t value_w, value_b, offset_w, offset_b, logit_w, logit_b, out_w, out_b, size;
   explicit MVDeformParamLayout(const MVDeformConfig& c) {
-    const index_t slots = c.max_views * c.heads * c.points;
+    const index_t slots = c.slot_count() * c.heads * c.points;
     index_t at = 0;
     auto take = [&](index_t n) { const index_t o = at; at += n; return o; };
     value_w = take(c.dim * c.value_dim);
@@ -58,7 +65,7 @@ void mv_deform_init(T* params, const MVDeformConfig& c, std::mt19937_64& rng) {
   std::fill(params, params + L.size, T(0));
   xavier_uniform(params + L.value_w, c.dim, c.value_dim, rng);
   xavier_uniform(params + L.out_w, c.dim, c.dim, rng);
-  for (index_t v = 0; v < c.max_views; ++v)
+  for (index_t v = 0; v < c.slot_count(); ++v)
     for (index_t h = 0; h < c.heads; ++h) {
       const double angle = 2.0 * 3.14159265358979323846 * static_cast<double>(h) / static_cast<double>(c.heads);
       const double cx = std::cos(angle), cy = std::sin(angle), m = std::max(std::abs(cx), std::abs(cy));
@@ -83,8 +90,8 @@ template <class T>
 struct MVDeformCache {
   index_t n = 0, views = 0;
   AlignedVector<T> value;      // [V*h*w, dim] = [1, S, heads, head_dim]: one bilinear tap reads head_dim in a row
-  AlignedVector<T> offsets;    // [N, V*heads*points*2] (linear output, view-major)
-  AlignedVector<T> logits;     // [N, V*heads*points]
+  AlignedVector<T> offsets;    // [N, U*heads*points*2] (linear output, slot-major; U = used_slots(V))
+  AlignedVector<T> logits;     // [N, U*heads*points]
   AlignedVector<T> reference;  // [N, V, 2] normalised reference points
   std::vector<unsigned char> visible;  // [N, V]
   std::vector<unsigned char> any_visible;  // [N]
@@ -99,9 +106,10 @@ struct MVDeformCache {
     views = n_views;
     const auto z = static_cast<std::size_t>(n_queries);
     const auto slots = static_cast<std::size_t>(n_views * c.heads * c.points);
+    const auto lin = static_cast<std::size_t>(c.used_slots(n_views) * c.heads * c.points);
     value.resize(static_cast<std::size_t>(n_views * feat_h * feat_w * c.dim));
-    offsets.resize(z * 2 * slots);
-    logits.resize(z * slots);
+    offsets.resize(z * 2 * lin);
+    logits.resize(z * lin);
     reference.resize(z * static_cast<std::size_t>(n_views) * 2);
     visible.resize(z * static_cast<std::size_t>(n_views));
     any_visible.resize(z);
@@ -127,13 +135,14 @@ struct MVDeformGradScratch {
   AlignedVector<T> g_out, d_sampled, d_value, d_loc, d_w, d_logits, d_offsets, d_ref;
   void resize(index_t n, index_t views, index_t feat_h, index_t feat_w, const MVDeformConfig& c) {
     const auto z = static_cast<std::size_t>(n), slots = static_cast<std::size_t>(views * c.heads * c.points);
+    const auto lin = static_cast<std::size_t>(c.used_slots(views) * c.heads * c.points);
     g_out.resize(z * static_cast<std::size_t>(c.dim));
     d_sampled.resize(z * static_cast<std::size_t>(c.dim));
     d_value.resize(static_cast<std::size_t>(views * feat_h * feat_w * c.dim));
     d_loc.resize(z * 2 * slots);
     d_w.resize(z * slots);
-    d_logits.resize(z * slots);
-    d_offsets.resize(z * 2 * slots);
+    d_logits.resize(z * lin);
+    d_offsets.resize(z * 2 * lin);
     d_ref.resize(z * static_cast<std::size_t>(views) * 2);
   }
   std::size_t capacity_bytes() const {
@@ -149,8 +158,8 @@ void validate_features(const FeatureMaps<T>& f, const MVDeformConfig& c, index_t
   require(f.views == views, "deformable attention: ", f.views, " feature maps for ", views, " views");
   require(f.channels == c.value_dim, "deformable attention: feature maps have ", f.channels, " channels, the module expects ",
           c.value_dim);
-  require(views >= 1 && views <= c.max_views, "deformable attention: ", views, " views, the module has ", c.max_views,
-          " view slots");
+  require(views >= 1 && views <= c.max_views, "deformable attention: ", views, " views, the module takes 1 to ",
+          c.max_views);
   require(c.dim % c.heads == 0, "deformable attention: dim ", c.dim, " is not divisible by ", c.heads, " heads");
 }
 
@@ -173,7 +182,7 @@ void mv_deform_forward(T* out, MVDeformCache<T>& cache, const T* x, const T* cen
   validate_features(f, c, g.views);
   const MVDeformParamLayout P(c);
   const index_t V = g.views, H = c.heads, Pn = c.points, hw = f.h * f.w, S = V * hw;
-  const index_t slots = V * H * Pn;
+  const index_t slots = c.used_slots(V) * H * Pn;  // offset / logit rows in use
   cache.resize(n, V, f.h, f.w, c);
   // value projection straight from NCHW: value_v [hw, dim] = features_v^T [hw, C_f] W^T + b
   parallel_for(S, [&](index_t r0, index_t r1, int) {
@@ -203,12 +212,13 @@ void mv_deform_forward(T* out, MVDeformCache<T>& cache, const T* x, const T* cen
         T max_logit = -std::numeric_limits<T>::infinity();
         for (index_t v = 0; v < V; ++v)
           if (cache.visible[q * V + v])
-            for (index_t p = 0; p < Pn; ++p) max_logit = std::max(max_logit, cache.logits[q * slots + (v * H + h) * Pn + p]);
+            for (index_t p = 0; p < Pn; ++p)
+              max_logit = std::max(max_logit, cache.logits[q * slots + (c.slot(v) * H + h) * Pn + p]);
         T sum = 0;
         for (index_t v = 0; v < V; ++v)
           for (index_t p = 0; p < Pn; ++p) {
             const index_t core = ((q * H + h) * V + v) * Pn + p;  // [N, heads, V, points]
-            const index_t lin = (v * H + h) * Pn + p;             // [V, heads, points]
+            const index_t lin = (c.slot(v) * H + h) * Pn + p;     // [U, heads, points]
             const T* ref = &cache.reference[(q * V + v) * 2];
             cache.locations[2 * core] = ref[0] + cache.offsets[q * 2 * slots + 2 * lin] / static_cast<T>(f.w);
             cache.locations[2 * core + 1] = ref[1] + cache.offsets[q * 2 * slots + 2 * lin + 1] / static_cast<T>(f.h);
@@ -240,7 +250,7 @@ void mv_deform_backward(T* d_x, T* d_centres, T* d_params, T* d_features, const 
                         MVDeformGradScratch<T>& gs) {
   const MVDeformParamLayout P(c);
   const index_t n = cache.n, V = cache.views, H = c.heads, Pn = c.points, hw = f.h * f.w;
-  const index_t slots = V * H * Pn;
+  const index_t slots = c.used_slots(V) * H * Pn;
   gs.resize(n, V, f.h, f.w, c);
   std::copy(d_out, d_out + n * c.dim, gs.g_out.begin());
   for (index_t q = 0; q < n; ++q)
@@ -266,10 +276,10 @@ void mv_deform_backward(T* d_x, T* d_centres, T* d_params, T* d_features, const 
         for (index_t s = 0; s < V * Pn; ++s) dot += cache.weights[base + s] * d_w[base + s];
         for (index_t v = 0; v < V; ++v)
           for (index_t p = 0; p < Pn; ++p) {
-            const index_t core = base + v * Pn + p, lin = (v * H + h) * Pn + p;
-            d_logits[q * slots + lin] = cache.weights[core] * (d_w[core] - dot);
-            d_offsets[q * 2 * slots + 2 * lin] = d_loc[2 * core] / static_cast<T>(f.w);
-            d_offsets[q * 2 * slots + 2 * lin + 1] = d_loc[2 * core + 1] / static_cast<T>(f.h);
+            const index_t core = base + v * Pn + p, lin = (c.slot(v) * H + h) * Pn + p;  // views may share a slot
+            d_logits[q * slots + lin] += cache.weights[core] * (d_w[core] - dot);
+            d_offsets[q * 2 * slots + 2 * lin] += d_loc[2 * core] / static_cast<T>(f.w);
+            d_offsets[q * 2 * slots + 2 * lin + 1] += d_loc[2 * core + 1] / static_cast<T>(f.h);
             if (cache.visible[q * V + v]) {
               d_ref[(q * V + v) * 2] += d_loc[2 * core];
               d_ref[(q * V + v) * 2 + 1] += d_loc[2 * core + 1];

@@ -52,7 +52,7 @@ inline void append_model_specs(std::vector<geometry::TensorSpec>& out, const Mod
   // Decoder, in DecoderParamLayout / take_layer_offsets order.
   const auto& d = c.decoder;
   const auto deform = d.deform();
-  const index_t slots = deform.max_views * deform.heads * deform.points;
+  const index_t slots = deform.slot_count() * deform.heads * deform.points;
   add("decoder.query_embeddings", {d.max_queries, d.dim});
   add("decoder.init_head.weight", {splat_values, d.dim});
   add("decoder.init_head.bias", {splat_values});

@@ -44,6 +44,11 @@ struct FlexSplatConfig {
             "FlexSplat config: decoder dim ", d.dim, ", ffn ", d.ffn, ", heads ", d.heads, ", layers ", d.layers, ", points ",
             d.points, ", max_views ", d.max_views, ", value_dim ", d.value_dim, ", max_queries ", d.max_queries, ", window ",
             d.window, " must be positive, with dim divisible by heads");
+    require(d.view_slots >= 0 && d.view_slots <= d.max_views, "FlexSplat config: decoder view_slots ", d.view_slots,
+            " must be in [0, max_views = ", d.max_views, "] (0: one slot per view)");
+    require(d.view_slots == 0 || gaussians * d.view_slots <= d.max_queries, "FlexSplat config: ", gaussians,
+            " Gaussians of one view read ", gaussians * d.view_slots, " query embeddings with view_slots ",
+            d.view_slots, ", max_queries is ", d.max_queries);
     const index_t p = geometry.aggregator.patch_size;
     require(image_h >= p && image_w >= p && image_h % p == 0 && image_w % p == 0, "FlexSplat config: image size ",
             image_h, " x ", image_w, " must be a positive multiple of the patch size ", p);
@@ -80,12 +85,15 @@ inline nlohmann::json to_json(const geometry::VggtConfig& c) {
 
 inline nlohmann::json to_json(const decoder::ModelConfig& c) {
   const auto& d = c.decoder;
-  return {{"unet", {{"in_channels", c.unet.in_channels}, {"base", c.unet.base}, {"levels", c.unet.levels}}},
-          {"fusion", {{"depth_channels", c.fusion.depth_channels}, {"unet_channels", c.fusion.unet_channels},
-                      {"out_channels", c.fusion.out_channels}}},
-          {"decoder", {{"dim", d.dim}, {"ffn", d.ffn}, {"heads", d.heads}, {"layers", d.layers}, {"points", d.points},
-                       {"max_views", d.max_views}, {"value_dim", d.value_dim}, {"max_queries", d.max_queries},
-                       {"local_attention", d.local_attention}, {"window", d.window}}}};
+  nlohmann::json j = {
+      {"unet", {{"in_channels", c.unet.in_channels}, {"base", c.unet.base}, {"levels", c.unet.levels}}},
+      {"fusion", {{"depth_channels", c.fusion.depth_channels}, {"unet_channels", c.fusion.unet_channels},
+                  {"out_channels", c.fusion.out_channels}}},
+      {"decoder", {{"dim", d.dim}, {"ffn", d.ffn}, {"heads", d.heads}, {"layers", d.layers}, {"points", d.points},
+                   {"max_views", d.max_views}, {"value_dim", d.value_dim}, {"max_queries", d.max_queries},
+                   {"local_attention", d.local_attention}, {"window", d.window}}}};
+  if (d.view_slots > 0) j["decoder"]["view_slots"] = d.view_slots;  // absent in files made before the key existed
+  return j;
 }
 
 inline nlohmann::json to_json(const FlexSplatConfig& c) {
@@ -129,6 +137,7 @@ inline decoder::ModelConfig appearance_config_from_json(const nlohmann::json& j)
     auto& o = c.decoder;
     get(d, "dim", o.dim), get(d, "ffn", o.ffn), get(d, "heads", o.heads), get(d, "layers", o.layers);
     get(d, "points", o.points), get(d, "max_views", o.max_views), get(d, "value_dim", o.value_dim);
+    get(d, "view_slots", o.view_slots);
     get(d, "max_queries", o.max_queries), get(d, "local_attention", o.local_attention), get(d, "window", o.window);
   }
   return c;
