@@ -52,6 +52,7 @@ template <class T>
 struct FusionCache {
   index_t views = 0, dh = 0, dw = 0, h = 0, w = 0;
   AlignedVector<T> projected, sum, refined_pre, refined, fused, rgb_logit, scratch;
+  AlignedVector<T> d_f, d_logit, d_refined, d_pre, d_sum, d_proj;  // backward's, kept so repeated steps do not allocate
   bool keep_for_backward = true;  // false: forward only (predict), the GELU in place, no copy of the output
 };
 
@@ -110,14 +111,21 @@ void fusion_backward(T* d_depth_features, T* d_unet, T* d_params, const T* d_fus
   const auto refine = detail::fusion_conv(views, c.unet_channels, c.unet_channels, h, w, 3);
   const auto reduce = detail::fusion_conv(views, c.unet_channels, c.out_channels, h, w, 1);
   const auto head = detail::fusion_conv(views, c.out_channels, 3, h, w, 1);
-  AlignedVector<T> d_f(d_fused, d_fused + views * c.out_channels * hw);
+  AlignedVector<T>& d_f = k.d_f;
+  d_f.assign(d_fused, d_fused + views * c.out_channels * hw);
   if (d_rgb) {
-    AlignedVector<T> d_logit(k.rgb_logit.size());
+    AlignedVector<T>& d_logit = k.d_logit;
+    d_logit.resize(k.rgb_logit.size());
     for (std::size_t i = 0; i < d_logit.size(); ++i) d_logit[i] = nn::sigmoid_vjp(k.rgb_logit[i], d_rgb[i]);
     nn::conv2d_backward(d_f.data(), d_params + L.rgb_w, d_params + L.rgb_b, d_logit.data(), k.fused.data(), params + L.rgb_w,
                         head, std::span<T>(k.scratch));
   }
-  AlignedVector<T> d_refined(k.refined.size(), T(0)), d_pre(k.refined.size(), T(0)), d_sum(k.sum.size(), T(0));
+  AlignedVector<T>& d_refined = k.d_refined;
+  AlignedVector<T>& d_pre = k.d_pre;
+  AlignedVector<T>& d_sum = k.d_sum;
+  d_refined.assign(k.refined.size(), T(0));
+  d_pre.assign(k.refined.size(), T(0));
+  d_sum.assign(k.sum.size(), T(0));
   nn::conv2d_backward(d_refined.data(), d_params + L.reduce_w, d_params + L.reduce_b, d_f.data(), k.refined.data(),
                       params + L.reduce_w, reduce, std::span<T>(k.scratch));
   nn::gelu_backward(d_pre.data(), d_refined.data(), k.refined_pre.data(), static_cast<index_t>(d_pre.size()));
@@ -125,7 +133,8 @@ void fusion_backward(T* d_depth_features, T* d_unet, T* d_params, const T* d_fus
                       params + L.refine_w, refine, std::span<T>(k.scratch));
   if (d_unet)
     for (std::size_t i = 0; i < d_sum.size(); ++i) d_unet[i] += d_sum[i];
-  AlignedVector<T> d_proj(k.projected.size(), T(0));
+  AlignedVector<T>& d_proj = k.d_proj;
+  d_proj.assign(k.projected.size(), T(0));
   nn::bilinear_resize_backward(d_proj.data(), d_sum.data(), views * c.unet_channels, k.dh, k.dw, h, w, false);
   nn::conv2d_backward(d_depth_features, d_params + L.proj_w, d_params + L.proj_b, d_proj.data(), depth_features,
                       params + L.proj_w, proj, std::span<T>(k.scratch));

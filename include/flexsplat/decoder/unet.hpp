@@ -70,6 +70,8 @@ struct UNetCache {
   std::vector<index_t> out_h, out_w, in_h, in_w;
   AlignedVector<T> scratch;
   AlignedVector<T> spare[2];  // forward only: the outputs no later conv reads again (all but the skips) alternate here
+  std::vector<AlignedVector<T>> d_post;  // backward's per-conv gradients, kept so repeated steps do not allocate
+  AlignedVector<T> d_pre;
   bool keep_for_backward = true;  // false: forward only (predict), each GELU in place; unet_backward is refused
 };
 
@@ -170,7 +172,8 @@ void unet_backward(T* d_images, T* d_params, const T* d_out, UNetCache<T>& cache
           "unet_backward: the forward kept no pre-activation outputs (UNetCache::keep_for_backward is false)");
   const auto convs = unet_convs(c);
   const index_t views = cache.views;
-  std::vector<AlignedVector<T>> d_post(convs.size());
+  auto& d_post = cache.d_post;
+  d_post.resize(convs.size());
   for (std::size_t i = 0; i < convs.size(); ++i) d_post[i].assign(cache.post[i].size(), T(0));
   std::copy(d_out, d_out + d_post.back().size(), d_post.back().begin());
   // skip producers, in the order the transposed convs consume them (last pushed first)
@@ -188,7 +191,8 @@ void unet_backward(T* d_images, T* d_params, const T* d_out, UNetCache<T>& cache
     const nn::Conv2dShape s = detail::unet_shape(v, views, cache.in_h[i], cache.in_w[i]);
     const T* x = i == 0 ? images : cache.post[i - 1].data();
     T* dx = i == 0 ? d_images : d_post[i - 1].data();
-    AlignedVector<T> d_pre(cache.pre[i].size(), T(0));
+    AlignedVector<T>& d_pre = cache.d_pre;
+    d_pre.assign(cache.pre[i].size(), T(0));
     if (v.transposed) {
       auto& d_skip = d_post[consumer_skip[i]];
       for (std::size_t k = 0; k < d_post[i].size(); ++k) d_skip[k] += d_post[i][k];
