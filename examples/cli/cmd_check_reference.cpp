@@ -6,7 +6,10 @@
 namespace flexsplat::cli {
 namespace {
 
-int check_reference(const Args& args) {
+int check_reference(Args args) {
+  // --rows N: each bundle must compare exactly N tensors, so that a checker that silently skips some cannot pass.
+  std::string rows_text;
+  const long long rows = take_option(args, "--rows", rows_text) ? parse_integer(rows_text, "--rows", 1, 1000000) : 0;
   require(!args.empty(), "check-reference needs at least one .safetensors bundle");
   int failures = 0;
   for (const auto& path : args) {
@@ -25,7 +28,10 @@ int check_reference(const Args& args) {
       report.kind = kind;
       it->second(file, report);
       report.print(stdout);
-      const bool pass = report.all_pass();
+      const bool count_ok = rows == 0 || static_cast<long long>(report.rows.size()) == rows;
+      if (!count_ok)
+        std::printf("%s: compared %zu tensors, expected %lld (--rows)\n", path.c_str(), report.rows.size(), rows);
+      const bool pass = report.all_pass() && count_ok;
       std::printf("%s: %s\n", path.c_str(), pass ? "PASS" : "FAIL");
       if (!pass) ++failures;
     } catch (const std::exception& e) {
@@ -38,7 +44,7 @@ int check_reference(const Args& args) {
 
 const RegisterCommand registered_cmd_check_reference("check-reference",
                                  {"compare the library against golden reference bundles (by __metadata__.kind)",
-                                  "BUNDLE.safetensors...", check_reference});
+                                  "[--rows N] BUNDLE.safetensors...", check_reference});
 
 }  // namespace
 }  // namespace flexsplat::cli

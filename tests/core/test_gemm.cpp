@@ -9,6 +9,7 @@
 
 #include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/half.hpp"
+#include "skip.hpp"
 
 using namespace flexsplat;
 
@@ -191,10 +192,7 @@ TEST_CASE("gemm is bitwise deterministic for a thread count, and the backends ag
 }
 
 TEST_CASE("bf16 gemm is the fp32-accumulated product of the bf16-rounded operands", "[gemm]") {
-  if constexpr (!have_bf16_gemm) {
-    WARN("this build has no oneDNN: GemmBackend::bf16 is not available");
-    return;
-  }
+  if constexpr (!have_bf16_gemm) FLEXSPLAT_SKIP("this build has no oneDNN: GemmBackend::bf16 is not available");
   // Every transpose, padded strides, alpha and beta, above gemm_bf16_min_madds so that oneDNN runs.
   const index_t M = 130, N = 110, K = 96, pad = 3;
   REQUIRE(M * N * K >= gemm_bf16_min_madds);
@@ -258,10 +256,7 @@ TEST_CASE("GemmWeightCache: covers only operands wholly inside a frozen range", 
 }
 
 TEST_CASE("bf16 gemm with a GemmWeightCache is bitwise the product without it and packs each B once", "[gemm]") {
-  if constexpr (!have_bf16_gemm) {
-    WARN("this build has no oneDNN: GemmBackend::bf16 is not available");
-    return;
-  }
+  if constexpr (!have_bf16_gemm) FLEXSPLAT_SKIP("this build has no oneDNN: GemmBackend::bf16 is not available");
   // Row splits (tall), column splits (4 rows: a camera-head shape) and a single call, every transpose of B, alpha and
   // beta, padded strides, on 1 and 2 threads.
   struct Shape {
@@ -299,10 +294,7 @@ TEST_CASE("bf16 gemm with a GemmWeightCache is bitwise the product without it an
 
 TEST_CASE("GemmWeightCache: unfrozen operands, parallel regions and other threads leave it alone, clear() repacks",
           "[gemm]") {
-  if constexpr (!have_bf16_gemm) {
-    WARN("this build has no oneDNN: GemmBackend::bf16 is not available");
-    return;
-  }
+  if constexpr (!have_bf16_gemm) FLEXSPLAT_SKIP("this build has no oneDNN: GemmBackend::bf16 is not available");
   const index_t M = 130, N = 110, K = 96;
   const auto A = random_vector<float>(M * K, 71);
   auto B = random_vector<float>(K * N, 72);
@@ -343,10 +335,7 @@ TEST_CASE("GemmWeightCache: unfrozen operands, parallel regions and other thread
 }
 
 TEST_CASE("bf16 gemm: double products and small float ones keep full precision", "[gemm]") {
-  if constexpr (!have_bf16_gemm) {
-    WARN("this build has no oneDNN: GemmBackend::bf16 is not available");
-    return;
-  }
+  if constexpr (!have_bf16_gemm) FLEXSPLAT_SKIP("this build has no oneDNN: GemmBackend::bf16 is not available");
   const index_t M = 8, N = 8, K = 8;  // far below gemm_bf16_min_madds
   const auto A = random_vector<float>(M * K, 51), B = random_vector<float>(K * N, 52);
   std::vector<float> c(M * N), ref(M * N);
@@ -362,10 +351,7 @@ TEST_CASE("bf16 gemm: double products and small float ones keep full precision",
 
 TEST_CASE("onednn gemm is within 2 K eps of the float64 product: every transpose, stride, alpha, beta, 1 and 2 threads",
           "[gemm]") {
-  if constexpr (!have_onednn_gemm) {
-    WARN("this build has no oneDNN: GemmBackend::onednn is not available");
-    return;
-  }
+  if constexpr (!have_onednn_gemm) FLEXSPLAT_SKIP("this build has no oneDNN: GemmBackend::onednn is not available");
   const double eps = std::numeric_limits<float>::epsilon();
   ThreadPool one(1), two(2);
   // Above gemm_onednn_min_madds, so that oneDNN runs (also for each part of the 2-thread split: rows, then columns
@@ -420,7 +406,7 @@ TEST_CASE("onednn gemm is within 2 K eps of the float64 product: every transpose
 }
 
 TEST_CASE("onednn gemm: double products and small float ones stay on the fp32 fallback", "[gemm]") {
-  if constexpr (!have_onednn_gemm) return;
+  if constexpr (!have_onednn_gemm) FLEXSPLAT_SKIP("this build has no oneDNN: GemmBackend::onednn is not available");
   const index_t n = 16;  // n^3 far below gemm_onednn_min_madds
   const auto A = random_vector<float>(n * n, 71), B = random_vector<float>(n * n, 72);
   std::vector<float> c(n * n), fallback(n * n);

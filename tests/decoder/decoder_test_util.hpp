@@ -86,3 +86,38 @@ inline flexsplat::GaussianSetGrad<double> unflatten_grad(const double* p, flexsp
   std::copy(p + n, p + n + 12 * n, d.sh.data());
   return d;
 }
+
+#include <string>
+#include <utility>
+
+#include "flexsplat/decoder/param_names.hpp"
+
+// The named tensors of a decoder-side flat block, in block order, for testing::split_flat: the model tensors whose
+// names start with `part` ("unet.", "fusion.", "decoder."; empty: the whole model).
+inline std::vector<std::pair<std::string, std::size_t>> appearance_tensors(const flexsplat::decoder::ModelConfig& c,
+                                                                           const std::string& part = {}) {
+  std::vector<flexsplat::geometry::TensorSpec> specs;
+  flexsplat::decoder::append_model_specs(specs, c);
+  std::vector<std::pair<std::string, std::size_t>> out;
+  for (const auto& s : specs)
+    if (s.name.compare(0, part.size(), part) == 0)
+      out.emplace_back(s.name, static_cast<std::size_t>(flexsplat::geometry::spec_numel(s)));
+  return out;
+}
+
+// A consistent model around one part's configuration (the other parts at their defaults, channels matched).
+inline flexsplat::decoder::ModelConfig model_around(const flexsplat::decoder::UNetConfig& u) {
+  flexsplat::decoder::ModelConfig m;
+  m.unet = u, m.fusion.unet_channels = u.base, m.fusion.out_channels = m.decoder.value_dim;
+  return m;
+}
+inline flexsplat::decoder::ModelConfig model_around(const flexsplat::decoder::FusionConfig& f) {
+  flexsplat::decoder::ModelConfig m;
+  m.fusion = f, m.unet.base = f.unet_channels, m.decoder.value_dim = f.out_channels;
+  return m;
+}
+inline flexsplat::decoder::ModelConfig model_around(const flexsplat::decoder::DecoderConfig& d) {
+  flexsplat::decoder::ModelConfig m;
+  m.decoder = d, m.fusion.out_channels = d.value_dim, m.fusion.unet_channels = m.unet.base;
+  return m;
+}

@@ -16,15 +16,18 @@ TEST_CASE("fusion and RGB head pass the float64 gradient check", "[decoder][fusi
   decoder::FusionCache<double> cache;
   std::vector<double> dd(depth.size()), du(unet.size()), dp(params.size());
   const index_t nf = V * 4 * h * w, nr = V * 3 * h * w;
+  auto tensors = testing::split_flat(params, dp, appearance_tensors(model_around(c), "fusion."));
+  tensors.push_back({"depth_features", depth, dd});
+  tensors.push_back({"unet", unet, du});
   auto result = testing::check_gradients(
-      {{"depth_features", depth, dd}, {"unet", unet, du}, {"params", params, dp}}, nf + nr,
+      tensors, nf + nr,
       [&](std::span<double> o) {
         decoder::fusion_forward(o.data(), o.data() + nf, cache, depth.data(), dh, dw, unet.data(), V, h, w, params.data(), c);
       },
       [&](std::span<const double> g) {
         decoder::fusion_backward(dd.data(), du.data(), dp.data(), g.data(), g.data() + nf, cache, depth.data(), params.data(), c);
       },
-      {1e-6, 1e-7, 1e-5, 200});
+      {1e-6, 1e-7, 1e-5, 24});
   INFO(result.summary());
   CHECK(result.ok());
 }

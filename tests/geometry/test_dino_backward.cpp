@@ -51,8 +51,8 @@ struct FlatDino {
     index_t at = 0;
     for (auto& s : specs) {
       const auto n = static_cast<std::size_t>(spec_numel(s));
-      if (s.name.find("mask_token") == std::string::npos)  // stored, never read
-        out.push_back({s.name, std::span<double>(params.data() + at, n), std::span<double>(grads.data() + at, n)});
+      out.push_back({s.name, std::span<double>(params.data() + at, n), std::span<double>(grads.data() + at, n),
+                     s.name.find("mask_token") != std::string::npos ? "stored, never read (nothing is masked)" : ""});
       at += spec_numel(s);
     }
     return out;

@@ -25,21 +25,31 @@ TEST_CASE("the vggt checker passes the shared bundle at 1e-4 of each tensor's ma
 TEST_CASE("a 1% change of one LayerScale is caught by the comparison", "[geometry][vggt]") {
   const auto file = safetensors::File::open(vggt_bundle_path());
   const VggtConfig cfg = vggt_config_from_json(file.metadata("config"));
-  ParamSource<float> src(file, "param.");
   const std::string name = "aggregator.global_blocks.1.ls2.gamma";
   const auto original = file.get<float, 1>("param." + name);
-  std::vector<float> changed(original.data(), original.data() + original.size());
-  for (auto& v : changed) v *= 1.01f;
-  src.add(name, {original.shape(0)}, changed);
-  const auto weights = load_vggt_weights(src, cfg);
   const auto images = file.get<float, 5>("case2.images");
-  VggtWorkspace<float> ws;
-  const auto out = vggt_forward<float>(images.data(), 1, images.shape(3), images.shape(4), cfg, weights, ws);
   const auto expected = file.get<float, 5>("case2.depth");
   ReferenceReport report;
-  const auto& row = report.compare<float, float>("depth", out.depth.span(), expected.span(),
-                                                 {ToleranceKind::relative_to_max_abs, vggt_reference_tolerance});
+  const auto depth_row = [&](float factor) {
+    ParamSource<float> src(file, "param.");
+    std::vector<float> changed(original.data(), original.data() + original.size());
+    for (auto& v : changed) v *= factor;
+    src.add(name, {original.shape(0)}, changed);
+    const auto weights = load_vggt_weights(src, cfg);
+    VggtWorkspace<float> ws;
+    const auto out = vggt_forward<float>(images.data(), 1, images.shape(3), images.shape(4), cfg, weights, ws);
+    return report.compare<float, float>("depth", out.depth.span(), expected.span(),
+                                        {ToleranceKind::relative_to_max_abs, vggt_reference_tolerance});
+  };
+  // The same path with the bundle's own value passes, so the failure below is the change's.
+  CHECK(depth_row(1.0f).pass);
+  // A value mismatch of the compared depth: same size, finite, the error above the tolerance.
+  const auto row = depth_row(1.01f);
+  INFO(row.name << " max_rel " << row.max_rel_error << " note '" << row.note << "'");
   CHECK_FALSE(row.pass);
+  CHECK(row.note.empty());
+  CHECK(std::isfinite(row.max_rel_error));
+  CHECK(row.max_rel_error > vggt_reference_tolerance);
 }
 
 TEST_CASE("vggt_forward rejects images that are not whole patches or not finite", "[geometry][vggt]") {

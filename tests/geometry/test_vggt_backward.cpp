@@ -154,6 +154,8 @@ TEST_CASE("VGGT end to end: images -> cameras, depth, confidence, world points, 
     vggt_backward<double>(d_images.data(), m.g, unflatten_grads(o, d_out.data()), o, cache, c, m.w, scratch);
   };
   auto params = m.grad_params();
+  for (auto& p : params)
+    if (p.name == "aggregator.patch_embed.mask_token") p.zero_reason = "stored, never read (nothing is masked)";
   params.push_back({"images", images, d_images});
   testing::GradCheckOptions options;
   options.max_checks_per_param = 2;  // ~100 tensors, each reached; every op has its own full check

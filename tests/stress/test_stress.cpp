@@ -1,5 +1,6 @@
 #include <catch2/catch.hpp>
 
+#include <cerrno>
 #include <cstdlib>
 #include <string>
 
@@ -7,11 +8,19 @@
 
 // The CI sample of bench/stress.cpp: a few cases per stage (FLEXSPLAT_STRESS_CASES overrides), seed fixed.
 namespace {
+// FLEXSPLAT_STRESS_CASES must be a positive integer: zero cases (or a typo read as zero) would pass having run nothing.
 long sample_cases(long fallback) {
   const char* env = std::getenv("FLEXSPLAT_STRESS_CASES");
-  return env ? std::atol(env) : fallback;
+  if (!env) return fallback;
+  char* end = nullptr;
+  errno = 0;
+  const long n = std::strtol(env, &end, 10);
+  INFO("FLEXSPLAT_STRESS_CASES='" << env << "'");
+  REQUIRE((errno == 0 && end != env && *end == '\0' && n > 0));
+  return n;
 }
 void check(const flexsplat_stress::StageResult& r) {
+  REQUIRE(r.cases > 0);
   for (const auto& [message, count] : r.errors) INFO(r.stage << " refused " << count << "x: " << message);
   for (const auto& f : r.failed) UNSCOPED_INFO(r.stage << " " << f);
   CHECK(r.failures == 0);
