@@ -127,22 +127,15 @@ static int run_recipe(const RecipeOptions& ro) {
     std::uint64_t s0 = 0;
     const train::TrainStage& st = cfg.stages[cfg.stage_at(step, s0)];
     const double lr = train::CosineSchedule{st.lr, 0.0, st.warmup, st.steps}.lr(step - s0);
-    model::PhaseTimes t;
-    const auto r = model::train_step<float>(ws, *w, batch, cfg.batch, st.step, lr, step, solo, lpips.get(), &t);
+    // train_step adds into the PhaseTimes it is given: the counted steps accumulate in `phases`.
+    const auto r = model::train_step<float>(ws, *w, batch, cfg.batch, st.step, lr, step, solo, lpips.get(),
+                                            k < 0 ? nullptr : &phases);
     const auto t2 = std::chrono::steady_clock::now();
     require(std::isfinite(r.loss), "train_step bench: the loss is ", r.loss, " at step ", step);
     if (k < 0) continue;
     data_s += std::chrono::duration<double>(t1 - t0).count();
     step_s += std::chrono::duration<double>(t2 - t1).count();
     scenes += cfg.batch;
-    for (double model::PhaseValues::*f :
-         {&model::PhaseValues::geometry_forward, &model::PhaseValues::geometry_backward,
-          &model::PhaseValues::decoder_forward, &model::PhaseValues::decoder_backward,
-          &model::PhaseValues::raster_forward, &model::PhaseValues::raster_backward, &model::PhaseValues::losses,
-          &model::PhaseValues::update}) {
-      phases.*f += t.*f;
-      phases.flops.*f += t.flops.*f;
-    }
   }
   profile::set_enabled(false);
   const profile::Totals ops = profile::totals();

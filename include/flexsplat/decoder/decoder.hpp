@@ -298,9 +298,10 @@ void decoder_forward(DecoderWorkspace<T>& ws, index_t n_queries, const T* params
     detail::ProfileScope t(prof, DecoderProfile::setup);
     ws.resize_forward(c, n, g.views, features.h, features.w, g.depth_w * g.depth_h);
     if (c.view_slots > 0) {
-      for (index_t i = 0; i < n; ++i)
-        std::copy(params + c.query_row(i, g.views) * C, params + (c.query_row(i, g.views) + 1) * C,
-                  ws.queries.data() + i * C);
+      for (index_t i = 0; i < n; ++i) {
+        const T* row = params + c.query_row(i, g.views) * C;
+        std::copy(row, row + C, ws.queries.data() + i * C);
+      }
       embeddings = ws.queries.data();
     }
     make_anchors(ws.anchors, n, g.views, g.image_w, g.image_h);
