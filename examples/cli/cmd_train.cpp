@@ -1,5 +1,6 @@
 // train: FlexSplat training runs from a JSON configuration, resumable exactly, data parallel over MPI when built with it.
 #include <chrono>
+#include <ctime>
 #include <cmath>
 #include <cstdio>
 #include <deque>
@@ -58,10 +59,14 @@ std::vector<ValidationSet> make_validation_sets(const TrainData& d, const TrainR
   data::BatchOptions o;
   o.inputs = std::min(4, c.inputs_max);
   o.targets = v.targets;
-  if (v.scenes > 0) {
-    ValidationSet set{"procedural", {}, {}};
+  o.structured_inputs = c.structured_inputs;
+  // Under a curriculum, also the first step's small baselines: where learning shows first.
+  for (const double baseline : c.baseline_steps > 0 ? std::vector<double>{0.0, c.baseline_deg[0]} : std::vector<double>{0.0}) {
+    if (v.scenes == 0) break;
+    ValidationSet set{baseline > 0 ? "procedural-near" : "procedural", {}, {}};
     data::GeneratorConfig g = d.generator;
     g.size = static_cast<int>(c.model.image_h);
+    g.orbit.max_baseline_deg = baseline;
     const std::uint64_t seed = data::child_seed(c.seed, 0x76616c6964ull);  // never a training batch's seed
     for (const auto& s : data::generate_batch(g, v.scenes, seed, 0, o)) {
       set.scene_names.push_back(s.name);
@@ -77,9 +82,12 @@ std::vector<ValidationSet> make_validation_sets(const TrainData& d, const TrainR
       data::BatchOptions oo = o;
       oo.crop = static_cast<int>(c.model.image_h);
       oo.scale_min = oo.scale_max = static_cast<double>(c.model.image_h) / static_cast<double>(rec.width);
-      const auto s = data::sample_batch({rec}, 1, c.seed, 0, oo);
-      set.scene_names.push_back(rec.name);
-      set.scenes.push_back(model::make_train_example<float>(s[0], c.model));
+      // Off the rig, two draws of random views per object.
+      for (std::uint64_t draw = 0; draw < (c.structured_inputs ? 1u : 2u); ++draw) {
+        const auto s = data::sample_batch({rec}, 1, c.seed, draw, oo);
+        set.scene_names.push_back(rec.name);
+        set.scenes.push_back(model::make_train_example<float>(s[0], c.model));
+      }
     }
     sets.push_back(std::move(set));
   }
@@ -95,12 +103,13 @@ nlohmann::json run_validation(const std::vector<ValidationSet>& sets, const mode
   std::vector<image::GridCell> cells;
   const int inputs_shown = 4, targets_shown = 2, cols = inputs_shown + 2 * targets_shown;
   for (const auto& set : sets) {
-    double psnr = 0, ssim = 0, rot = 0, depth = 0;
+    double psnr = 0, ssim = 0, rot = 0, depth = 0, rra15 = 0, rra30 = 0, prot = 0, prra15 = 0, prra30 = 0, chance = 0;
     for (std::size_t i = 0; i < set.scenes.size(); ++i) {
       const auto& e = set.scenes[i];
       std::vector<Tensor<float, 3>> renders;
       const model::ValidationScore s = model::validate_scene(ws, w, e, &renders);
-      psnr += s.psnr, ssim += s.ssim, rot += s.rotation_deg, depth += s.depth_rel;
+      psnr += s.psnr, ssim += s.ssim, rot += s.rotation_deg, depth += s.depth_rel, rra15 += s.rra15, rra30 += s.rra30;
+      prot += s.points_rotation_deg, prra15 += s.points_rra15, prra30 += s.points_rra30, chance += s.chance_rotation_deg;
       if (i >= 4) continue;
       const Shape<3> shape{e.h, e.w, 3};
       for (int v = 0; v < inputs_shown; ++v)
@@ -118,7 +127,10 @@ nlohmann::json run_validation(const std::vector<ValidationSet>& sets, const mode
       }
     }
     const double n = static_cast<double>(std::max<std::size_t>(set.scenes.size(), 1));
-    result[set.name] = {{"psnr", psnr / n}, {"ssim", ssim / n}, {"rotation_deg", rot / n}, {"depth_rel", depth / n}};
+    result[set.name] = {{"psnr", psnr / n}, {"ssim", ssim / n}, {"rotation_deg", rot / n}, {"depth_rel", depth / n},
+                        {"rra15", rra15 / n}, {"rra30", rra30 / n}, {"chance_rotation_deg", chance / n}};
+    if (w.config().geometry.point_head)
+      result[set.name].update({{"points_rotation_deg", prot / n}, {"points_rra15", prra15 / n}, {"points_rra30", prra30 / n}});
   }
   if (!cells.empty()) image::write_png(picture, image::image_grid(cells, cols, 112));
   return result;
@@ -147,11 +159,12 @@ void write_curves(const fs::path& log_path, const fs::path& picture) {
       for (const auto& [set, v] : j["validation"].items()) {
         add(psnr, "val " + set, step, v.value("psnr", 0.0));
         add(rot, "val " + set, step, v.value("rotation_deg", 0.0));
+        if (v.contains("points_rotation_deg")) add(rot, "val " + set + " (points)", step, v.value("points_rotation_deg", 0.0));
       }
       continue;
     }
     add(loss, "total", step, j.value("loss", 0.0));
-    for (const char* k : {"render", "camera", "depth", "rgb_head"})
+    for (const char* k : {"render", "camera", "depth", "points", "rgb_head"})
       if (j.value(k, 0.0) > 0) add(loss, k, step, j.value(k, 0.0));
     if (j.value("psnr", 0.0) > 0) add(psnr, "train", step, j.value("psnr", 0.0));
   }
@@ -355,9 +368,10 @@ int train_command(Args args) {
                          std::max(now - last_log_time, 1e-9);
     if (done % cfg.log_every == 0 || done == stop_at) {
       const json line = {{"step", done}, {"stage", stage.name}, {"lr", lr}, {"loss", r.loss}, {"camera", r.camera},
-                         {"depth", r.depth}, {"rgb_head", r.rgb_head}, {"render", r.render},
+                         {"depth", r.depth}, {"points", r.points}, {"rgb_head", r.rgb_head}, {"render", r.render},
                          {"render_depth", r.render_depth}, {"lpips", r.lpips}, {"psnr", r.psnr},
-                         {"grad_norm", r.grad_norm}, {"seconds", now}, {"scenes_per_s", speed}};
+                         {"grad_norm", r.grad_norm}, {"seconds", now}, {"scenes_per_s", speed},
+                         {"cpu_seconds", static_cast<double>(std::clock()) / CLOCKS_PER_SEC}};
       log << line.dump() << "\n";
       log.flush();
       last_log_time = now, last_log_step = done;
@@ -407,9 +421,12 @@ const RegisterCommand registered_cmd_train(
               "--config CFG.json --data procedural|DIR... --out RUN_DIR [--init VGGT.safetensors] [--steps N] "
               "[--seconds S] [--quiet]\n"
               "  CFG.json keys (all optional): model (\"tiny\" | \"paper\" | FlexSplat config object), seed, batch (global),\n"
-              "  inputs [min, max] views per scene, targets, gaussians (0: tied to the view count), max_grad_norm,\n"
-              "  lpips_weights, checkpoint_every, log_every, validation, stages [{name, steps, lr, warmup, appearance, train_geometry,\n"
-              "  camera_weight, depth_weight, objective {rgb_head, render, depth, lpips}}]; unknown keys are errors\n"
+              "  inputs [min, max] views per scene, structured_inputs (false: random views and order, no fixed rig),\n"
+              "  curriculum {baseline_deg [start, end], steps}: procedural views within a growing angle of the first,\n"
+              "  targets, gaussians (0: tied to the view count), max_grad_norm, lpips_weights, checkpoint_every,\n"
+              "  log_every, validation, stages [{name, steps, lr, warmup, appearance, train_geometry, camera_weight,\n"
+              "  depth_weight, point_weight (model.geometry.point_head), objective {rgb_head, render, depth, lpips}}];\n"
+              "  unknown keys are errors\n"
               "  validation {every, scenes, targets, objects [DIR...]}: held-out scores in log.jsonl and validation.png\n"
               "  RUN_DIR: config.json, log.jsonl, state.safetensors (resume point), model.safetensors (at the end),\n"
               "  curves.png (loss, PSNR, camera error against the step, redrawn at each checkpoint)\n"

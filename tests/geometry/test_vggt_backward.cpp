@@ -164,6 +164,64 @@ TEST_CASE("VGGT end to end: images -> cameras, depth, confidence, world points, 
   CHECK(result.ok());
 }
 
+TEST_CASE("VGGT point head: points and confidence as in inference, backward matches central differences for the "
+          "point head, the trunk and the images",
+          "[geometry][vggt][backward]") {
+  VggtConfig c = tiny_vggt();
+  c.point_head = true;
+  FlatVggt<double> m(c, 5);
+  // Output logits near 0.1, where inv_log (sign(x)(exp|x| - 1)) is tame, as a trained head's are: at the random scale
+  // they reach the exponential's steep end and central differences of step 1e-6 lose their last digits.
+  for (auto& p : m.grad_params())
+    if (p.name.rfind("point_head.scratch.output_conv2.2.", 0) == 0)
+      for (double& v : p.value) v *= 0.1;
+  const index_t S = 2, H = 4, W = 6;
+  auto images = random_doubles(static_cast<std::size_t>(S * 3 * H * W), 6, 0.5);
+  std::vector<double> d_images(images.size());
+  VggtWorkspace<double> ws;
+  VggtCache<double> cache;
+  VggtBackwardScratch<double> scratch;
+  const auto inference = vggt_forward<double>(images.data(), S, H, W, c, m.w, ws);
+  const auto first = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws);
+  REQUIRE(first.points.size() == S * H * W * 3);
+  REQUIRE(first.points_conf.size() == S * H * W);
+  for (index_t i = 0; i < first.points.size(); ++i) REQUIRE(first.points.data()[i] == inference.points.data()[i]);
+  for (index_t i = 0; i < first.points_conf.size(); ++i) {
+    REQUIRE(first.points_conf.data()[i] == inference.points_conf.data()[i]);
+    REQUIRE(first.points_conf.data()[i] > 1.0);
+  }
+  const index_t np = first.points.size();
+  const std::size_t n_out = static_cast<std::size_t>(np + first.points_conf.size());
+  auto forward = [&](std::span<double> out) {
+    VggtCache<double> k;
+    const auto o = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, k, ws);
+    std::copy(o.points.data(), o.points.data() + np, out.data());
+    std::copy(o.points_conf.data(), o.points_conf.data() + o.points_conf.size(), out.data() + np);
+  };
+  auto backward = [&](std::span<const double> d_out) {
+    const auto o = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws);
+    VggtOutputGrads<double> d;
+    d.points = d_out.data();
+    d.points_conf = d_out.data() + np;
+    vggt_backward<double>(d_images.data(), m.g, d, o, cache, c, m.w, scratch);
+  };
+  std::vector<testing::GradParam> params;
+  for (auto& p : m.grad_params())
+    if ((p.name.rfind("point_head.", 0) == 0 || p.name.rfind("aggregator.", 0) == 0) &&
+        p.name != "aggregator.patch_embed.mask_token")
+      params.push_back(p);
+  params.push_back({"images", images, d_images});
+  testing::GradCheckOptions options;
+  options.max_checks_per_param = 2;
+  auto result = testing::check_gradients(params, n_out, forward, backward, options);
+  INFO(result.summary());
+  CHECK(result.ok());
+  // The camera and depth heads receive nothing from the points.
+  for (auto& p : m.grad_params())
+    if (p.name.rfind("depth_head.", 0) == 0 || p.name.rfind("camera_head.", 0) == 0)
+      for (double g : p.grad) REQUIRE(g == 0.0);
+}
+
 TEST_CASE("VGGT frame_tokens: 2 leaves frames after the first order-free, 3 tells frame 2 from frame 1 and shares "
           "the last set with frame 3, and the token gradients match central differences",
           "[geometry][vggt][backward]") {

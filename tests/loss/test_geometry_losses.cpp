@@ -99,3 +99,41 @@ TEST_CASE("depth loss: gradient check for depth and confidence with a mask", "[l
   INFO(r.summary());
   CHECK(r.ok());
 }
+
+TEST_CASE("point loss: Euclidean conf and reg terms and the background term by hand", "[loss][points]") {
+  // Two valid pixels with errors (3, 4, 0) -> 5 and (0, 0, 0) -> 0, confidence 2 and 3; one background pixel at 1.5.
+  const std::vector<double> pred{4, 4, 1, 1, 2, 3, 9, 9, 9}, gt{1, 0, 1, 1, 2, 3, 0, 0, 0}, conf{2, 3, 1.5};
+  const std::uint8_t mask[3] = {1, 1, 0};
+  loss::PointLossConfig c;
+  c.min_valid_pixels = 2;
+  const auto p = loss::point_loss_forward(pred.data(), conf.data(), gt.data(), mask, 3, c);
+  CHECK(p.reg == Approx(2.5).epsilon(1e-14));
+  CHECK(p.conf == Approx((5.0 * 2 - 0.2 * std::log(2.0) - 0.2 * std::log(3.0)) / 2).epsilon(1e-14));
+  CHECK(p.background == Approx(0.1 * 0.5).epsilon(1e-14));
+  CHECK(p.total == Approx(p.conf + p.reg + p.background).epsilon(1e-15));
+  c.min_valid_pixels = 3;
+  CHECK(loss::point_loss_forward(pred.data(), conf.data(), gt.data(), mask, 3, c).total == 0.0);
+  const std::vector<double> bad{2, -1, 1.5};
+  c.min_valid_pixels = 1;
+  CHECK_THROWS_WITH(loss::point_loss_forward(pred.data(), bad.data(), gt.data(), mask, 3, c), Catch::Contains("pixel 1"));
+}
+
+TEST_CASE("point loss: gradient check for points and confidence with a mask", "[loss][points][gradcheck]") {
+  const index_t n = 40;
+  auto pred = uniform(3 * n, 8, -2, 2), gt = uniform(3 * n, 9, -2, 2), conf = uniform(n, 10, 1, 3);
+  std::vector<std::uint8_t> mask(n, 1);
+  for (index_t i = 0; i < n; i += 4) mask[i] = 0;
+  loss::PointLossConfig c;
+  c.min_valid_pixels = 10;
+  std::vector<double> dp(pred.size()), dc(conf.size());
+  const auto r = testing::check_gradients(
+      {{"points", pred, dp}, {"conf", conf, dc}}, 1,
+      [&](std::span<double> out) {
+        out[0] = loss::point_loss_forward(pred.data(), conf.data(), gt.data(), mask.data(), n, c).total;
+      },
+      [&](std::span<const double> d) {
+        loss::point_loss_backward(dp.data(), dc.data(), d[0], pred.data(), conf.data(), gt.data(), mask.data(), n, c);
+      });
+  INFO(r.summary());
+  CHECK(r.ok());
+}

@@ -16,6 +16,28 @@ TEST_CASE("FlexSplat configs survive a JSON round trip", "[model][config]") {
   }
 }
 
+TEST_CASE("the point head is a config switch: its tensors appear under VGGT's names and the JSON keeps it",
+          "[model][config][points]") {
+  auto c = model::flexsplat_tiny_config();
+  const auto plain = geometry::vggt_parameter_specs(c.geometry);
+  CHECK(model::to_json(c).at("geometry").contains("point_head") == false);  // old files compare equal
+  c.geometry.point_head = true;
+  const auto with = geometry::vggt_parameter_specs(c.geometry);
+  std::size_t point = 0;
+  for (const auto& s : with) point += s.name.rfind("point_head.", 0) == 0;
+  CHECK(point == with.size() - plain.size());
+  CHECK(point > 0);
+  bool conv_out = false;
+  for (const auto& s : with)
+    if (s.name == "point_head.scratch.output_conv2.2.weight") conv_out = s.shape[0] == 4;  // x, y, z, confidence
+  CHECK(conv_out);
+  const auto back = model::flexsplat_config_from_json(model::to_json(c).dump());
+  CHECK(back.geometry.point_head);
+  auto j = model::to_json(c);
+  j["geometry"]["point_head"] = 1;
+  CHECK_THROWS_WITH(model::flexsplat_config_from_json(j.dump()), Catch::Contains("'point_head' = 1"));
+}
+
 TEST_CASE("FlexSplat config errors name the offending setting", "[model][config]") {
   auto c = model::flexsplat_tiny_config();
   c.image_h = 30;

@@ -101,3 +101,28 @@ TEST_CASE("first_camera_frame names the problem when no depth is valid", "[model
   CHECK_THROWS_WITH(model::first_camera_frame(cams.data(), K.data(), depth.data(), 1, 2, 2),
                     Catch::Contains("no valid depth"));
 }
+
+TEST_CASE("relative_rotation_error_deg compares camera pairs independently of each set's world frame",
+          "[model][frames]") {
+  const auto a = ring(3, 3.0, 0.2);
+  // The same rig seen from a rotated and shifted world: every relative rotation is unchanged.
+  model::Similarity s;
+  s.R = Eigen::AngleAxisd(0.7, Eigen::Vector3d(0.3, 1, -0.2).normalized()).toRotationMatrix();
+  s.t = Eigen::Vector3d(0.5, -1, 2);
+  s.scale = 1.7;
+  auto b = a;
+  for (int v = 0; v < 3; ++v) model::transform_camera(b.data() + 12 * v, s);
+  CHECK(model::relative_rotation_error_deg(a.data(), a.data() + 12, b.data(), b.data() + 12) == Approx(0).margin(1e-6));
+  CHECK(model::rotation_error_deg(a.data(), b.data()) > 30);
+  // Turning one camera by 20 degrees about its own axis changes its pairs by 20 degrees.
+  auto c = a;
+  const Eigen::Matrix3d turn = Eigen::AngleAxisd(20 * 3.14159265358979 / 180, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  for (int col = 0; col < 4; ++col) {
+    Eigen::Vector3d x(c[12 + col], c[16 + col], c[20 + col]);
+    x = turn * x;
+    c[12 + col] = x(0), c[16 + col] = x(1), c[20 + col] = x(2);
+  }
+  CHECK(model::relative_rotation_error_deg(a.data(), a.data() + 12, c.data(), c.data() + 12) == Approx(20).epsilon(1e-9));
+  CHECK(model::relative_rotation_error_deg(a.data() + 12, a.data() + 24, c.data() + 12, c.data() + 24) == Approx(20).epsilon(1e-9));
+  CHECK(model::relative_rotation_error_deg(a.data(), a.data() + 24, c.data(), c.data() + 24) == Approx(0).margin(1e-6));
+}

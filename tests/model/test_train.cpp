@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <random>
 
 #include "flexsplat/model/train.hpp"
 #include "flexsplat/testing/gradcheck.hpp"
@@ -117,4 +118,69 @@ TEST_CASE("train_step drives the loss on one fixed scene down by 10x", "[model][
   }
   std::printf("train_step on one scene: loss %.5f -> %.5f after %d steps\n", first, last, steps);
   CHECK(last < first / 10);
+}
+
+TEST_CASE("a training example's ground-truth points are each view's surface in the first camera's frame",
+          "[model][train][points]") {
+  const auto c = model::flexsplat_tiny_config();
+  const auto e = model::make_train_example<double>(tiny_scene(3, 0, 7), c);
+  const index_t px = e.h * e.w;
+  REQUIRE(e.gt_points.size() == static_cast<std::size_t>(3 * e.views * px));
+  index_t checked = 0;
+  for (index_t v = 0; v < e.views; ++v) {
+    const double* E = e.gt_extrinsics.data() + 12 * v;
+    const double* K = e.gt_K.data() + 9 * v;
+    for (index_t y = 0; y < e.h; ++y)
+      for (index_t x = 0; x < e.w; ++x) {
+        const index_t p = v * px + y * e.w + x;
+        const double z = e.gt_depth[static_cast<std::size_t>(p)];
+        if (z <= 0) continue;
+        // The point seen through view v's camera lands on its pixel centre at its depth.
+        const double* X = e.gt_points.data() + 3 * p;
+        double cam[3];
+        for (int r = 0; r < 3; ++r) cam[r] = E[4 * r] * X[0] + E[4 * r + 1] * X[1] + E[4 * r + 2] * X[2] + E[4 * r + 3];
+        CHECK(cam[2] == Approx(z).margin(1e-9));
+        CHECK(K[0] * cam[0] / cam[2] + K[2] == Approx(x + 0.5).margin(1e-7));
+        CHECK(K[4] * cam[1] / cam[2] + K[5] == Approx(y + 0.5).margin(1e-7));
+        ++checked;
+      }
+  }
+  CHECK(checked > 100);
+}
+
+TEST_CASE("point_weight: scene_gradient is the derivative of scene_loss along a random direction", "[model][train][points]") {
+  auto c = model::flexsplat_tiny_config();
+  c.geometry.point_head = true;
+  auto w = model::FlexSplatWeights<double>::create(c, true);
+  w->init(5);
+  const auto e = model::make_train_example<double>(tiny_scene(2, 0, 13), c);
+  model::StepConfig sc;
+  sc.appearance = false;
+  sc.point_weight = 1.0;
+  sc.point_loss.min_valid_pixels = 10;
+  model::SceneWorkspace<double> ws;
+  auto& store = w->store();
+  const index_t n = store.size();
+  std::vector<double> grads(static_cast<std::size_t>(n), 0.0), dir(grads.size());
+  const auto r = model::scene_gradient<double>(ws, *w, grads.data(), e, sc);
+  REQUIRE(r.points > 0);
+  std::mt19937 rng(3);
+  std::normal_distribution<double> normal;
+  double g_dot = 0, norm = 0;
+  for (std::size_t i = 0; i < dir.size(); ++i) dir[i] = normal(rng), g_dot += grads[i] * dir[i], norm += grads[i] * grads[i];
+  REQUIRE(norm > 0);
+  const std::vector<double> base(store.params(), store.params() + n);
+  auto loss_at = [&](double eps) {
+    for (index_t i = 0; i < n; ++i) store.params()[i] = base[static_cast<std::size_t>(i)] + eps * dir[static_cast<std::size_t>(i)];
+    return model::scene_loss<double>(ws, *w, e, sc).loss;
+  };
+  const double h = 1e-6, numeric = (loss_at(h) - loss_at(-h)) / (2 * h);
+  loss_at(0);
+  INFO("analytic " << g_dot << ", numeric " << numeric);
+  CHECK(g_dot == Approx(numeric).epsilon(1e-5));
+  // Without the point head the weight is refused by name.
+  auto plain = model::FlexSplatWeights<double>::create(model::flexsplat_tiny_config(), true);
+  plain->init(5);
+  model::SceneWorkspace<double> ws2;
+  CHECK_THROWS_WITH(model::scene_loss<double>(ws2, *plain, e, sc), Catch::Contains("needs a model with the point head"));
 }

@@ -87,6 +87,9 @@ struct OrbitRanges {
   double radius_min = 2.8, radius_max = 3.4;
   double hfov_min = 42, hfov_max = 50;             // degrees
   double target_jitter = 0.05;                     // look-at point uniform in a ball of this radius
+  // > 0: a scene's views after its first lie within this many degrees of azimuth (and half as many of elevation) of
+  // it, inside the ranges above: small baselines first, the curriculum of pose training. 0: independent views.
+  double max_baseline_deg = 0;
 };
 
 inline void check_ranges(const OrbitRanges& r) {
@@ -99,13 +102,22 @@ inline void check_ranges(const OrbitRanges& r) {
           r.hfov_max, "] must be ordered inside (1, 170)");
   require(r.target_jitter >= 0 && r.target_jitter < r.radius_min, "OrbitRanges: target jitter ", r.target_jitter,
           " must be in [0, radius_min)");
+  require(r.max_baseline_deg >= 0 && r.max_baseline_deg <= 360, "OrbitRanges: max_baseline_deg ", r.max_baseline_deg,
+          " must be in [0, 360]");
 }
 
-// One random orbit view.
-inline Camera sample_orbit_camera(Rng& rng, const OrbitRanges& ranges, int width, int height) {
+// One random orbit view; with `first` and ranges.max_baseline_deg > 0, one near that view.
+inline Camera sample_orbit_camera(Rng& rng, const OrbitRanges& ranges, int width, int height,
+                                  const Camera* first = nullptr) {
   check_ranges(ranges);
-  const double el = rng.uniform(ranges.elevation_min, ranges.elevation_max);
-  const double az = rng.uniform(ranges.azimuth_min, ranges.azimuth_max);
+  double el = rng.uniform(ranges.elevation_min, ranges.elevation_max);
+  double az = rng.uniform(ranges.azimuth_min, ranges.azimuth_max);
+  if (first && ranges.max_baseline_deg > 0) {
+    const double b = ranges.max_baseline_deg;
+    el = std::clamp(first->elevation_deg + (el - ranges.elevation_min) / std::max(ranges.elevation_max - ranges.elevation_min, 1e-9) * b - b / 2,
+                    ranges.elevation_min, ranges.elevation_max);
+    az = first->azimuth_deg + (az - ranges.azimuth_min) / std::max(ranges.azimuth_max - ranges.azimuth_min, 1e-9) * 2 * b - b;
+  }
   const double radius = rng.uniform(ranges.radius_min, ranges.radius_max);
   const double fov = rng.uniform(ranges.hfov_min, ranges.hfov_max);
   glm::dvec3 target(0.0);

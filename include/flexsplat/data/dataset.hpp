@@ -683,7 +683,10 @@ inline std::vector<SceneSample> generate_batch(const GeneratorConfig& cfg, int b
     std::vector<Camera>& c = cams[s];
     if (structured) c = structured_cameras(cfg.size, cfg.size);
     Rng rng(stream_seed(objects[s].seed, Stream::cameras));
-    while (static_cast<int>(c.size()) < o.inputs + o.targets) c.push_back(sample_orbit_camera(rng, cfg.orbit, cfg.size, cfg.size));
+    while (static_cast<int>(c.size()) < o.inputs + o.targets) {
+      const Camera* first = c.empty() || structured ? nullptr : &c.front();
+      c.push_back(sample_orbit_camera(rng, cfg.orbit, cfg.size, cfg.size, first));
+    }
     for (int i = 0; i < o.inputs; ++i) in[s].push_back(i);
     for (int i = 0; i < o.targets; ++i) tg[s].push_back(o.inputs + i);
     Rng bg(child_seed(stream_seed(seed, Stream::batch), objects[s].seed));

@@ -171,13 +171,25 @@ inline AggregatorConfig aggregator_config_from_json(const std::string& text) {
   return aggregator_config_from_json(j);
 }
 
-// The whole VGGT as FlexSplat uses it: trunk, camera head and depth head (the point and track heads are never
-// computed). Defaults are VGGT-1B.
+// The whole VGGT as FlexSplat uses it: trunk, camera head, depth head and, when point_head is set, the point head
+// (the track head is never computed). Defaults are VGGT-1B.
 struct VggtConfig {
   AggregatorConfig aggregator;
   CameraHeadConfig camera;
   DptHeadConfig depth;
   PoseDecodeOptions pose_decode;  // what decoding does with FoV <= 0 or >= pi
+  // VGGT's point head: per-pixel 3-D points in the first frame's camera frame with a confidence; its dense targets are
+  // what makes the cameras learnable from scratch, and cameras can be solved from its output (geometry/procrustes.hpp).
+  bool point_head = false;
+
+  // The point head is the depth head's architecture with 3 + 1 outputs and VGGT's inv_log activation.
+  DptHeadConfig point() const {
+    DptHeadConfig p = depth;
+    p.output_dim = 4;
+    p.activation = DptActivation::inv_log;
+    p.conf_activation = DptConfActivation::expp1;
+    return p;
+  }
 
   void validate() const {
     aggregator.validate();
@@ -208,6 +220,11 @@ inline VggtConfig vggt_config_from_json(const std::string& text) {
   c.aggregator = aggregator_config_from_json(j);
   c.camera = camera_head_config_from_vggt_json(j);
   c.depth = dpt_head_config_from_vggt_json(j);
+  if (j.contains("point_head")) {
+    require(j.at("point_head").is_boolean(), "VGGT config: 'point_head' = ", j.at("point_head").dump(),
+            " is not true or false");
+    c.point_head = j.at("point_head").get<bool>();
+  }
   c.validate();
   return c;
 }

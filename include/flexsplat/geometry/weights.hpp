@@ -1,7 +1,7 @@
 #pragma once
 // VGGT weights: the name/shape table derived from a VggtConfig (names exactly as VGGT's state_dict), one check that
 // lists every missing, mis-shaped or unexpected tensor at once, and binding to the per-module weight structs.
-// Tensors of the point and track heads are ignored (FlexSplat needs cameras and depth only).
+// Tensors of the track head, and of the point head unless the config enables it, are ignored.
 #include <filesystem>
 #include <string>
 #include <vector>
@@ -20,6 +20,7 @@ namespace geometry {
 
 inline constexpr const char* vggt_dino_prefix = "aggregator.patch_embed.";
 inline constexpr const char* vggt_depth_prefix = "depth_head.";
+inline constexpr const char* vggt_point_prefix = "point_head.";
 
 // Every tensor the configured model reads, in state_dict order (aggregator, camera head, depth head).
 inline std::vector<TensorSpec> vggt_parameter_specs(const VggtConfig& c) {
@@ -31,13 +32,16 @@ inline std::vector<TensorSpec> vggt_parameter_specs(const VggtConfig& c) {
   specs.insert(specs.begin() + before_dino, dino.begin(), dino.end());
   append_camera_head_specs(specs, c.camera, "camera_head.");
   append_dpt_head_specs(specs, c.depth, vggt_depth_prefix);
+  if (c.point_head) append_dpt_head_specs(specs, c.point(), vggt_point_prefix);
   return specs;
 }
 
-// Throws one flexsplat::Error listing every missing, mis-shaped and unexpected aggregator/camera/depth tensor.
+// Throws one flexsplat::Error listing every missing, mis-shaped and unexpected tensor of the configured modules.
 template <class T>
 void check_vggt_parameters(const ParamSource<T>& src, const VggtConfig& c) {
-  check_parameters(src, vggt_parameter_specs(c), {"aggregator.", "camera_head.", "depth_head."}, "VGGT");
+  std::vector<std::string> modules{"aggregator.", "camera_head.", "depth_head."};
+  if (c.point_head) modules.push_back(vggt_point_prefix);
+  check_parameters(src, vggt_parameter_specs(c), modules, "VGGT");
 }
 
 template <class T>
@@ -46,6 +50,7 @@ struct VggtWeights {
   AggregatorWeights<T> aggregator;
   CameraHeadWeights<T> camera;
   DptHeadWeights<T> depth;
+  DptHeadWeights<T> point;  // all null unless VggtConfig::point_head
 };
 
 template <class T>
@@ -57,6 +62,7 @@ VggtWeights<T> load_vggt_weights(ParamSource<T>& src, const VggtConfig& c) {
   w.aggregator = load_aggregator_trunk_weights(src, c.aggregator);
   w.camera = load_camera_head_weights(src, c.camera, "camera_head.");
   w.depth = load_dpt_head_weights(src, c.depth, vggt_depth_prefix);
+  if (c.point_head) w.point = load_dpt_head_weights(src, c.point(), vggt_point_prefix);
   return w;
 }
 

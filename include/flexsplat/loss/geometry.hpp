@@ -228,6 +228,83 @@ void depth_loss_backward(T* d_pred, T* d_conf, double d_total, const T* pred, co
   }
 }
 
+// Point-map loss (VGGT's regression loss on its point head): per valid pixel e = |pred - gt| (Euclidean, 3-vectors),
+// conf = mean(gamma e c - alpha log c), reg = mean e; VGGT's normal-based gradient term is not reproduced. background:
+// weight of mean(c - 1) over the invalid pixels, which drives their confidence to its floor of 1 so that a camera
+// solved from the map (geometry/procrustes.hpp) ignores them. total = conf + reg + background term.
+struct PointLossConfig {
+  double gamma = 1.0, alpha = 0.2;
+  double background = 0.1;
+  index_t min_valid_pixels = 100;  // fewer valid pixels: the loss is 0
+};
+
+struct PointLossParts {
+  double total = 0, conf = 0, reg = 0, background = 0;
+};
+
+// pred, gt: [n, 3]; conf [n] (> 0 where valid); mask [n] (null: all valid).
+template <class T>
+PointLossParts point_loss_forward(const T* pred, const T* conf, const T* gt, const std::uint8_t* mask, index_t n,
+                                  const PointLossConfig& c) {
+  require(pred && conf && gt && n >= 1, "point loss: null or empty maps");
+  PointLossParts out;
+  index_t valid = 0, background = 0;
+  for (index_t i = 0; i < n; ++i) {
+    const double u = static_cast<double>(conf[i]);
+    if (mask && !mask[i]) {
+      require(std::isfinite(u), "point loss: background pixel ", i, " has confidence ", u);
+      out.background += u - 1.0;
+      ++background;
+      continue;
+    }
+    double e2 = 0;
+    for (int k = 0; k < 3; ++k) {
+      const double p = static_cast<double>(pred[3 * i + k]), g = static_cast<double>(gt[3 * i + k]);
+      if (!(std::isfinite(p) && std::isfinite(g)))
+        fail("point loss: pixel ", i, " coordinate ", k, ": prediction ", p, ", ground truth ", g);
+      e2 += (p - g) * (p - g);
+    }
+    if (!(std::isfinite(u) && u > 0)) fail("point loss: pixel ", i, " has confidence ", u, " (positive needed)");
+    const double e = std::sqrt(e2);
+    out.reg += e;
+    out.conf += c.gamma * e * u - c.alpha * std::log(u);
+    ++valid;
+  }
+  if (valid < std::max<index_t>(c.min_valid_pixels, 1)) return {};
+  out.reg /= static_cast<double>(valid);
+  out.conf /= static_cast<double>(valid);
+  out.background = background > 0 ? c.background * out.background / static_cast<double>(background) : 0.0;
+  out.total = out.conf + out.reg + out.background;
+  return out;
+}
+
+// Adds d_total * d(total)/d(pred) into d_pred and d_total * d(total)/d(conf) into d_conf (either may be null).
+template <class T>
+void point_loss_backward(T* d_pred, T* d_conf, double d_total, const T* pred, const T* conf, const T* gt,
+                         const std::uint8_t* mask, index_t n, const PointLossConfig& c) {
+  index_t valid = 0;
+  for (index_t i = 0; i < n; ++i) valid += !mask || mask[i];
+  if (valid < std::max<index_t>(c.min_valid_pixels, 1)) return;
+  const index_t background = n - valid;
+  const double inv = d_total / static_cast<double>(valid);
+  const double inv_bg = background > 0 ? d_total * c.background / static_cast<double>(background) : 0.0;
+  for (index_t i = 0; i < n; ++i) {
+    if (mask && !mask[i]) {
+      if (d_conf) d_conf[i] += static_cast<T>(inv_bg);
+      continue;
+    }
+    double diff[3], e2 = 0;
+    for (int k = 0; k < 3; ++k) {
+      diff[k] = static_cast<double>(pred[3 * i + k]) - static_cast<double>(gt[3 * i + k]);
+      e2 += diff[k] * diff[k];
+    }
+    const double e = std::sqrt(e2), u = static_cast<double>(conf[i]);
+    if (d_pred && e > 0)
+      for (int k = 0; k < 3; ++k) d_pred[3 * i + k] += static_cast<T>(inv * (c.gamma * u + 1.0) * diff[k] / e);
+    if (d_conf) d_conf[i] += static_cast<T>(inv * (c.gamma * e - c.alpha / u));
+  }
+}
+
 }  // namespace loss
 }  // namespace v0
 }  // namespace flexsplat

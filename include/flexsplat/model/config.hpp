@@ -70,7 +70,7 @@ struct FlexSplatConfig {
 
 inline nlohmann::json to_json(const geometry::VggtConfig& c) {
   const auto& a = c.aggregator;
-  return {{"img_size", a.dino.img_size},     {"patch_size", a.patch_size},
+  nlohmann::json j = {{"img_size", a.dino.img_size},     {"patch_size", a.patch_size},
           {"embed_dim", a.embed_dim},        {"depth", a.depth},
           {"num_heads", a.num_heads},        {"mlp_ratio", a.mlp_ratio},
           {"num_register_tokens", a.num_register_tokens}, {"qk_norm", a.qk_norm},
@@ -81,6 +81,8 @@ inline nlohmann::json to_json(const geometry::VggtConfig& c) {
           {"dino_mlp_ratio", a.dino.mlp_ratio}, {"trunk_depth", c.camera.trunk_depth},
           {"cam_heads", c.camera.num_heads}, {"features", c.depth.features},
           {"out_channels", c.depth.out_channels}, {"intermediate_layer_idx", c.depth.intermediate_layer_idx}};
+  if (c.point_head) j["point_head"] = true;  // absent in files made before the key existed
+  return j;
 }
 
 inline nlohmann::json to_json(const decoder::ModelConfig& c) {

@@ -132,6 +132,15 @@ inline void transform_camera(double* w2c, const Similarity& s) {
   }
 }
 
+// Angle in degrees between the relative rotations from camera i to camera j of two camera sets (the pair error of
+// RRA@15/30: independent of each set's world frame).
+inline double relative_rotation_error_deg(const double* a_i, const double* a_j, const double* b_i, const double* b_j) {
+  const Eigen::Matrix3d ra = to_matrix4(a_j).block<3, 3>(0, 0) * to_matrix4(a_i).block<3, 3>(0, 0).transpose();
+  const Eigen::Matrix3d rb = to_matrix4(b_j).block<3, 3>(0, 0) * to_matrix4(b_i).block<3, 3>(0, 0).transpose();
+  // Through the quaternion (atan2): acos of the trace loses half its digits near 0 degrees.
+  return Eigen::AngleAxisd(Eigen::Quaterniond(ra * rb.transpose()).normalized()).angle() * 180.0 / 3.14159265358979323846;
+}
+
 // Angle in degrees between the orientations of two world-to-camera matrices.
 inline double rotation_error_deg(const double* w2c_a, const double* w2c_b) {
   const Eigen::Matrix3d Ra = to_matrix4(w2c_a).block<3, 3>(0, 0), Rb = to_matrix4(w2c_b).block<3, 3>(0, 0);

@@ -60,11 +60,13 @@ void geometry_stage_forward(GeometryStage<T>& st, const FlexSplatWeights<T>& w, 
   st.pose_enc.assign(o.pose_enc.data(), o.pose_enc.data() + st.iterations * views * geometry::pose_encoding_dim);
 }
 
-// d_result: gradients with respect to st.result (any field may be all zero); d_pose_enc [iterations, V, 9] (may be
-// null). Adds into the VGGT tensors of `grads`, a gradient block laid out like the store's params.
+// d_result: gradients with respect to st.result (any field may be all zero); d_pose_enc [iterations, V, 9], d_points
+// [V, h, w, 3] and d_points_conf [V, h, w] (point head) may be null. Adds into the VGGT tensors of `grads`, a gradient
+// block laid out like the store's params.
 template <class T>
 void geometry_stage_backward(GeometryStage<T>& st, const FlexSplatWeights<T>& w, T* grads,
-                             const GeometryResult<T>& d_result, const T* d_pose_enc) {
+                             const GeometryResult<T>& d_result, const T* d_pose_enc, const T* d_points = nullptr,
+                             const T* d_points_conf = nullptr) {
   const FlexSplatConfig& c = w.config();
   const index_t V = st.result.views;
   st.d_intrinsics.assign(static_cast<std::size_t>(9 * V), T(0));
@@ -76,6 +78,8 @@ void geometry_stage_backward(GeometryStage<T>& st, const FlexSplatWeights<T>& w,
   d.depth = d_result.depth.data();
   d.depth_conf = d_result.confidence.data();
   d.depth_features = d_result.features.data();
+  d.points = d_points;
+  d.points_conf = d_points_conf;
   const auto g = geometry::vggt_grads(w.geometry(), w.store().params(), grads);
   geometry::vggt_backward<T>(static_cast<T*>(nullptr), g, d, st.outputs, st.cache, c.geometry, w.geometry(), st.scratch);
 }

@@ -15,6 +15,7 @@
 
 #include "flexsplat/data/dataset.hpp"
 #include "flexsplat/geometry/pose_encoding.hpp"
+#include "flexsplat/geometry/unproject.hpp"
 #include "flexsplat/loss/geometry.hpp"
 #include "flexsplat/model/frames.hpp"
 #include "flexsplat/model/geometry_stage.hpp"
@@ -38,6 +39,7 @@ struct TrainExample {
   std::vector<T> gt_K;           // [V, 3, 3] pixel centres at +0.5
   std::vector<T> gt_depth;       // [V, h, w] camera z / scale, 0 for background
   std::vector<T> gt_pose_enc;    // [V, 9] VGGT's encoding of the ground-truth cameras
+  std::vector<T> gt_points;      // [V, h, w, 3] surface points in the model's frame (background: the camera centre)
   std::vector<T> target_images;  // [M, h, w, 3]
   std::vector<std::array<T, 9>> target_K;
   std::vector<std::array<T, 12>> target_w2c;
@@ -91,6 +93,9 @@ TrainExample<T> make_train_example(const data::SceneSample& s, const FlexSplatCo
   for (index_t v = 0; v < V; ++v) K_vggt[9 * v + 2] -= T(0.5), K_vggt[9 * v + 5] -= T(0.5);
   e.gt_pose_enc.resize(static_cast<std::size_t>(9 * V));
   geometry::extri_intri_to_pose_encoding(e.gt_pose_enc.data(), e.gt_extrinsics.data(), K_vggt.data(), V, h, w);
+  e.gt_points.resize(static_cast<std::size_t>(V * px * 3));
+  geometry::unproject_depth_forward<T>(e.gt_points.data(), e.gt_depth.data(), e.gt_extrinsics.data(), K_vggt.data(), V,
+                                       h, w);
 
   e.target_images.assign(s.targets.rgb.data(), s.targets.rgb.data() + M * px * 3);
   for (index_t m = 0; m < M; ++m) {
@@ -113,9 +118,11 @@ struct StepConfig {
   bool train_geometry = true;        // off: geometry frozen (no geometry backward)
   double camera_weight = 0.0;        // VGGT's supervised camera loss on the pose encodings
   double depth_weight = 0.0;         // VGGT's supervised depth loss
+  double point_weight = 0.0;         // VGGT's point-map loss (needs the point head)
   ObjectiveWeights objective;
   loss::CameraLossConfig camera_loss;
   loss::DepthLossConfig depth_loss;
+  loss::PointLossConfig point_loss;
   bool render_inputs = true;         // input views (predicted cameras) are rendered targets too
   index_t gaussians = 0;             // 0: the configuration's budget for the view count
   double max_grad_norm = 1.0;        // <= 0: no clipping
@@ -123,7 +130,7 @@ struct StepConfig {
 };
 
 struct StepReport {
-  double loss = 0, camera = 0, depth = 0, rgb_head = 0, render = 0, render_depth = 0, lpips = 0, psnr = 0;
+  double loss = 0, camera = 0, depth = 0, points = 0, rgb_head = 0, render = 0, render_depth = 0, lpips = 0, psnr = 0;
   double grad_norm = 0;
   index_t scenes = 0;
 };
@@ -136,6 +143,7 @@ struct SceneWorkspace {
   ObjectiveWorkspace<T> objective;
   std::vector<RenderView<T>> views;
   std::vector<std::uint8_t> depth_mask;
+  std::vector<T> d_points, d_points_conf;
 };
 
 namespace detail {
@@ -179,6 +187,20 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
                                 g.depth.data(), g.confidence.data(), e.gt_depth.data(), ws.depth_mask.data(), V, e.h,
                                 e.w, sc.depth_loss);
   }
+  if (sc.point_weight > 0) {
+    require(c.geometry.point_head, "training: point_weight ", sc.point_weight, " needs a model with the point head");
+    ws.depth_mask.resize(static_cast<std::size_t>(V * px));
+    for (index_t i = 0; i < V * px; ++i) ws.depth_mask[static_cast<std::size_t>(i)] = e.gt_depth[static_cast<std::size_t>(i)] > T(0);
+    const auto& o = ws.geometry.outputs;
+    r.points = sc.point_weight * loss::point_loss_forward(o.points.data(), o.points_conf.data(), e.gt_points.data(),
+                                                          ws.depth_mask.data(), V * px, sc.point_loss).total;
+    if (backward) {
+      ws.d_points.assign(static_cast<std::size_t>(V * px * 3), T(0));
+      ws.d_points_conf.assign(static_cast<std::size_t>(V * px), T(0));
+      loss::point_loss_backward(ws.d_points.data(), ws.d_points_conf.data(), sc.point_weight, o.points.data(),
+                                o.points_conf.data(), e.gt_points.data(), ws.depth_mask.data(), V * px, sc.point_loss);
+    }
+  }
   if (sc.appearance) {
     ws.views.clear();
     if (sc.render_inputs)
@@ -210,10 +232,12 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
   }
   clock.lap(&PhaseTimes::losses);
   if (backward && sc.train_geometry) {
-    geometry_stage_backward(ws.geometry, w, grads, ws.d_geometry, ws.d_pose_enc.data());
+    const bool points = sc.point_weight > 0;
+    geometry_stage_backward(ws.geometry, w, grads, ws.d_geometry, ws.d_pose_enc.data(),
+                            points ? ws.d_points.data() : nullptr, points ? ws.d_points_conf.data() : nullptr);
     clock.lap(&PhaseTimes::geometry_backward);
   }
-  r.loss = r.camera + r.depth + r.rgb_head + r.render + r.render_depth + r.lpips;
+  r.loss = r.camera + r.depth + r.points + r.rgb_head + r.render + r.render_depth + r.lpips;
   r.scenes = 1;
   return r;
 }
@@ -257,7 +281,8 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   const bool direct = comm.size() == 1 && local.size() == 1;
   ws.scene_grads.resize(direct ? 0 : local.size());
   if (direct) store.zero_grads();
-  std::vector<double> values(local.size() * 9);
+  constexpr std::size_t fields = 10;
+  std::vector<double> values(local.size() * fields);
   for (std::size_t s = 0; s < local.size(); ++s) {
     T* g = direct ? store.grads() : nullptr;
     if (!direct) {
@@ -265,18 +290,18 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
       g = ws.scene_grads[s].data();
     }
     const StepReport r = scene_gradient(ws.scene, w, g, local[s], sc, lpips, times);
-    const double v[9] = {r.loss, r.camera, r.depth, r.rgb_head, r.render, r.render_depth, r.lpips, r.psnr, 1.0};
-    std::copy(v, v + 9, values.begin() + static_cast<std::ptrdiff_t>(9 * s));
+    const double v[fields] = {r.loss, r.camera, r.depth, r.rgb_head, r.render, r.render_depth, r.lpips, r.psnr, r.points, 1.0};
+    std::copy(v, v + fields, values.begin() + static_cast<std::ptrdiff_t>(fields * s));
   }
   PhaseClock clock(times);
   std::vector<const T*> ptrs;
   for (auto& g : ws.scene_grads) ptrs.push_back(g.data());
   if (!direct) train::ordered_sum<T>(comm, store.grads(), n, ptrs);
   std::vector<const double*> vptrs;
-  for (std::size_t s = 0; s < local.size(); ++s) vptrs.push_back(values.data() + 9 * s);
-  double totals[9];
-  train::ordered_sum<double>(comm, totals, 9, vptrs);
-  require(static_cast<index_t>(totals[8]) == global_batch, "train_step: the ranks hold ", totals[8],
+  for (std::size_t s = 0; s < local.size(); ++s) vptrs.push_back(values.data() + fields * s);
+  double totals[fields];
+  train::ordered_sum<double>(comm, totals, fields, vptrs);
+  require(static_cast<index_t>(totals[9]) == global_batch, "train_step: the ranks hold ", totals[9],
           " scenes, the global batch is ", global_batch);
   const T inv = static_cast<T>(1.0 / static_cast<double>(global_batch));
   T* grads = store.grads();
@@ -285,6 +310,7 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   const double ib = 1.0 / static_cast<double>(global_batch);
   r.loss = totals[0] * ib, r.camera = totals[1] * ib, r.depth = totals[2] * ib, r.rgb_head = totals[3] * ib;
   r.render = totals[4] * ib, r.render_depth = totals[5] * ib, r.lpips = totals[6] * ib, r.psnr = totals[7] * ib;
+  r.points = totals[8] * ib;
   r.scenes = global_batch;
   r.grad_norm = sc.max_grad_norm > 0 ? train::clip_grad_norm(store, sc.max_grad_norm) : train::grad_norm(store);
   train::adamw_step(store, sc.adamw, lr, step + 1);

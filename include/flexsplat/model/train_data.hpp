@@ -33,10 +33,13 @@ inline TrainExample<float> make_train_scene(const TrainData& d, const train::Tra
   data::BatchOptions o;
   o.inputs = scene_view_count(c, step, scene);
   o.targets = c.targets;
+  o.structured_inputs = c.structured_inputs;
   const std::uint64_t index = step * static_cast<std::uint64_t>(c.batch) + static_cast<std::uint64_t>(scene);
   std::vector<data::SceneSample> s;
   if (d.procedural) {
-    s = data::generate_batch(d.generator, 1, c.seed, index, o);
+    data::GeneratorConfig g = d.generator;
+    g.orbit.max_baseline_deg = c.baseline_at(step);
+    s = data::generate_batch(g, 1, c.seed, index, o);
   } else {
     o.crop = static_cast<int>(c.model.image_h);
     s = data::sample_batch(d.objects, 1, c.seed, index, o);

@@ -9,6 +9,7 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
+#include "flexsplat/geometry/procrustes.hpp"
 #include "flexsplat/loss/image.hpp"
 #include "flexsplat/loss/ssim.hpp"
 #include "flexsplat/model/cameras.hpp"
@@ -24,9 +25,30 @@ namespace model {
 struct ValidationScore {
   double psnr = 0, ssim = 0;    // means over the scene's target views
   double rotation_deg = 0;      // mean over input views 2..V of the relative rotation error (0 for one view)
+  double rra15 = 1, rra30 = 1;  // fraction of input-view pairs whose relative rotation is within 15 / 30 deg
+  // The same three for the cameras solved from the point head's map (geometry/procrustes.hpp); 0 without the head.
+  double points_rotation_deg = 0, points_rra15 = 0, points_rra30 = 0;
+  double chance_rotation_deg = 0;  // rotation_deg of a constant guess (every camera the first one's orientation)
   double depth_rel = 0;         // mean |predicted - ground-truth depth| / ground-truth depth on object pixels
   index_t targets = 0, views = 0;
 };
+
+namespace detail {
+// Mean error of views 2..V against the ground truth (both in the first camera's frame) and RRA@15/30 over all pairs.
+inline void score_rotations(const double* pred, const double* gt, index_t views, double& mean, double& rra15,
+                            double& rra30) {
+  mean = 0, rra15 = rra30 = 1;
+  if (views < 2) return;
+  for (index_t v = 1; v < views; ++v) mean += rotation_error_deg(pred + 12 * v, gt + 12 * v) / static_cast<double>(views - 1);
+  double pairs = 0, in15 = 0, in30 = 0;
+  for (index_t i = 0; i < views; ++i)
+    for (index_t j = i + 1; j < views; ++j) {
+      const double e = relative_rotation_error_deg(pred + 12 * i, pred + 12 * j, gt + 12 * i, gt + 12 * j);
+      pairs += 1, in15 += e <= 15, in30 += e <= 30;
+    }
+  rra15 = in15 / pairs, rra30 = in30 / pairs;
+}
+}  // namespace detail
 
 template <class T>
 struct ValidationWorkspace {
@@ -60,12 +82,19 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
     if (renders) renders->push_back(ws.out.image);
   }
   s.psnr /= static_cast<double>(e.targets), s.ssim /= static_cast<double>(e.targets);
-  for (index_t v = 1; v < e.views; ++v) {
-    double a[12], b[12];
-    for (int i = 0; i < 12; ++i)
-      a[i] = static_cast<double>(p.geometry.extrinsics[static_cast<std::size_t>(12 * v + i)]),
-      b[i] = static_cast<double>(e.gt_extrinsics[static_cast<std::size_t>(12 * v + i)]);
-    s.rotation_deg += rotation_error_deg(a, b) / static_cast<double>(e.views - 1);
+  const index_t V = e.views;
+  std::vector<double> pred(static_cast<std::size_t>(12 * V)), gt(pred.size());
+  for (std::size_t i = 0; i < pred.size(); ++i)
+    pred[i] = static_cast<double>(p.geometry.extrinsics[i]), gt[i] = static_cast<double>(e.gt_extrinsics[i]);
+  detail::score_rotations(pred.data(), gt.data(), V, s.rotation_deg, s.rra15, s.rra30);
+  for (index_t v = 1; v < V; ++v) s.chance_rotation_deg += rotation_error_deg(gt.data(), gt.data() + 12 * v) / static_cast<double>(V - 1);
+  if (w.config().geometry.point_head) {
+    const auto& o = ws.predict.geometry.outputs;
+    std::vector<T> solved(static_cast<std::size_t>(12 * V));
+    geometry::cameras_from_points<T>(solved.data(), o.points.data(), o.points_conf.data(), o.depth.data(),
+                                     o.intrinsics.data(), V, e.h, e.w);
+    for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
+    detail::score_rotations(pred.data(), gt.data(), V, s.points_rotation_deg, s.points_rra15, s.points_rra30);
   }
   double err = 0;
   index_t n = 0;

@@ -3,6 +3,7 @@
 // object), seed, global batch, views per scene, Gaussians, clipping, LPIPS weights, checkpoint/log periods and the
 // stages (steps, learning rate, warmup, losses). Every key is checked before any compute; unknown keys are errors.
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -46,6 +47,18 @@ struct TrainRunConfig {
   std::uint64_t seed = 0;
   index_t batch = 4;
   int inputs_min = 2, inputs_max = 4, targets = 2;
+  // 4-view procedural scenes (training and validation) are the fixed evaluation rig; false: random orbit views in
+  // random order for every scene, so that input order carries no pose.
+  bool structured_inputs = true;
+  // Procedural views' baseline (data::OrbitRanges::max_baseline_deg) grows linearly from baseline_deg[0] at step 0 to
+  // baseline_deg[1] at baseline_steps, then stays; baseline_steps 0: no curriculum (independent views).
+  std::array<double, 2> baseline_deg{0, 0};
+  std::uint64_t baseline_steps = 0;
+  double baseline_at(std::uint64_t step) const {
+    if (baseline_steps == 0) return 0;
+    const double f = std::min(1.0, static_cast<double>(step) / static_cast<double>(baseline_steps));
+    return baseline_deg[0] + f * (baseline_deg[1] - baseline_deg[0]);
+  }
   index_t gaussians = 0;  // 0: tied to the view count (the model's budget)
   double max_grad_norm = 1.0;
   std::string lpips_weights;
@@ -131,6 +144,7 @@ inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where)
   s.step.train_geometry = k.boolean("train_geometry", true);
   s.step.camera_weight = k.number("camera_weight", 0.0, 0, 1e6);
   s.step.depth_weight = k.number("depth_weight", 0.0, 0, 1e6);
+  s.step.point_weight = k.number("point_weight", 0.0, 0, 1e6);
   if (const nlohmann::json* o = k.find("objective")) {
     Keys ok(*o, k.path("objective"));
     auto& w = s.step.objective;
@@ -141,8 +155,8 @@ inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where)
     ok.finish();
   }
   k.finish();
-  require(s.step.appearance || s.step.camera_weight > 0 || s.step.depth_weight > 0, "train config: '", where,
-          "' has no loss (appearance is false and camera_weight and depth_weight are 0)");
+  require(s.step.appearance || s.step.camera_weight > 0 || s.step.depth_weight > 0 || s.step.point_weight > 0,
+          "train config: '", where, "' has no loss (appearance is false and camera_weight, depth_weight and point_weight are 0)");
   require(s.step.train_geometry || s.step.appearance, "train config: '", where,
           "' trains nothing (train_geometry and appearance are both false)");
   return s;
@@ -181,6 +195,21 @@ inline TrainRunConfig parse_train_config(const nlohmann::json& j) {
           c.inputs_min, ", ", c.inputs_max, "], expected 1 <= min <= max <= ", max_views,
           " (the decoder's max_views)");
   c.targets = static_cast<int>(k.integer("targets", 2, 0, 64));
+  c.structured_inputs = k.boolean("structured_inputs", true);
+  if (const nlohmann::json* cu = k.find("curriculum")) {
+    detail::Keys ck(*cu, "curriculum");
+    c.baseline_steps = ck.integer("steps", 0, 1, UINT64_MAX);
+    if (const nlohmann::json* b = ck.find("baseline_deg")) {
+      require(b->is_array() && b->size() == 2 && (*b)[0].is_number() && (*b)[1].is_number(), "train config: ",
+              "'curriculum.baseline_deg' is ", b->dump(), ", expected [start, end] in degrees");
+      c.baseline_deg = {(*b)[0].get<double>(), (*b)[1].get<double>()};
+    }
+    ck.finish();
+    require(c.baseline_steps > 0, "train config: 'curriculum' needs 'steps' (the step at which the baseline reaches its end)");
+    for (double d : c.baseline_deg)
+      require(d > 0 && d <= 360, "train config: 'curriculum.baseline_deg' entry ", d, " must be in (0, 360]");
+    require(!c.structured_inputs, "train config: 'curriculum' needs structured_inputs false (the rig has fixed views)");
+  }
   c.gaussians = static_cast<index_t>(k.integer("gaussians", 0, 0, 100000000));
   c.max_grad_norm = k.number("max_grad_norm", 1.0, 0, 1e12);
   c.lpips_weights = k.string("lpips_weights", "");
@@ -213,6 +242,8 @@ inline TrainRunConfig parse_train_config(const nlohmann::json& j) {
   }
   k.finish();
   for (auto& s : c.stages) {
+    require(s.step.point_weight == 0 || c.model.geometry.point_head, "train config: stage '", s.name, "' has point_weight ",
+            s.step.point_weight, " but the model has no point head (model.geometry.point_head)");
     s.step.gaussians = c.gaussians;
     s.step.max_grad_norm = c.max_grad_norm;
     if (s.step.objective.lpips > 0)

@@ -1,0 +1,99 @@
+#include <catch2/catch.hpp>
+
+#include <cmath>
+#include <random>
+#include <vector>
+
+#include <Eigen/Geometry>
+
+#include "flexsplat/geometry/procrustes.hpp"
+#include "flexsplat/geometry/unproject.hpp"
+
+using namespace flexsplat;
+
+namespace {
+Eigen::Matrix3d random_rotation(std::mt19937& rng) {
+  std::normal_distribution<double> n;
+  Eigen::Quaterniond q(n(rng), n(rng), n(rng), n(rng));
+  return q.normalized().toRotationMatrix();
+}
+}  // namespace
+
+TEST_CASE("rigid_fit recovers a rotation and translation exactly, ignores unweighted pairs and never reflects",
+          "[geometry][procrustes]") {
+  std::mt19937 rng(4);
+  std::uniform_real_distribution<double> u(-1, 1);
+  for (int trial = 0; trial < 20; ++trial) {
+    const Eigen::Matrix3d R = random_rotation(rng);
+    const Eigen::Vector3d t(u(rng), u(rng), u(rng));
+    const index_t n = 50;
+    std::vector<double> src(3 * n), dst(3 * n), w(n);
+    for (index_t i = 0; i < n; ++i) {
+      const Eigen::Vector3d p(u(rng), u(rng), u(rng));
+      Eigen::Vector3d q = R * p + t;
+      w[i] = 0.5 + 0.5 * (u(rng) + 1);
+      if (i % 7 == 0) q += Eigen::Vector3d(5, -3, 2), w[i] = (i % 14 == 0) ? 0.0 : -1.0;  // outliers without weight
+      for (int k = 0; k < 3; ++k) src[3 * i + k] = p(k), dst[3 * i + k] = q(k);
+    }
+    double Rf[9], tf[3];
+    REQUIRE(geometry::rigid_fit(src.data(), dst.data(), w.data(), n, Rf, tf));
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) CHECK(Rf[3 * r + c] == Approx(R(r, c)).margin(1e-12));
+      CHECK(tf[r] == Approx(t(r)).margin(1e-12));
+    }
+  }
+  // Mirror-image points: the best proper rotation, determinant +1, not the reflection that would fit exactly.
+  std::vector<double> src{1, 0, 0, 0, 1, 0, 0, 0, 1, 1, 1, 1}, dst(src), w(4, 1.0);
+  for (int i = 0; i < 4; ++i) dst[3 * i + 2] = -dst[3 * i + 2];
+  double Rf[9], tf[3];
+  REQUIRE(geometry::rigid_fit(src.data(), dst.data(), w.data(), 4, Rf, tf));
+  const Eigen::Map<const Eigen::Matrix<double, 3, 3, Eigen::RowMajor>> Rm(Rf);
+  CHECK(Rm.determinant() == Approx(1.0).margin(1e-12));
+  CHECK((Rm * Rm.transpose() - Eigen::Matrix3d::Identity()).norm() < 1e-12);
+  // Collinear points (or fewer than three with weight) leave the rotation free: reported, identity returned.
+  std::vector<double> line{0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3};
+  CHECK_FALSE(geometry::rigid_fit(line.data(), line.data(), w.data(), 4, Rf, tf));
+  CHECK(Rf[0] == 1.0);
+  const std::vector<double> two{1, 1, 0, 0};
+  CHECK_FALSE(geometry::rigid_fit(src.data(), src.data(), two.data(), 4, Rf, tf));
+}
+
+TEST_CASE("cameras_from_points solves each view's camera from a point map and depth made with it, background "
+          "at the confidence floor ignored", "[geometry][procrustes]") {
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-1, 1);
+  const index_t S = 3, H = 9, W = 11, px = H * W;
+  std::vector<double> E(12 * S), K(9 * S), depth(S * px), points(3 * S * px), conf(S * px);
+  for (index_t f = 0; f < S; ++f) {
+    const Eigen::Matrix3d R = f == 0 ? Eigen::Matrix3d::Identity() : random_rotation(rng);
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) E[12 * f + 4 * r + c] = R(r, c);
+      E[12 * f + 4 * r + 3] = f == 0 ? 0.0 : u(rng);
+    }
+    const double k[9] = {12.0 + f, 0, 5.2, 0, 11.0, 3.9, 0, 0, 1};
+    std::copy(k, k + 9, K.begin() + 9 * f);
+    for (index_t p = 0; p < px; ++p) {
+      depth[f * px + p] = 2.0 + 0.5 * u(rng);
+      conf[f * px + p] = p % 5 == 0 ? 1.0 : 1.5 + u(rng) * 0.4;
+    }
+  }
+  geometry::unproject_depth_forward<double>(points.data(), depth.data(), E.data(), K.data(), S, H, W);
+  for (index_t f = 0; f < S; ++f)
+    for (index_t p = 0; p < px; p += 5)
+      for (int k = 0; k < 3; ++k) points[3 * (f * px + p) + k] = 100.0 * u(rng);  // background: garbage at conf 1
+  std::vector<double> solved(12 * S);
+  bool ok[S];
+  geometry::cameras_from_points<double>(solved.data(), points.data(), conf.data(), depth.data(), K.data(), S, H, W, ok);
+  for (index_t f = 0; f < S; ++f) {
+    CHECK(ok[f]);
+    for (int i = 0; i < 12; ++i) CHECK(solved[12 * f + i] == Approx(E[12 * f + i]).margin(1e-9));
+  }
+  // Every pixel at the floor: nothing to fit.
+  std::fill(conf.begin(), conf.end(), 1.0);
+  geometry::cameras_from_points<double>(solved.data(), points.data(), conf.data(), depth.data(), K.data(), S, H, W, ok);
+  CHECK_FALSE(ok[1]);
+  K[0] = 0;
+  CHECK_THROWS_WITH(geometry::cameras_from_points<double>(solved.data(), points.data(), conf.data(), depth.data(),
+                                                          K.data(), S, H, W, ok),
+                    Catch::Contains("frame 0 has focal lengths 0"));
+}
