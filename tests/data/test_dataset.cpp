@@ -382,3 +382,35 @@ TEST_CASE("in-memory batches from the generator", "[data]") {
   o.crop = 0;
   CHECK(std::memcmp(&batch[1].inputs.depth(2, 0, 0), g.views[2].depth.data(), sizeof(float) * 64 * 64) == 0);
 }
+
+TEST_CASE("generator views within a baseline of the first: azimuth within it, elevation within half of it, inside the "
+          "ranges", "[data]") {
+  GeneratorConfig cfg = tiny_config();
+  cfg.size = 16;
+  BatchOptions o;
+  o.inputs = 5;
+  o.targets = 3;
+  o.structured_inputs = false;
+  auto wrap = [](double d) { return std::remainder(d, 360.0); };
+  for (double baseline : {10.0, 40.0}) {
+    cfg.orbit.max_baseline_deg = baseline;
+    double widest = 0;
+    for (const SceneSample& s : generate_batch(cfg, 6, 3, 0, o)) {
+      std::vector<Camera> cams = s.inputs.cameras;
+      cams.insert(cams.end(), s.targets.cameras.begin(), s.targets.cameras.end());
+      const OrbitParameters first = orbit_parameters(cams[0]);
+      for (const Camera& c : cams) {
+        const OrbitParameters p = orbit_parameters(c);
+        // Orbit parameters are read back from the camera (its look-at point jitters), so allow a few degrees.
+        CHECK(std::abs(wrap(p.azimuth_deg - first.azimuth_deg)) <= baseline + 3);
+        CHECK(std::abs(p.elevation_deg - first.elevation_deg) <= baseline / 2 + 3);
+        CHECK(p.elevation_deg >= cfg.orbit.elevation_min - 3);
+        CHECK(p.elevation_deg <= cfg.orbit.elevation_max + 3);
+        widest = std::max(widest, std::abs(wrap(p.azimuth_deg - first.azimuth_deg)));
+      }
+    }
+    CHECK(widest > baseline / 2);  // the window is used, not collapsed onto the first view
+  }
+  cfg.orbit.max_baseline_deg = -1;
+  CHECK_THROWS_WITH(generate_batch(cfg, 1, 3, 0, o), Catch::Contains("max_baseline_deg -1"));
+}

@@ -25,3 +25,21 @@ TEST_CASE("train config: structured_inputs and point_weight are read, checked an
   j["stages"][0]["point_weight"] = 0.0;
   CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("point_weight are 0"));
 }
+
+TEST_CASE("train config: the baseline curriculum grows linearly, then holds, and is checked", "[train][config]") {
+  nlohmann::json j = {{"model", "tiny"}, {"structured_inputs", false},
+                      {"curriculum", {{"baseline_deg", {20, 180}}, {"steps", 100u}}}};
+  const auto c = train::parse_train_config(j);
+  CHECK(c.baseline_at(0) == 20.0);
+  CHECK(c.baseline_at(50) == Approx(100.0));
+  CHECK(c.baseline_at(100) == 180.0);
+  CHECK(c.baseline_at(1000) == 180.0);
+  CHECK(train::parse_train_config({{"model", "tiny"}}).baseline_at(7) == 0.0);  // none: independent views
+  j["structured_inputs"] = true;
+  CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("needs structured_inputs false"));
+  j["structured_inputs"] = false;
+  j["curriculum"]["baseline_deg"] = {0, 90};
+  CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("entry 0 must be in (0, 360]"));
+  j["curriculum"] = {{"baseline_deg", {20, 90}}};
+  CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("needs 'steps'"));
+}
