@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <deque>
 #include <cstdint>
 #include <cstdio>
 #include <filesystem>
@@ -68,6 +69,7 @@ ViewChoice parse_views(const std::string& s) {
 
 // What eval does besides the protocol: test-time refinement, rotation noise, the posed-fit baseline.
 struct Experiment {
+  bool native = true;             // score at the folder's image size (false: at the model's)
   double refine_seconds = 0;      // 0: feed-forward only
   double rotation_noise_deg = 0;  // 0: none
   std::uint64_t seed = 0;         // rotation noise and the posed fit's initialisation (per object: model::object_seed)
@@ -85,6 +87,7 @@ struct ObjectResult {
   Scores model, white, posed_fit, feed_forward;  // feed_forward: the model before refinement (with --refine)
   RefineInfo refine;
   std::vector<std::vector<float>> grid_gt, grid_render, grid_inputs;  // [h, w, 3] each
+  index_t score_h = 0, score_w = 0;  // the size targets were scored (and grid_gt / grid_render drawn) at
 };
 
 Scores row(const model::EvalResult& e, double seconds) {
@@ -116,12 +119,15 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
   const int degree = p.gaussians.sh_degree();
   ObjectResult r;
   r.name = rec.name;
+  // Native: the folder's whole image, a window model_view copies unchanged, K as stored.
+  const index_t sh = x.native ? rec.height : c.image_h, sw = x.native ? rec.width : c.image_w;
+  r.score_h = sh, r.score_w = sw;
   std::vector<float> w2c(p.geometry.extrinsics.begin(), p.geometry.extrinsics.end());
   if (x.refine_seconds > 0) {
     model::EvalOptions before = o;
     before.white_baseline = false, before.grid_targets = 0;
-    r.feed_forward = row(model::score_prediction(rec, in, targets, w2c.data(), p.gaussians, c.image_h, c.image_w,
-                                                 before, ews), seconds);
+    r.feed_forward = row(model::score_prediction(rec, in, targets, w2c.data(), p.gaussians, sh, sw, before, ews),
+                         seconds);
     const auto t1 = std::chrono::steady_clock::now();
     const std::vector<float> targets_hwc = model::views_hwc(images.data(), p.views, p.h, p.w);
     model::RefineConfig rc;
@@ -133,7 +139,7 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
     seconds += since(t1);
     r.refine = {static_cast<double>(rr.steps), rr.loss_initial, rr.loss_final, static_cast<double>(rr.pruned)};
   }
-  model::EvalResult e = model::score_prediction(rec, in, targets, w2c.data(), p.gaussians, c.image_h, c.image_w, o, ews);
+  model::EvalResult e = model::score_prediction(rec, in, targets, w2c.data(), p.gaussians, sh, sw, o, ews);
   r.model = row(e, seconds);
   r.white = {e.white.psnr, e.white.ssim, e.white.lpips, NAN, NAN, NAN};
   r.grid_gt = std::move(e.grid_gt), r.grid_render = std::move(e.grid_render);
@@ -147,8 +153,7 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
     const model::PosedFit f = model::posed_fit(rec, in, c.image_h, c.image_w, n_model, degree, seconds, seed);
     model::EvalOptions po = o;
     po.white_baseline = false, po.grid_targets = 0;
-    const model::EvalResult pe = model::score_prediction(rec, in, targets, f.w2c.data(), f.gaussians, c.image_h,
-                                                         c.image_w, po, ews);
+    const model::EvalResult pe = model::score_prediction(rec, in, targets, f.w2c.data(), f.gaussians, sh, sw, po, ews);
     r.posed_fit = {pe.model.psnr, pe.model.ssim, pe.model.lpips, NAN, NAN, f.seconds};
   }
   return r;
@@ -199,24 +204,43 @@ void print_table(const char* title, const std::vector<std::string>& names, const
   line("mean", mean_of(rows));
 }
 
-// Per object three rows: the input views the model saw, its renders of the first targets, their ground truth.
+// Per object three rows: the input views the model saw (h x w, scaled up to the scoring size), its renders of the
+// first targets and their ground truth (at the scoring size).
 void write_grid(const fs::path& path, const std::vector<ObjectResult>& results, index_t h, index_t w) {
   std::size_t cols = 0;
   for (const auto& r : results) cols = std::max({cols, r.grid_gt.size(), r.grid_inputs.size()});
   require(cols > 0, "eval --grid: no target was rendered");
+  std::deque<std::vector<float>> upscaled;  // owns the scaled inputs the cells point at (a deque never moves them)
   std::vector<image::GridCell> cells;
-  auto row = [&](const std::vector<std::vector<float>>& images, const std::string& label) {
+  auto row = [&](const std::vector<const std::vector<float>*>& images, const std::string& label, index_t rh, index_t rw) {
     for (std::size_t i = 0; i < cols; ++i)
-      cells.push_back(i < images.size() ? image::GridCell{TensorView<const float, 3>(images[i].data(), Shape<3>{h, w, 3}),
+      cells.push_back(i < images.size() ? image::GridCell{TensorView<const float, 3>(images[i]->data(), Shape<3>{rh, rw, 3}),
                                                           label + " " + std::to_string(i + 1)}
                                         : image::GridCell{});
   };
+  auto pointers = [](const std::vector<std::vector<float>>& v) {
+    std::vector<const std::vector<float>*> p;
+    for (const auto& x : v) p.push_back(&x);
+    return p;
+  };
+  index_t cell = std::max(h, w);
   for (const auto& r : results) {
-    row(r.grid_inputs, r.name + " in");
-    row(r.grid_render, "render");
-    row(r.grid_gt, "truth");
+    cell = std::max({cell, r.score_h, r.score_w});
+    std::vector<const std::vector<float>*> inputs;
+    for (const auto& im : r.grid_inputs) {
+      std::vector<float>& big = upscaled.emplace_back(static_cast<std::size_t>(3 * r.score_h * r.score_w));
+      for (index_t y = 0; y < r.score_h; ++y)
+        for (index_t x = 0; x < r.score_w; ++x)
+          for (index_t k = 0; k < 3; ++k)
+            big[static_cast<std::size_t>((y * r.score_w + x) * 3 + k)] =
+                im[static_cast<std::size_t>(((y * h / r.score_h) * w + x * w / r.score_w) * 3 + k)];
+      inputs.push_back(&big);
+    }
+    row(inputs, r.name + " in", r.score_h, r.score_w);
+    row(pointers(r.grid_render), "render", r.score_h, r.score_w);
+    row(pointers(r.grid_gt), "truth", r.score_h, r.score_w);
   }
-  image::write_png(path, image::image_grid(cells, static_cast<int>(cols), 112));
+  image::write_png(path, image::image_grid(cells, static_cast<int>(cols), static_cast<int>(std::min<index_t>(cell, 512))));
 }
 
 nlohmann::json refine_json(const RefineInfo& r, const Scores& refined, const Scores& before) {
@@ -248,6 +272,10 @@ int eval_command(Args args) {
   take_option(args, "--rotation-noise", noise_text);
   take_option(args, "--seed", seed_text);
   take_option(args, "--gaussians", gaussians_text);
+  std::string resolution = "native";
+  take_option(args, "--resolution", resolution);
+  require(resolution == "native" || resolution == "model", "eval: --resolution '", resolution,
+          "' is neither 'native' (the folders' image size) nor 'model' (the model's input size)");
   take_option(args, "--self-attention", attention_text);
   const bool quiet = take_flag(args, "--quiet");
   for (const auto& a : args) require(a.empty() || a[0] != '-', "eval: unknown option '", a, "'");
@@ -274,6 +302,7 @@ int eval_command(Args args) {
     require(x.rotation_noise_deg <= 180, "--rotation-noise ", x.rotation_noise_deg, " must be at most 180 degrees");
   }
   if (!seed_text.empty()) x.seed = parse_seed(seed_text, "--seed");
+  x.native = resolution == "native";
 
   if (!gaussians_text.empty()) x.gaussians = parse_count(gaussians_text, "--gaussians", 0);
   // --self-attention full | local | local:WINDOW (the decoder's self-attention has no parameters of its own).
@@ -317,6 +346,7 @@ int eval_command(Args args) {
     posed_rows.push_back(r.posed_fit), ff_rows.push_back(r.feed_forward);
   }
   std::string title = "model " + model_path;
+  title += x.native ? ", scored at the folders' image size" : ", scored at the model's size";
   char buf[96];
   if (attention) title += attention->first ? ", local self-attention (windows of " + std::to_string(attention->second) + ")"
                                            : std::string(", full self-attention");
@@ -349,11 +379,13 @@ int eval_command(Args args) {
     j["refine_seconds"] = x.refine_seconds;
     j["rotation_noise_deg"] = x.rotation_noise_deg;
     j["seed"] = x.seed;
+    j["resolution"] = resolution;
     const auto& dc = w->config().appearance.decoder;
     j["self_attention"] = dc.local_attention ? "local:" + std::to_string(dc.window) : std::string("full");
     j["objects"] = nlohmann::json::array();
     for (std::size_t i = 0; i < rows.size(); ++i) {
       nlohmann::json o = scores_json(names[i], rows[i]);
+      o["resolution"] = {results[i].score_h, results[i].score_w};
       if (refined) {
         o["feed_forward"] = scores_json("", ff_rows[i]);
         o["refine"] = refine_json(results[i].refine, rows[i], ff_rows[i]);
@@ -387,15 +419,18 @@ const RegisterCommand registered_cmd_eval(
     "eval", {"evaluate a model on object folders: predicted cameras aligned to the ground truth, held-out views scored",
              "OBJECT_DIR... [--model M.safetensors] [--views N|i,j,k] [--max-targets N]\n"
              "  [--baseline white|posed-fit|white,posed-fit] [--refine SECONDS] [--rotation-noise DEG] [--seed N]\n"
-             "  [--gaussians N] [--self-attention full|local[:WINDOW]] [--lpips LPIPS.safetensors] [--json out.json]\n"
+             "  [--gaussians N] [--self-attention full|local[:WINDOW]] [--resolution native|model] [--lpips LPIPS.safetensors]\n"
+             "  [--json out.json]\n"
              "  [--grid out.png [--grid-targets 4]] [--quiet]\n"
              "  OBJECT_DIR: a folder in the layout of ../shared/data/objects/<name> or a folder of them\n"
              "  inputs: the folder's input_views (--views N: those when it lists N, else N evenly spaced frames;\n"
              "  --views i,j,k: these frames); targets: every other frame (the first N with --max-targets)\n"
              "  views are resized to the model's size; predicted input cameras are aligned to the ground truth\n"
-             "  with a similarity (Umeyama); targets are rendered on white; lpips is null without --lpips\n"
+             "  with a similarity (Umeyama); targets are rendered on white and scored at the folders' own image size\n"
+             "  (--resolution model: at the model's size, targets resized as the inputs); lpips is null without --lpips\n"
              "  center_error_rel: median camera-centre error / diagonal of the input views' depth-point box\n"
-             "  --json: {model, objects: [{name, psnr, ssim, lpips, rotation_error_deg, center_error_rel, seconds}],\n"
+             "  --json: {model, resolution, objects: [{name, resolution [h, w], psnr, ssim, lpips, rotation_error_deg,\n"
+             "  center_error_rel, seconds}],\n"
              "  mean, baselines}; --grid: per object its inputs, renders and ground truth\n"
              "  --refine S: optimise the predicted Gaussians and cameras on the input views for S seconds (the\n"
              "  feed-forward scores and the PSNR change are reported too); --rotation-noise DEG: each predicted\n"
