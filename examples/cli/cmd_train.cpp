@@ -103,13 +103,15 @@ nlohmann::json run_validation(const std::vector<ValidationSet>& sets, const mode
   std::vector<image::GridCell> cells;
   const int inputs_shown = 4, targets_shown = 2, cols = inputs_shown + 2 * targets_shown;
   for (const auto& set : sets) {
-    double psnr = 0, ssim = 0, rot = 0, depth = 0, rra15 = 0, rra30 = 0, prot = 0, prra15 = 0, prra30 = 0, chance = 0;
+    double psnr = 0, ssim = 0, rot = 0, depth = 0, rra15 = 0, rra30 = 0, prot = 0, prra15 = 0, prra30 = 0, chance = 0, mrot = 0,
+           mrra15 = 0, mrra30 = 0;
     for (std::size_t i = 0; i < set.scenes.size(); ++i) {
       const auto& e = set.scenes[i];
       std::vector<Tensor<float, 3>> renders;
       const model::ValidationScore s = model::validate_scene(ws, w, e, &renders);
       psnr += s.psnr, ssim += s.ssim, rot += s.rotation_deg, depth += s.depth_rel, rra15 += s.rra15, rra30 += s.rra30;
       prot += s.points_rotation_deg, prra15 += s.points_rra15, prra30 += s.points_rra30, chance += s.chance_rotation_deg;
+      mrot += s.matches_rotation_deg, mrra15 += s.matches_rra15, mrra30 += s.matches_rra30;
       if (i >= 4) continue;
       const Shape<3> shape{e.h, e.w, 3};
       for (int v = 0; v < inputs_shown; ++v)
@@ -131,6 +133,8 @@ nlohmann::json run_validation(const std::vector<ValidationSet>& sets, const mode
                         {"rra15", rra15 / n}, {"rra30", rra30 / n}, {"chance_rotation_deg", chance / n}};
     if (w.config().geometry.point_head)
       result[set.name].update({{"points_rotation_deg", prot / n}, {"points_rra15", prra15 / n}, {"points_rra30", prra30 / n}});
+    if (w.config().geometry.match_dim > 0)
+      result[set.name].update({{"matches_rotation_deg", mrot / n}, {"matches_rra15", mrra15 / n}, {"matches_rra30", mrra30 / n}});
   }
   if (!cells.empty()) image::write_png(picture, image::image_grid(cells, cols, 112));
   return result;
@@ -160,11 +164,12 @@ void write_curves(const fs::path& log_path, const fs::path& picture) {
         add(psnr, "val " + set, step, v.value("psnr", 0.0));
         add(rot, "val " + set, step, v.value("rotation_deg", 0.0));
         if (v.contains("points_rotation_deg")) add(rot, "val " + set + " (points)", step, v.value("points_rotation_deg", 0.0));
+        if (v.contains("matches_rotation_deg")) add(rot, "val " + set + " (matches)", step, v.value("matches_rotation_deg", 0.0));
       }
       continue;
     }
     add(loss, "total", step, j.value("loss", 0.0));
-    for (const char* k : {"render", "camera", "depth", "points", "rgb_head"})
+    for (const char* k : {"render", "camera", "depth", "points", "match", "rgb_head"})
       if (j.value(k, 0.0) > 0) add(loss, k, step, j.value(k, 0.0));
     if (j.value("psnr", 0.0) > 0) add(psnr, "train", step, j.value("psnr", 0.0));
   }
@@ -368,7 +373,7 @@ int train_command(Args args) {
                          std::max(now - last_log_time, 1e-9);
     if (done % cfg.log_every == 0 || done == stop_at) {
       const json line = {{"step", done}, {"stage", stage.name}, {"lr", lr}, {"loss", r.loss}, {"camera", r.camera},
-                         {"depth", r.depth}, {"points", r.points}, {"rgb_head", r.rgb_head}, {"render", r.render},
+                         {"depth", r.depth}, {"points", r.points}, {"match", r.match}, {"rgb_head", r.rgb_head}, {"render", r.render},
                          {"render_depth", r.render_depth}, {"lpips", r.lpips}, {"psnr", r.psnr},
                          {"grad_norm", r.grad_norm}, {"seconds", now}, {"scenes_per_s", speed},
                          {"cpu_seconds", static_cast<double>(std::clock()) / CLOCKS_PER_SEC}};
@@ -425,7 +430,8 @@ const RegisterCommand registered_cmd_train(
               "  curriculum {baseline_deg [start, end], steps}: procedural views within a growing angle of the first,\n"
               "  targets, gaussians (0: tied to the view count), max_grad_norm, lpips_weights, checkpoint_every,\n"
               "  log_every, validation, stages [{name, steps, lr, warmup, appearance, train_geometry, camera_weight,\n"
-              "  depth_weight, point_weight (model.geometry.point_head), objective {rgb_head, render, depth, lpips}}];\n"
+              "  depth_weight, point_weight (model.geometry.point_head), match_weight (model.geometry.match_dim),\n"
+              "  objective {rgb_head, render, depth, lpips}}];\n"
               "  unknown keys are errors\n"
               "  validation {every, scenes, targets, objects [DIR...]}: held-out scores in log.jsonl and validation.png\n"
               "  RUN_DIR: config.json, log.jsonl, state.safetensors (resume point), model.safetensors (at the end),\n"

@@ -97,3 +97,70 @@ TEST_CASE("cameras_from_points solves each view's camera from a point map and de
                                                           K.data(), S, H, W, ok),
                     Catch::Contains("frame 0 has focal lengths 0"));
 }
+
+TEST_CASE("cameras_from_matches solves cameras from descriptor matches and depth, wrong matches voted out",
+          "[geometry][procrustes]") {
+  // Two views of a textured bump: the descriptor of a pixel is the (unit) code of the surface point it sees, so
+  // nearest neighbours find the true correspondences; 10% of view 1's descriptors are scrambled.
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-1, 1);
+  const index_t H = 24, W = 24, px = H * W, D = 8;
+  const Eigen::Matrix3d R1 = Eigen::AngleAxisd(0.35, Eigen::Vector3d(0.2, 1, 0.1).normalized()).toRotationMatrix();
+  const Eigen::Vector3d t1(0.4, -0.1, 0.3);
+  std::vector<double> E(24), K(18), depth(2 * px), desc(2 * px * D), fg(2 * px, 0.0);
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) E[4 * r + c] = r == c, E[12 + 4 * r + c] = R1(r, c);
+    E[4 * r + 3] = 0, E[12 + 4 * r + 3] = t1(r);
+  }
+  for (int v = 0; v < 2; ++v) {
+    const double k[9] = {30, 0, 11.5, 0, 30, 11.5, 0, 0, 1};
+    std::copy(k, k + 9, K.begin() + 9 * v);
+  }
+  // The surface: z = 3 + 0.3 sin(x) cos(y) in view 0's frame; its code a fixed random projection of (x, y, z).
+  std::vector<double> proj(3 * D);
+  for (double& p : proj) p = u(rng);
+  auto code = [&](const Eigen::Vector3d& X, double* out) {
+    for (index_t k = 0; k < D; ++k) out[k] = std::sin(3 * (proj[3 * k] * X(0) + proj[3 * k + 1] * X(1) + proj[3 * k + 2] * X(2)));
+  };
+  auto surface_z = [](double x, double y) { return 3 + 0.3 * std::sin(2 * x) * std::cos(2 * y); };
+  for (int v = 0; v < 2; ++v)
+    for (index_t y = 0; y < H; ++y)
+      for (index_t x = 0; x < W; ++x) {
+        // March along the pixel's ray (camera frame of view v) to the surface.
+        const Eigen::Vector3d dir((x - 11.5) / 30, (y - 11.5) / 30, 1);
+        const Eigen::Matrix3d Rv = v == 0 ? Eigen::Matrix3d::Identity() : R1;
+        const Eigen::Vector3d tv = v == 0 ? Eigen::Vector3d::Zero() : t1;
+        double z = 1;
+        for (int it = 0; it < 200; ++it) {
+          const Eigen::Vector3d X = Rv.transpose() * (z * dir - tv);
+          const double gap = surface_z(X(0), X(1)) - X(2);
+          z += 0.5 * gap;
+        }
+        const Eigen::Vector3d X = Rv.transpose() * (z * dir - tv);
+        const index_t p = v * px + y * W + x;
+        depth[p] = z;
+        fg[p] = std::abs(surface_z(X(0), X(1)) - X(2)) < 1e-6 ? 0.9 : 0.1;
+        code(X, &desc[p * D]);
+        if (v == 1 && p % 10 == 3)
+          for (index_t k = 0; k < D; ++k) desc[p * D + k] = u(rng);
+      }
+  std::vector<double> solved(24);
+  bool ok[2];
+  index_t found[2];
+  geometry::cameras_from_matches<double>(solved.data(), desc.data(), fg.data(), depth.data(), K.data(), 2, H, W, D, ok,
+                                         found);
+  CHECK(ok[0]);
+  CHECK(ok[1]);
+  CHECK(found[1] > px / 4);
+  for (int i = 0; i < 12; ++i) CHECK(solved[i] == Approx(E[i]).margin(1e-12));
+  // Matches snap to pixels (one pixel is 1.9 degrees of view here): within a pixel's angle and 3% of the depth.
+  const Eigen::Map<const Eigen::Matrix<double, 3, 4, Eigen::RowMajor>> got(solved.data() + 12);
+  const double angle = Eigen::AngleAxisd(got.block<3, 3>(0, 0) * R1.transpose()).angle() * 180 / 3.14159265358979;
+  INFO("rotation error " << angle << " deg");
+  CHECK(angle < 1.9);
+  CHECK((got.col(3) - t1).norm() < 0.09);
+  // No pixel counts as object: nothing to match.
+  std::fill(fg.begin(), fg.end(), 0.0);
+  geometry::cameras_from_matches<double>(solved.data(), desc.data(), fg.data(), depth.data(), K.data(), 2, H, W, D, ok);
+  CHECK_FALSE(ok[1]);
+}

@@ -164,11 +164,12 @@ TEST_CASE("VGGT end to end: images -> cameras, depth, confidence, world points, 
   CHECK(result.ok());
 }
 
-TEST_CASE("VGGT point head: points and confidence as in inference, backward matches central differences for the "
-          "point head, the trunk and the images",
+TEST_CASE("VGGT point and match heads: outputs as in inference, backward matches central differences for both heads, "
+          "the trunk and the images",
           "[geometry][vggt][backward]") {
   VggtConfig c = tiny_vggt();
   c.point_head = true;
+  c.match_dim = 3;
   FlatVggt<double> m(c, 5);
   // Output logits near 0.1, where inv_log (sign(x)(exp|x| - 1)) is tame, as a trained head's are: at the random scale
   // they reach the exponential's steep end and central differences of step 1e-6 lose their last digits.
@@ -185,30 +186,41 @@ TEST_CASE("VGGT point head: points and confidence as in inference, backward matc
   const auto first = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws);
   REQUIRE(first.points.size() == S * H * W * 3);
   REQUIRE(first.points_conf.size() == S * H * W);
-  for (index_t i = 0; i < first.points.size(); ++i) REQUIRE(first.points.data()[i] == inference.points.data()[i]);
-  for (index_t i = 0; i < first.points_conf.size(); ++i) {
-    REQUIRE(first.points_conf.data()[i] == inference.points_conf.data()[i]);
+  REQUIRE(first.descriptors.size() == S * H * W * 3);
+  REQUIRE(first.foreground.size() == S * H * W);
+  auto outputs = [](const VggtOutputs<double>& o) {
+    return std::vector<const double*>{o.points.data(), o.points_conf.data(), o.descriptors.data(), o.foreground.data()};
+  };
+  const std::vector<index_t> sizes{S * H * W * 3, S * H * W, S * H * W * 3, S * H * W};
+  for (std::size_t t = 0; t < sizes.size(); ++t)
+    for (index_t i = 0; i < sizes[t]; ++i) REQUIRE(outputs(first)[t][i] == outputs(inference)[t][i]);
+  for (index_t i = 0; i < S * H * W; ++i) {
     REQUIRE(first.points_conf.data()[i] > 1.0);
+    REQUIRE(first.foreground.data()[i] > 0.0);
+    REQUIRE(first.foreground.data()[i] < 1.0);
   }
-  const index_t np = first.points.size();
-  const std::size_t n_out = static_cast<std::size_t>(np + first.points_conf.size());
+  std::size_t n_out = 0;
+  for (index_t n : sizes) n_out += static_cast<std::size_t>(n);
   auto forward = [&](std::span<double> out) {
     VggtCache<double> k;
     const auto o = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, k, ws);
-    std::copy(o.points.data(), o.points.data() + np, out.data());
-    std::copy(o.points_conf.data(), o.points_conf.data() + o.points_conf.size(), out.data() + np);
+    double* at = out.data();
+    for (std::size_t t = 0; t < sizes.size(); ++t) at = std::copy(outputs(o)[t], outputs(o)[t] + sizes[t], at);
   };
   auto backward = [&](std::span<const double> d_out) {
     const auto o = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws);
     VggtOutputGrads<double> d;
-    d.points = d_out.data();
-    d.points_conf = d_out.data() + np;
+    const double* at = d_out.data();
+    d.points = at, at += sizes[0];
+    d.points_conf = at, at += sizes[1];
+    d.descriptors = at, at += sizes[2];
+    d.foreground = at;
     vggt_backward<double>(d_images.data(), m.g, d, o, cache, c, m.w, scratch);
   };
   std::vector<testing::GradParam> params;
   for (auto& p : m.grad_params())
-    if ((p.name.rfind("point_head.", 0) == 0 || p.name.rfind("aggregator.", 0) == 0) &&
-        p.name != "aggregator.patch_embed.mask_token")
+    if ((p.name.rfind("point_head.", 0) == 0 || p.name.rfind("match_head.", 0) == 0 ||
+         p.name.rfind("aggregator.", 0) == 0) && p.name != "aggregator.patch_embed.mask_token")
       params.push_back(p);
   params.push_back({"images", images, d_images});
   testing::GradCheckOptions options;
@@ -216,7 +228,7 @@ TEST_CASE("VGGT point head: points and confidence as in inference, backward matc
   auto result = testing::check_gradients(params, n_out, forward, backward, options);
   INFO(result.summary());
   CHECK(result.ok());
-  // The camera and depth heads receive nothing from the points.
+  // The camera and depth heads receive nothing from these outputs.
   for (auto& p : m.grad_params())
     if (p.name.rfind("depth_head.", 0) == 0 || p.name.rfind("camera_head.", 0) == 0)
       for (double g : p.grad) REQUIRE(g == 0.0);

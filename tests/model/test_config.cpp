@@ -36,6 +36,17 @@ TEST_CASE("the point head is a config switch: its tensors appear under VGGT's na
   auto j = model::to_json(c);
   j["geometry"]["point_head"] = 1;
   CHECK_THROWS_WITH(model::flexsplat_config_from_json(j.dump()), Catch::Contains("'point_head' = 1"));
+  // The match head likewise: match_dim descriptor channels and the object probability, under match_head.*.
+  c.geometry.match_dim = 5;
+  const auto matched = geometry::vggt_parameter_specs(c.geometry);
+  bool match_out = false;
+  for (const auto& s : matched)
+    if (s.name == "match_head.scratch.output_conv2.2.weight") match_out = s.shape[0] == 6;
+  CHECK(match_out);
+  CHECK(model::flexsplat_config_from_json(model::to_json(c).dump()).geometry.match_dim == 5);
+  j = model::to_json(c);
+  j["geometry"]["match_dim"] = 300;
+  CHECK_THROWS_WITH(model::flexsplat_config_from_json(j.dump()), Catch::Contains("'match_dim' = 300"));
 }
 
 TEST_CASE("FlexSplat config errors name the offending setting", "[model][config]") {

@@ -23,7 +23,7 @@ TEST_CASE("train config: structured_inputs and point_weight are read, checked an
   CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("'structured_inputs' is \"no\""));
   j["structured_inputs"] = false;
   j["stages"][0]["point_weight"] = 0.0;
-  CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("point_weight are 0"));
+  CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("point_weight and match_weight are 0"));
 }
 
 TEST_CASE("train config: the baseline curriculum grows linearly, then holds, and is checked", "[train][config]") {

@@ -181,6 +181,10 @@ struct VggtConfig {
   // VGGT's point head: per-pixel 3-D points in the first frame's camera frame with a confidence; its dense targets are
   // what makes the cameras learnable from scratch, and cameras can be solved from its output (geometry/procrustes.hpp).
   bool point_head = false;
+  // > 0: the match head, FlexSplat's own (not in VGGT's checkpoint): per pixel a descriptor of match_dim channels that
+  // finds the same surface point in another view, and the probability that the pixel shows the object. Cameras follow
+  // from matched pixels' depths in closed form (geometry/procrustes.hpp), so pose is learnt as local matching.
+  index_t match_dim = 0;
 
   // The point head is the depth head's architecture with 3 + 1 outputs and VGGT's inv_log activation.
   DptHeadConfig point() const {
@@ -188,6 +192,14 @@ struct VggtConfig {
     p.output_dim = 4;
     p.activation = DptActivation::inv_log;
     p.conf_activation = DptConfActivation::expp1;
+    return p;
+  }
+  // The match head: the same architecture, match_dim linear channels and a sigmoid "confidence" (the object mask).
+  DptHeadConfig match() const {
+    DptHeadConfig p = depth;
+    p.output_dim = match_dim + 1;
+    p.activation = DptActivation::linear;
+    p.conf_activation = DptConfActivation::sigmoid;
     return p;
   }
 
@@ -203,6 +215,7 @@ struct VggtConfig {
             " differs from the aggregator's ", aggregator.patch_size);
     require(depth.output_dim == 2, "VGGT config: the depth head predicts depth + confidence (output_dim 2), got ",
             depth.output_dim);
+    require(match_dim >= 0 && match_dim <= 256, "VGGT config: match_dim ", match_dim, " must be in [0, 256]");
     for (index_t i : depth.intermediate_layer_idx)
       require(i < aggregator.depth, "VGGT config: depth head reads aggregator output ", i, ", depth is ",
               aggregator.depth);
@@ -224,6 +237,12 @@ inline VggtConfig vggt_config_from_json(const std::string& text) {
     require(j.at("point_head").is_boolean(), "VGGT config: 'point_head' = ", j.at("point_head").dump(),
             " is not true or false");
     c.point_head = j.at("point_head").get<bool>();
+  }
+  if (j.contains("match_dim")) {
+    const auto& v = j.at("match_dim");
+    require(v.is_number_integer() && v.get<std::int64_t>() >= 0 && v.get<std::int64_t>() <= 256,
+            "VGGT config: 'match_dim' = ", v.dump(), " is not an integer in [0, 256]");
+    c.match_dim = v.get<index_t>();
   }
   c.validate();
   return c;

@@ -35,6 +35,8 @@ struct VggtOutputs {
   Tensor<T, 4> world_points;  // [S, H, W, 3]
   Tensor<T, 4> points;        // [S, H, W, 3] the point head's map in the first frame's camera frame (point_head)
   Tensor<T, 3> points_conf;   // [S, H, W] its confidence (point_head)
+  Tensor<T, 4> descriptors;   // [S, H, W, match_dim] the match head's per-pixel descriptors (match_dim > 0)
+  Tensor<T, 3> foreground;    // [S, H, W] its probability that the pixel shows the object (match_dim > 0)
   Tensor<T, 4> depth_features;  // [S, features/2, H, W] the DPT map the decoder's fusion reads (keep_depth_features)
   Tensor<T, 3> dino_tokens;   // [S, P, C] when VggtOptions::keep_dino_tokens
   AggregatorOutputs<T> aggregator;  // the layers the heads read (all when VggtOptions::keep_all_layers)
@@ -44,7 +46,8 @@ struct VggtOptions {
   bool keep_dino_tokens = false;
   bool keep_all_layers = false;
   bool keep_depth_features = false;
-  // Called with a stage name ("dino", "aggregator", "camera_head", "depth_head", "point_head", "unproject") and its progress:
+  // Called with a stage name ("dino", "aggregator", "camera_head", "depth_head", "point_head", "match_head",
+  // "unproject") and its progress:
   // step of steps (aggregator: per block pair).
   std::function<void(const std::string&, index_t, index_t)> progress;
 };
@@ -74,6 +77,7 @@ struct VggtCache {
   CameraHeadCache<T> camera;
   DptHeadCache<T> depth;
   DptHeadCache<T> point;
+  DptHeadCache<T> match;
 };
 
 // Gradient slots mirroring VggtWeights.
@@ -84,15 +88,19 @@ struct VggtGrads {
   CameraHeadGrads<T> camera;
   DptHeadGrads<T> depth;
   DptHeadGrads<T> point;  // empty unless the config has the point head
+  DptHeadGrads<T> match;  // empty unless the config has the match head
 };
 
 // Gradients of weights bound into one flat parameter block (e.g. a ParamStore's), at the same offsets in grads_base.
 template <class T>
 VggtGrads<T> vggt_grads(const VggtWeights<T>& w, const T* params_base, T* grads_base) {
-  VggtGrads<T> g{dino_grads(w.dino, params_base, grads_base), aggregator_grads(w.aggregator, params_base, grads_base),
-                 camera_head_grads(w.camera, params_base, grads_base), dpt_head_grads(w.depth, params_base, grads_base),
-                 {}};
+  VggtGrads<T> g;
+  g.dino = dino_grads(w.dino, params_base, grads_base);
+  g.aggregator = aggregator_grads(w.aggregator, params_base, grads_base);
+  g.camera = camera_head_grads(w.camera, params_base, grads_base);
+  g.depth = dpt_head_grads(w.depth, params_base, grads_base);
   if (w.point.norm_weight) g.point = dpt_head_grads(w.point, params_base, grads_base);
+  if (w.match.norm_weight) g.match = dpt_head_grads(w.match, params_base, grads_base);
   return g;
 }
 
@@ -109,6 +117,8 @@ struct VggtOutputGrads {
   const T* depth_features = nullptr;  // [S, features/2, H, W]
   const T* points = nullptr;          // [S, H, W, 3]
   const T* points_conf = nullptr;     // [S, H, W]
+  const T* descriptors = nullptr;     // [S, H, W, match_dim]
+  const T* foreground = nullptr;      // [S, H, W]
   std::span<const T* const> layers;   // [S, tokens, 2C] by aggregator output index
 };
 
@@ -120,8 +130,9 @@ struct VggtActivationBytes {
   std::size_t camera = 0;      // camera head cache
   std::size_t depth = 0;       // DPT head cache
   std::size_t point = 0;       // point head cache (point_head)
+  std::size_t match = 0;       // match head cache (match_dim > 0)
   std::size_t trunk() const { return dino + aggregator + layers; }
-  std::size_t total() const { return trunk() + camera + depth + point; }
+  std::size_t total() const { return trunk() + camera + depth + point + match; }
 };
 
 // Activation memory of vggt_forward_train for `frames` images of image_h x image_w (outputs and backward scratch
@@ -141,6 +152,7 @@ VggtActivationBytes vggt_activation_bytes(const VggtConfig& c, index_t frames, i
   b.camera = bytes(camera_head_cache_elements(c.camera, frames, recompute));
   b.depth = bytes(dpt_head_cache_elements(c.depth, gh, gw, frames));
   if (c.point_head) b.point = bytes(dpt_head_cache_elements(c.point(), gh, gw, frames));
+  if (c.match_dim > 0) b.match = bytes(dpt_head_cache_elements(c.match(), gh, gw, frames));
   return b;
 }
 
@@ -233,23 +245,28 @@ VggtOutputs<T> vggt_forward_impl(const T* images, index_t frames, index_t image_
                         image_w, std::span<T>(ws.head.data(), ws.head.size()));
   report("depth_head", 1, 1);
 
-  if (c.point_head) {
-    report("point_head", 0, 1);
-    const DptHeadConfig pc = c.point();
-    ws.head.resize(static_cast<std::size_t>(dpt_head_workspace_size(pc, gh, gw)));
-    out.points.resize(Shape<4>{frames, image_h, image_w, 3});
-    out.points_conf.resize(Shape<3>{frames, image_h, image_w});
-    DptHeadOutputs<T> pt_out;
-    pt_out.preds = out.points.data();
-    pt_out.conf = out.points_conf.data();
-    if (cache)
-      dpt_head_forward_train<T>(pt_out, cache->point, pc, w.point, layer_span, frames, N, out.aggregator.patch_start_idx,
-                                image_h, image_w, std::span<T>(ws.head.data(), ws.head.size()));
+  // The optional heads read the same layers: preds [frames, H, W, channels] and a per-pixel map.
+  auto extra_head = [&](const char* name, const DptHeadConfig& hc, const DptHeadWeights<T>& hw, DptHeadCache<T>* hk,
+                        Tensor<T, 4>& preds, Tensor<T, 3>& map) {
+    report(name, 0, 1);
+    ws.head.resize(static_cast<std::size_t>(dpt_head_workspace_size(hc, gh, gw)));
+    preds.resize(Shape<4>{frames, image_h, image_w, hc.output_dim - 1});
+    map.resize(Shape<3>{frames, image_h, image_w});
+    DptHeadOutputs<T> o;
+    o.preds = preds.data();
+    o.conf = map.data();
+    if (hk)
+      dpt_head_forward_train<T>(o, *hk, hc, hw, layer_span, frames, N, out.aggregator.patch_start_idx, image_h, image_w,
+                                std::span<T>(ws.head.data(), ws.head.size()));
     else
-      dpt_head_forward<T>(pt_out, pc, w.point, layer_span, frames, N, out.aggregator.patch_start_idx, image_h, image_w,
+      dpt_head_forward<T>(o, hc, hw, layer_span, frames, N, out.aggregator.patch_start_idx, image_h, image_w,
                           std::span<T>(ws.head.data(), ws.head.size()));
-    report("point_head", 1, 1);
-  }
+    report(name, 1, 1);
+  };
+  if (c.point_head)
+    extra_head("point_head", c.point(), w.point, cache ? &cache->point : nullptr, out.points, out.points_conf);
+  if (c.match_dim > 0)
+    extra_head("match_head", c.match(), w.match, cache ? &cache->match : nullptr, out.descriptors, out.foreground);
 
   report("unproject", 0, 1);
   out.world_points.resize(Shape<4>{frames, image_h, image_w, 3});
@@ -283,7 +300,7 @@ struct VggtBackwardScratch {
 };
 
 // Backward of vggt_forward_train: world points -> depth and cameras, cameras -> pose encoding -> camera head, depth,
-// confidence and depth features -> DPT head, points and their confidence -> point head, the heads -> aggregator outputs -> aggregator -> DINO. Adds (+=) into
+// confidence and depth features -> DPT head, points / descriptors and their maps -> point / match head, the heads -> aggregator outputs -> aggregator -> DINO. Adds (+=) into
 // the parameter gradients g (null slots skipped) and, when not null, into d_images [S, 3, H, W]. `out` is the
 // forward's result, unchanged. The camera head's fed-back encodings carry no gradient (VGGT detaches them).
 template <class T>
@@ -333,13 +350,18 @@ void vggt_backward(T* d_images, const VggtGrads<T>& g, const VggtOutputGrads<T>&
   d_dpt.features = d_out.depth_features;
   dpt_head_backward<T>(std::span<T* const>(d_layers.data(), d_layers.size()), g.depth, d_dpt, cache.depth, c.depth,
                        w.depth, std::span<const T* const>(layers.data(), layers.size()));
-  if (c.point_head && (d_out.points || d_out.points_conf)) {
-    DptHeadOutputGrads<T> d_pt;
-    d_pt.preds = d_out.points;
-    d_pt.conf = d_out.points_conf;
-    dpt_head_backward<T>(std::span<T* const>(d_layers.data(), d_layers.size()), g.point, d_pt, cache.point, c.point(),
-                         w.point, std::span<const T* const>(layers.data(), layers.size()));
-  }
+  auto extra_head = [&](const DptHeadGrads<T>& hg, const T* d_preds, const T* d_map, DptHeadCache<T>& hk,
+                        const DptHeadConfig& hc, const DptHeadWeights<T>& hw) {
+    DptHeadOutputGrads<T> d;
+    d.preds = d_preds;
+    d.conf = d_map;
+    dpt_head_backward<T>(std::span<T* const>(d_layers.data(), d_layers.size()), hg, d, hk, hc, hw,
+                         std::span<const T* const>(layers.data(), layers.size()));
+  };
+  if (c.point_head && (d_out.points || d_out.points_conf))
+    extra_head(g.point, d_out.points, d_out.points_conf, cache.point, c.point(), w.point);
+  if (c.match_dim > 0 && (d_out.descriptors || d_out.foreground))
+    extra_head(g.match, d_out.descriptors, d_out.foreground, cache.match, c.match(), w.match);
 
   // Trunk.
   std::vector<const T*> d_layers_const(d_layers.begin(), d_layers.end());

@@ -21,6 +21,7 @@ namespace geometry {
 inline constexpr const char* vggt_dino_prefix = "aggregator.patch_embed.";
 inline constexpr const char* vggt_depth_prefix = "depth_head.";
 inline constexpr const char* vggt_point_prefix = "point_head.";
+inline constexpr const char* vggt_match_prefix = "match_head.";
 
 // Every tensor the configured model reads, in state_dict order (aggregator, camera head, depth head).
 inline std::vector<TensorSpec> vggt_parameter_specs(const VggtConfig& c) {
@@ -33,6 +34,7 @@ inline std::vector<TensorSpec> vggt_parameter_specs(const VggtConfig& c) {
   append_camera_head_specs(specs, c.camera, "camera_head.");
   append_dpt_head_specs(specs, c.depth, vggt_depth_prefix);
   if (c.point_head) append_dpt_head_specs(specs, c.point(), vggt_point_prefix);
+  if (c.match_dim > 0) append_dpt_head_specs(specs, c.match(), vggt_match_prefix);
   return specs;
 }
 
@@ -41,6 +43,7 @@ template <class T>
 void check_vggt_parameters(const ParamSource<T>& src, const VggtConfig& c) {
   std::vector<std::string> modules{"aggregator.", "camera_head.", "depth_head."};
   if (c.point_head) modules.push_back(vggt_point_prefix);
+  if (c.match_dim > 0) modules.push_back(vggt_match_prefix);
   check_parameters(src, vggt_parameter_specs(c), modules, "VGGT");
 }
 
@@ -51,6 +54,7 @@ struct VggtWeights {
   CameraHeadWeights<T> camera;
   DptHeadWeights<T> depth;
   DptHeadWeights<T> point;  // all null unless VggtConfig::point_head
+  DptHeadWeights<T> match;  // all null unless VggtConfig::match_dim > 0
 };
 
 template <class T>
@@ -63,6 +67,7 @@ VggtWeights<T> load_vggt_weights(ParamSource<T>& src, const VggtConfig& c) {
   w.camera = load_camera_head_weights(src, c.camera, "camera_head.");
   w.depth = load_dpt_head_weights(src, c.depth, vggt_depth_prefix);
   if (c.point_head) w.point = load_dpt_head_weights(src, c.point(), vggt_point_prefix);
+  if (c.match_dim > 0) w.match = load_dpt_head_weights(src, c.match(), vggt_match_prefix);
   return w;
 }
 

@@ -82,6 +82,7 @@ inline nlohmann::json to_json(const geometry::VggtConfig& c) {
           {"cam_heads", c.camera.num_heads}, {"features", c.depth.features},
           {"out_channels", c.depth.out_channels}, {"intermediate_layer_idx", c.depth.intermediate_layer_idx}};
   if (c.point_head) j["point_head"] = true;  // absent in files made before the key existed
+  if (c.match_dim > 0) j["match_dim"] = c.match_dim;
   return j;
 }
 

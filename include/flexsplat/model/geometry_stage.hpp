@@ -61,12 +61,14 @@ void geometry_stage_forward(GeometryStage<T>& st, const FlexSplatWeights<T>& w, 
 }
 
 // d_result: gradients with respect to st.result (any field may be all zero); d_pose_enc [iterations, V, 9], d_points
-// [V, h, w, 3] and d_points_conf [V, h, w] (point head) may be null. Adds into the VGGT tensors of `grads`, a gradient
+// [V, h, w, 3] and d_points_conf [V, h, w] (point head), d_descriptors [V, h, w, match_dim] and d_foreground [V, h, w]
+// (match head) may be null. Adds into the VGGT tensors of `grads`, a gradient
 // block laid out like the store's params.
 template <class T>
 void geometry_stage_backward(GeometryStage<T>& st, const FlexSplatWeights<T>& w, T* grads,
                              const GeometryResult<T>& d_result, const T* d_pose_enc, const T* d_points = nullptr,
-                             const T* d_points_conf = nullptr) {
+                             const T* d_points_conf = nullptr, const T* d_descriptors = nullptr,
+                             const T* d_foreground = nullptr) {
   const FlexSplatConfig& c = w.config();
   const index_t V = st.result.views;
   st.d_intrinsics.assign(static_cast<std::size_t>(9 * V), T(0));
@@ -80,6 +82,8 @@ void geometry_stage_backward(GeometryStage<T>& st, const FlexSplatWeights<T>& w,
   d.depth_features = d_result.features.data();
   d.points = d_points;
   d.points_conf = d_points_conf;
+  d.descriptors = d_descriptors;
+  d.foreground = d_foreground;
   const auto g = geometry::vggt_grads(w.geometry(), w.store().params(), grads);
   geometry::vggt_backward<T>(static_cast<T*>(nullptr), g, d, st.outputs, st.cache, c.geometry, w.geometry(), st.scratch);
 }

@@ -17,6 +17,7 @@
 #include "flexsplat/geometry/pose_encoding.hpp"
 #include "flexsplat/geometry/unproject.hpp"
 #include "flexsplat/loss/geometry.hpp"
+#include "flexsplat/loss/match.hpp"
 #include "flexsplat/model/frames.hpp"
 #include "flexsplat/model/geometry_stage.hpp"
 #include "flexsplat/model/objective.hpp"
@@ -40,6 +41,7 @@ struct TrainExample {
   std::vector<T> gt_depth;       // [V, h, w] camera z / scale, 0 for background
   std::vector<T> gt_pose_enc;    // [V, 9] VGGT's encoding of the ground-truth cameras
   std::vector<T> gt_points;      // [V, h, w, 3] surface points in the model's frame (background: the camera centre)
+  std::vector<loss::PixelMatch> matches;  // ground-truth correspondences, up to matches_per_pair per ordered view pair
   std::vector<T> target_images;  // [M, h, w, 3]
   std::vector<std::array<T, 9>> target_K;
   std::vector<std::array<T, 12>> target_w2c;
@@ -57,6 +59,9 @@ inline void camera_arrays(const data::Camera& c, double* K, double* w2c) {
   }
 }
 }  // namespace detail
+
+// Ground-truth correspondences a training example keeps per ordered pair of input views (the match loss's samples).
+inline constexpr index_t matches_per_pair = 64;
 
 // A data::SceneSample (inputs and targets of one scene, square views of the model's size) in the model's frame.
 template <class T>
@@ -96,6 +101,8 @@ TrainExample<T> make_train_example(const data::SceneSample& s, const FlexSplatCo
   e.gt_points.resize(static_cast<std::size_t>(V * px * 3));
   geometry::unproject_depth_forward<T>(e.gt_points.data(), e.gt_depth.data(), e.gt_extrinsics.data(), K_vggt.data(), V,
                                        h, w);
+  e.matches = loss::ground_truth_matches(e.gt_depth.data(), e.gt_K.data(), e.gt_extrinsics.data(), V, h, w,
+                                         matches_per_pair);
 
   e.target_images.assign(s.targets.rgb.data(), s.targets.rgb.data() + M * px * 3);
   for (index_t m = 0; m < M; ++m) {
@@ -119,10 +126,12 @@ struct StepConfig {
   double camera_weight = 0.0;        // VGGT's supervised camera loss on the pose encodings
   double depth_weight = 0.0;         // VGGT's supervised depth loss
   double point_weight = 0.0;         // VGGT's point-map loss (needs the point head)
+  double match_weight = 0.0;         // the match head's correspondence and object-mask losses (needs the match head)
   ObjectiveWeights objective;
   loss::CameraLossConfig camera_loss;
   loss::DepthLossConfig depth_loss;
   loss::PointLossConfig point_loss;
+  loss::MatchLossConfig match_loss;
   bool render_inputs = true;         // input views (predicted cameras) are rendered targets too
   index_t gaussians = 0;             // 0: the configuration's budget for the view count
   double max_grad_norm = 1.0;        // <= 0: no clipping
@@ -130,7 +139,7 @@ struct StepConfig {
 };
 
 struct StepReport {
-  double loss = 0, camera = 0, depth = 0, points = 0, rgb_head = 0, render = 0, render_depth = 0, lpips = 0, psnr = 0;
+  double loss = 0, camera = 0, depth = 0, points = 0, match = 0, rgb_head = 0, render = 0, render_depth = 0, lpips = 0, psnr = 0;
   double grad_norm = 0;
   index_t scenes = 0;
 };
@@ -143,7 +152,7 @@ struct SceneWorkspace {
   ObjectiveWorkspace<T> objective;
   std::vector<RenderView<T>> views;
   std::vector<std::uint8_t> depth_mask;
-  std::vector<T> d_points, d_points_conf;
+  std::vector<T> d_points, d_points_conf, d_descriptors, d_foreground;
 };
 
 namespace detail {
@@ -201,6 +210,20 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
                                 o.points_conf.data(), e.gt_points.data(), ws.depth_mask.data(), V * px, sc.point_loss);
     }
   }
+  if (sc.match_weight > 0) {
+    const index_t D = c.geometry.match_dim;
+    require(D > 0, "training: match_weight ", sc.match_weight, " needs a model with the match head (match_dim > 0)");
+    const auto& o = ws.geometry.outputs;
+    const std::span<const loss::PixelMatch> m(e.matches);
+    r.match = sc.match_weight * loss::match_loss_forward(o.descriptors.data(), o.foreground.data(), e.masks.data(), m,
+                                                         V, px, D, sc.match_loss).total;
+    if (backward) {
+      ws.d_descriptors.assign(static_cast<std::size_t>(V * px * D), T(0));
+      ws.d_foreground.assign(static_cast<std::size_t>(V * px), T(0));
+      loss::match_loss_backward(ws.d_descriptors.data(), ws.d_foreground.data(), sc.match_weight, o.descriptors.data(),
+                                o.foreground.data(), e.masks.data(), m, V, px, D, sc.match_loss);
+    }
+  }
   if (sc.appearance) {
     ws.views.clear();
     if (sc.render_inputs)
@@ -232,12 +255,13 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
   }
   clock.lap(&PhaseTimes::losses);
   if (backward && sc.train_geometry) {
-    const bool points = sc.point_weight > 0;
+    const bool points = sc.point_weight > 0, match = sc.match_weight > 0;
     geometry_stage_backward(ws.geometry, w, grads, ws.d_geometry, ws.d_pose_enc.data(),
-                            points ? ws.d_points.data() : nullptr, points ? ws.d_points_conf.data() : nullptr);
+                            points ? ws.d_points.data() : nullptr, points ? ws.d_points_conf.data() : nullptr,
+                            match ? ws.d_descriptors.data() : nullptr, match ? ws.d_foreground.data() : nullptr);
     clock.lap(&PhaseTimes::geometry_backward);
   }
-  r.loss = r.camera + r.depth + r.points + r.rgb_head + r.render + r.render_depth + r.lpips;
+  r.loss = r.camera + r.depth + r.points + r.match + r.rgb_head + r.render + r.render_depth + r.lpips;
   r.scenes = 1;
   return r;
 }
@@ -281,7 +305,7 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   const bool direct = comm.size() == 1 && local.size() == 1;
   ws.scene_grads.resize(direct ? 0 : local.size());
   if (direct) store.zero_grads();
-  constexpr std::size_t fields = 10;
+  constexpr std::size_t fields = 11;
   std::vector<double> values(local.size() * fields);
   for (std::size_t s = 0; s < local.size(); ++s) {
     T* g = direct ? store.grads() : nullptr;
@@ -290,7 +314,7 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
       g = ws.scene_grads[s].data();
     }
     const StepReport r = scene_gradient(ws.scene, w, g, local[s], sc, lpips, times);
-    const double v[fields] = {r.loss, r.camera, r.depth, r.rgb_head, r.render, r.render_depth, r.lpips, r.psnr, r.points, 1.0};
+    const double v[fields] = {r.loss, r.camera, r.depth, r.rgb_head, r.render, r.render_depth, r.lpips, r.psnr, r.points, r.match, 1.0};
     std::copy(v, v + fields, values.begin() + static_cast<std::ptrdiff_t>(fields * s));
   }
   PhaseClock clock(times);
@@ -301,7 +325,7 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   for (std::size_t s = 0; s < local.size(); ++s) vptrs.push_back(values.data() + fields * s);
   double totals[fields];
   train::ordered_sum<double>(comm, totals, fields, vptrs);
-  require(static_cast<index_t>(totals[9]) == global_batch, "train_step: the ranks hold ", totals[9],
+  require(static_cast<index_t>(totals[10]) == global_batch, "train_step: the ranks hold ", totals[10],
           " scenes, the global batch is ", global_batch);
   const T inv = static_cast<T>(1.0 / static_cast<double>(global_batch));
   T* grads = store.grads();
@@ -310,7 +334,7 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   const double ib = 1.0 / static_cast<double>(global_batch);
   r.loss = totals[0] * ib, r.camera = totals[1] * ib, r.depth = totals[2] * ib, r.rgb_head = totals[3] * ib;
   r.render = totals[4] * ib, r.render_depth = totals[5] * ib, r.lpips = totals[6] * ib, r.psnr = totals[7] * ib;
-  r.points = totals[8] * ib;
+  r.points = totals[8] * ib, r.match = totals[9] * ib;
   r.scenes = global_batch;
   r.grad_norm = sc.max_grad_norm > 0 ? train::clip_grad_norm(store, sc.max_grad_norm) : train::grad_norm(store);
   train::adamw_step(store, sc.adamw, lr, step + 1);

@@ -28,6 +28,8 @@ struct ValidationScore {
   double rra15 = 1, rra30 = 1;  // fraction of input-view pairs whose relative rotation is within 15 / 30 deg
   // The same three for the cameras solved from the point head's map (geometry/procrustes.hpp); 0 without the head.
   double points_rotation_deg = 0, points_rra15 = 0, points_rra30 = 0;
+  // The same for the cameras solved from the match head's correspondences; 0 without the head.
+  double matches_rotation_deg = 0, matches_rra15 = 0, matches_rra30 = 0;
   double chance_rotation_deg = 0;  // rotation_deg of a constant guess (every camera the first one's orientation)
   double depth_rel = 0;         // mean |predicted - ground-truth depth| / ground-truth depth on object pixels
   index_t targets = 0, views = 0;
@@ -95,6 +97,14 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
                                      o.intrinsics.data(), V, e.h, e.w);
     for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
     detail::score_rotations(pred.data(), gt.data(), V, s.points_rotation_deg, s.points_rra15, s.points_rra30);
+  }
+  if (const index_t D = w.config().geometry.match_dim; D > 0) {
+    const auto& o = ws.predict.geometry.outputs;
+    std::vector<T> solved(static_cast<std::size_t>(12 * V));
+    geometry::cameras_from_matches<T>(solved.data(), o.descriptors.data(), o.foreground.data(), o.depth.data(),
+                                      o.intrinsics.data(), V, e.h, e.w, D);
+    for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
+    detail::score_rotations(pred.data(), gt.data(), V, s.matches_rotation_deg, s.matches_rra15, s.matches_rra30);
   }
   double err = 0;
   index_t n = 0;

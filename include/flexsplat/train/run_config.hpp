@@ -145,6 +145,7 @@ inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where)
   s.step.camera_weight = k.number("camera_weight", 0.0, 0, 1e6);
   s.step.depth_weight = k.number("depth_weight", 0.0, 0, 1e6);
   s.step.point_weight = k.number("point_weight", 0.0, 0, 1e6);
+  s.step.match_weight = k.number("match_weight", 0.0, 0, 1e6);
   if (const nlohmann::json* o = k.find("objective")) {
     Keys ok(*o, k.path("objective"));
     auto& w = s.step.objective;
@@ -155,8 +156,10 @@ inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where)
     ok.finish();
   }
   k.finish();
-  require(s.step.appearance || s.step.camera_weight > 0 || s.step.depth_weight > 0 || s.step.point_weight > 0,
-          "train config: '", where, "' has no loss (appearance is false and camera_weight, depth_weight and point_weight are 0)");
+  require(s.step.appearance || s.step.camera_weight > 0 || s.step.depth_weight > 0 || s.step.point_weight > 0 ||
+              s.step.match_weight > 0,
+          "train config: '", where,
+          "' has no loss (appearance is false and camera_weight, depth_weight, point_weight and match_weight are 0)");
   require(s.step.train_geometry || s.step.appearance, "train config: '", where,
           "' trains nothing (train_geometry and appearance are both false)");
   return s;
@@ -244,6 +247,8 @@ inline TrainRunConfig parse_train_config(const nlohmann::json& j) {
   for (auto& s : c.stages) {
     require(s.step.point_weight == 0 || c.model.geometry.point_head, "train config: stage '", s.name, "' has point_weight ",
             s.step.point_weight, " but the model has no point head (model.geometry.point_head)");
+    require(s.step.match_weight == 0 || c.model.geometry.match_dim > 0, "train config: stage '", s.name,
+            "' has match_weight ", s.step.match_weight, " but the model has no match head (model.geometry.match_dim)");
     s.step.gaussians = c.gaussians;
     s.step.max_grad_norm = c.max_grad_norm;
     if (s.step.objective.lpips > 0)

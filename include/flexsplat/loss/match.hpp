@@ -1,0 +1,204 @@
+#pragma once
+// The match head's losses. match: for each ground-truth correspondence (view a pixel p sees the surface point view b
+// sees at pixel q), InfoNCE over every pixel k of view b with unit-length descriptors n:
+//   s_k = <n_a(p), n_b(k)> / temperature,   loss = logsumexp_k s_k - s_q,
+// averaged over the correspondences. foreground: binary cross-entropy of the per-pixel object probability against
+// the object's alpha, averaged over all pixels (probabilities clamped to [1e-6, 1 - 1e-6], no gradient outside).
+// total = match + foreground_weight * foreground. Backward adds d_total * d(total)/d(x) (+=).
+#include <algorithm>
+#include <cmath>
+#include <span>
+#include <vector>
+
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/core/tensor.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace loss {
+
+struct PixelMatch {
+  index_t view_a = 0, pixel_a = 0, view_b = 0, pixel_b = 0;  // pixels as y * width + x
+};
+
+struct MatchLossConfig {
+  double temperature = 0.1;
+  double foreground_weight = 1.0;
+};
+
+struct MatchLossParts {
+  double total = 0, match = 0, foreground = 0;
+};
+
+namespace match_detail {
+inline constexpr double prob_floor = 1e-6;
+
+// Unit-length copies of every descriptor ([n, D]) and their norms.
+template <class T>
+void normalize(const T* desc, index_t n, index_t D, std::vector<double>& unit, std::vector<double>& norm) {
+  unit.resize(static_cast<std::size_t>(n * D));
+  norm.resize(static_cast<std::size_t>(n));
+  for (index_t i = 0; i < n; ++i) {
+    double s = 0;
+    for (index_t d = 0; d < D; ++d) s += static_cast<double>(desc[i * D + d]) * static_cast<double>(desc[i * D + d]);
+    const double r = std::sqrt(s + 1e-12);
+    norm[static_cast<std::size_t>(i)] = r;
+    for (index_t d = 0; d < D; ++d) unit[static_cast<std::size_t>(i * D + d)] = static_cast<double>(desc[i * D + d]) / r;
+  }
+}
+
+inline void check(const PixelMatch& m, index_t views, index_t px) {
+  require(m.view_a >= 0 && m.view_a < views && m.view_b >= 0 && m.view_b < views && m.pixel_a >= 0 &&
+              m.pixel_a < px && m.pixel_b >= 0 && m.pixel_b < px,
+          "match loss: correspondence (view ", m.view_a, " pixel ", m.pixel_a, ") -> (view ", m.view_b, " pixel ",
+          m.pixel_b, ") is outside ", views, " views of ", px, " pixels");
+}
+}  // namespace match_detail
+
+// desc [V, px, D]; prob [V, px] in (0, 1); alpha [V, px] in [0, 1].
+template <class T>
+MatchLossParts match_loss_forward(const T* desc, const T* prob, const T* alpha, std::span<const PixelMatch> matches,
+                                  index_t views, index_t px, index_t D, const MatchLossConfig& c) {
+  require(desc && prob && alpha && views >= 1 && px >= 1 && D >= 1, "match loss: null or empty maps");
+  require(c.temperature > 0 && c.foreground_weight >= 0, "match loss: temperature ", c.temperature,
+          " must be positive and foreground_weight ", c.foreground_weight, " non-negative");
+  std::vector<double> unit, norm;
+  match_detail::normalize(desc, views * px, D, unit, norm);
+  for (double r : norm) require(std::isfinite(r), "match loss: a descriptor is not finite");
+  MatchLossParts out;
+  std::vector<double> s(static_cast<std::size_t>(px));
+  for (const PixelMatch& m : matches) {
+    match_detail::check(m, views, px);
+    const double* a = unit.data() + (m.view_a * px + m.pixel_a) * D;
+    double top = -1e300;
+    for (index_t k = 0; k < px; ++k) {
+      const double* b = unit.data() + (m.view_b * px + k) * D;
+      double dot = 0;
+      for (index_t d = 0; d < D; ++d) dot += a[d] * b[d];
+      s[static_cast<std::size_t>(k)] = dot / c.temperature;
+      top = std::max(top, s[static_cast<std::size_t>(k)]);
+    }
+    double sum = 0;
+    for (double v : s) sum += std::exp(v - top);
+    out.match += top + std::log(sum) - s[static_cast<std::size_t>(m.pixel_b)];
+  }
+  if (!matches.empty()) out.match /= static_cast<double>(matches.size());
+  for (index_t i = 0; i < views * px; ++i) {
+    const double p = std::clamp(static_cast<double>(prob[i]), match_detail::prob_floor, 1 - match_detail::prob_floor);
+    const double a = static_cast<double>(alpha[i]);
+    require(std::isfinite(p) && std::isfinite(a), "match loss: pixel ", i, " has probability ", static_cast<double>(prob[i]),
+            " and alpha ", a);
+    out.foreground -= a * std::log(p) + (1 - a) * std::log(1 - p);
+  }
+  out.foreground /= static_cast<double>(views * px);
+  out.total = out.match + c.foreground_weight * out.foreground;
+  return out;
+}
+
+// Adds d_total * d(total)/d(desc) into d_desc and d_total * d(total)/d(prob) into d_prob (either may be null).
+template <class T>
+void match_loss_backward(T* d_desc, T* d_prob, double d_total, const T* desc, const T* prob, const T* alpha,
+                         std::span<const PixelMatch> matches, index_t views, index_t px, index_t D,
+                         const MatchLossConfig& c) {
+  if (d_desc && !matches.empty()) {
+    std::vector<double> unit, norm, d_unit(static_cast<std::size_t>(views * px * D), 0.0);
+    match_detail::normalize(desc, views * px, D, unit, norm);
+    std::vector<double> s(static_cast<std::size_t>(px));
+    const double scale = d_total / static_cast<double>(matches.size()) / c.temperature;
+    for (const PixelMatch& m : matches) {
+      match_detail::check(m, views, px);
+      const double* a = unit.data() + (m.view_a * px + m.pixel_a) * D;
+      double top = -1e300;
+      for (index_t k = 0; k < px; ++k) {
+        const double* b = unit.data() + (m.view_b * px + k) * D;
+        double dot = 0;
+        for (index_t d = 0; d < D; ++d) dot += a[d] * b[d];
+        s[static_cast<std::size_t>(k)] = dot / c.temperature;
+        top = std::max(top, s[static_cast<std::size_t>(k)]);
+      }
+      double sum = 0;
+      for (double v : s) sum += std::exp(v - top);
+      double* da = d_unit.data() + (m.view_a * px + m.pixel_a) * D;
+      for (index_t k = 0; k < px; ++k) {
+        const double g = (std::exp(s[static_cast<std::size_t>(k)] - top) / sum - (k == m.pixel_b ? 1.0 : 0.0)) * scale;
+        const double* b = unit.data() + (m.view_b * px + k) * D;
+        double* db = d_unit.data() + (m.view_b * px + k) * D;
+        for (index_t d = 0; d < D; ++d) da[d] += g * b[d], db[d] += g * a[d];
+      }
+    }
+    // Through the normalisation: d f = (d n - n <n, d n>) / |f|.
+    for (index_t i = 0; i < views * px; ++i) {
+      const double* n = unit.data() + i * D;
+      const double* dn = d_unit.data() + i * D;
+      double proj = 0;
+      for (index_t d = 0; d < D; ++d) proj += n[d] * dn[d];
+      for (index_t d = 0; d < D; ++d)
+        d_desc[i * D + d] += static_cast<T>((dn[d] - n[d] * proj) / norm[static_cast<std::size_t>(i)]);
+    }
+  }
+  if (d_prob && c.foreground_weight > 0) {
+    const double scale = d_total * c.foreground_weight / static_cast<double>(views * px);
+    for (index_t i = 0; i < views * px; ++i) {
+      const double p = static_cast<double>(prob[i]), a = static_cast<double>(alpha[i]);
+      if (p < match_detail::prob_floor || p > 1 - match_detail::prob_floor) continue;  // clamped: no gradient
+      d_prob[i] += static_cast<T>(scale * (p - a) / (p * (1 - p)));
+    }
+  }
+}
+
+// Ground-truth correspondences of V views of one scene: for each ordered pair (a, b), a != b, up to `per_pair` pixels
+// of view a (evenly spaced among the candidates) whose surface point lands inside view b on a pixel showing the same
+// surface (its depth within `tolerance` of the point's relative depth: not occluded). depth [V, h, w] camera z (0:
+// background); K [V, 3, 3] with pixel centres at +0.5; w2c [V, 3, 4].
+template <class T>
+std::vector<PixelMatch> ground_truth_matches(const T* depth, const T* K, const T* w2c, index_t views, index_t h,
+                                             index_t w, index_t per_pair, double tolerance = 0.03) {
+  std::vector<PixelMatch> out;
+  const index_t px = h * w;
+  std::vector<index_t> hit;
+  std::vector<index_t> target;
+  for (index_t a = 0; a < views; ++a)
+    for (index_t b = 0; b < views; ++b) {
+      if (a == b) continue;
+      hit.clear(), target.clear();
+      const T* Ka = K + 9 * a;
+      const T* Ea = w2c + 12 * a;
+      const T* Kb = K + 9 * b;
+      const T* Eb = w2c + 12 * b;
+      for (index_t p = 0; p < px; ++p) {
+        const double z = static_cast<double>(depth[a * px + p]);
+        if (!(z > 0)) continue;
+        const double x = static_cast<double>(p % w) + 0.5, y = static_cast<double>(p / w) + 0.5;
+        const double cam[3] = {(x - static_cast<double>(Ka[2])) / static_cast<double>(Ka[0]) * z,
+                               (y - static_cast<double>(Ka[5])) / static_cast<double>(Ka[4]) * z, z};
+        double world[3];
+        for (int r = 0; r < 3; ++r) {
+          world[r] = 0;
+          for (int k = 0; k < 3; ++k) world[r] += static_cast<double>(Ea[4 * k + r]) * (cam[k] - static_cast<double>(Ea[4 * k + 3]));
+        }
+        double cb[3];
+        for (int r = 0; r < 3; ++r) {
+          cb[r] = static_cast<double>(Eb[4 * r + 3]);
+          for (int k = 0; k < 3; ++k) cb[r] += static_cast<double>(Eb[4 * r + k]) * world[k];
+        }
+        if (!(cb[2] > 0)) continue;
+        const double u = static_cast<double>(Kb[0]) * cb[0] / cb[2] + static_cast<double>(Kb[2]);
+        const double v = static_cast<double>(Kb[4]) * cb[1] / cb[2] + static_cast<double>(Kb[5]);
+        if (!(u >= 0 && v >= 0 && u < static_cast<double>(w) && v < static_cast<double>(h))) continue;
+        const index_t q = static_cast<index_t>(v) * w + static_cast<index_t>(u);
+        const double zb = static_cast<double>(depth[b * px + q]);
+        if (!(zb > 0) || std::abs(zb - cb[2]) > tolerance * cb[2]) continue;
+        hit.push_back(p), target.push_back(q);
+      }
+      const index_t n = static_cast<index_t>(hit.size()), take = std::min(n, per_pair);
+      for (index_t i = 0; i < take; ++i) {
+        const index_t at = i * n / take;
+        out.push_back({a, hit[static_cast<std::size_t>(at)], b, target[static_cast<std::size_t>(at)]});
+      }
+    }
+  return out;
+}
+
+}  // namespace loss
+}  // namespace v0
+}  // namespace flexsplat

@@ -1,0 +1,80 @@
+#include <catch2/catch.hpp>
+
+#include <cmath>
+#include <vector>
+
+#include "flexsplat/loss/match.hpp"
+#include "flexsplat/testing/gradcheck.hpp"
+#include "loss_test_util.hpp"
+
+using namespace flexsplat;
+using loss_test::uniform;
+
+TEST_CASE("match loss: InfoNCE over the other view's pixels and the mask cross-entropy by hand", "[loss][match]") {
+  // Two views of two pixels, 2-D descriptors. View 0 pixel 0 = (1, 0) matches view 1 pixel 1 = (2, 0) (norm 2: only the
+  // direction counts); view 1 pixel 0 = (0, 3).
+  const std::vector<double> desc{1, 0, 0, 1, 0, 3, 2, 0}, prob{0.5, 0.9, 0.2, 0.6}, alpha{1, 1, 0, 1};
+  const std::vector<loss::PixelMatch> m{{0, 0, 1, 1}};
+  loss::MatchLossConfig c;
+  c.temperature = 0.5;
+  c.foreground_weight = 2;
+  const auto p = loss::match_loss_forward(desc.data(), prob.data(), alpha.data(), std::span(m), 2, 2, 2, c);
+  // s = (0, 2): -log(e^2 / (1 + e^2)), up to the 1e-12 the normalisation adds under its square root.
+  CHECK(p.match == Approx(std::log(1 + std::exp(2.0)) - 2.0).epsilon(1e-11));
+  CHECK(p.foreground == Approx(-(std::log(0.5) + std::log(0.9) + std::log(0.8) + std::log(0.6)) / 4).epsilon(1e-14));
+  CHECK(p.total == Approx(p.match + 2 * p.foreground).epsilon(1e-15));
+  const std::vector<loss::PixelMatch> bad{{0, 0, 2, 1}};
+  CHECK_THROWS_WITH(loss::match_loss_forward(desc.data(), prob.data(), alpha.data(), std::span(bad), 2, 2, 2, c),
+                    Catch::Contains("outside 2 views"));
+}
+
+TEST_CASE("match loss: gradient check for descriptors and object probabilities", "[loss][match][gradcheck]") {
+  const index_t V = 3, px = 10, D = 4;
+  auto desc = uniform(V * px * D, 3, -1, 1), prob = uniform(V * px, 4, 0.05, 0.95), alpha = uniform(V * px, 5, 0, 1);
+  std::vector<loss::PixelMatch> m;
+  for (index_t i = 0; i < 8; ++i) m.push_back({i % V, (3 * i) % px, (i + 1) % V, (7 * i + 2) % px});
+  loss::MatchLossConfig c;
+  c.temperature = 0.3;
+  std::vector<double> dd(desc.size()), dp(prob.size());
+  const auto r = testing::check_gradients(
+      {{"descriptors", desc, dd}, {"probability", prob, dp}}, 1,
+      [&](std::span<double> out) {
+        out[0] = loss::match_loss_forward(desc.data(), prob.data(), alpha.data(), std::span<const loss::PixelMatch>(m), V,
+                                          px, D, c).total;
+      },
+      [&](std::span<const double> d) {
+        loss::match_loss_backward(dd.data(), dp.data(), d[0], desc.data(), prob.data(), alpha.data(),
+                                  std::span<const loss::PixelMatch>(m), V, px, D, c);
+      });
+  INFO(r.summary());
+  CHECK(r.ok());
+}
+
+TEST_CASE("ground_truth_matches pairs pixels that see the same surface point and skips occluded ones",
+          "[loss][match]") {
+  // A fronto-parallel plane at z = 2 seen by two cameras 0.2 apart along x; view 1 sees it shifted by f * 0.2 / 2 =
+  // 1 pixel. A third view sees a nearer plane (z = 1) in front: its pixels are occluders, never matches.
+  const index_t h = 6, w = 8, px = h * w;
+  std::vector<double> depth(3 * px, 2.0), K, E;
+  for (int v = 0; v < 3; ++v) {
+    const double k[9] = {10, 0, 4, 0, 10, 3, 0, 0, 1};
+    K.insert(K.end(), k, k + 9);
+    const double e[12] = {1, 0, 0, v == 1 ? -0.2 : 0.0, 0, 1, 0, 0, 0, 0, 1, 0};
+    E.insert(E.end(), e, e + 12);
+  }
+  for (index_t p = 0; p < px; ++p) depth[2 * px + p] = 1.0;
+  const auto m = loss::ground_truth_matches(depth.data(), K.data(), E.data(), 3, h, w, 1000);
+  index_t pairs01 = 0;
+  for (const auto& x : m) {
+    CHECK(x.view_a != x.view_b);
+    CHECK(x.view_a != 2);  // view 2's surface is nowhere else at its depth
+    CHECK(x.view_b != 2);  // and hides view 0/1's surface
+    if (x.view_a == 0 && x.view_b == 1) {
+      ++pairs01;
+      CHECK(x.pixel_b / w == x.pixel_a / w);
+      CHECK(x.pixel_b % w == x.pixel_a % w - 1);
+    }
+  }
+  CHECK(pairs01 == h * (w - 1));
+  CHECK(loss::ground_truth_matches(depth.data(), K.data(), E.data(), 3, h, w, 5).size() == 10);
+}
