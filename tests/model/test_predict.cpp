@@ -332,3 +332,32 @@ TEST_CASE("with VGGT's two frame-token sets and two decoder view slots, reorderi
   CHECK(max_rel_diff(a2.gaussians.means.data(), b2.gaussians.means.data(),
                      static_cast<std::size_t>(a2.gaussians.means.size())) > 1e-4);
 }
+
+TEST_CASE("with the match head, predict takes each view's camera from its matches with the first view when solved "
+          "and the camera head's otherwise", "[model][predict]") {
+  auto c = model::flexsplat_tiny_config();
+  c.geometry.match_dim = 4;
+  auto w = model::FlexSplatWeights<float>::create(c, false);
+  w->init(8);
+  const auto e = model::make_train_example<float>(predict_scene(3, 0, 4), c);
+  model::PredictWorkspace<float> ws;
+  const auto p = model::predict<float>(ws, *w, e.images.data(), 3);
+  REQUIRE(p.camera_matches.size() == 3);
+  CHECK(p.camera_matches[0] == 0);
+  // The same solve, by hand, from the geometry stage's outputs.
+  const auto& o = ws.geometry.outputs;
+  std::vector<float> solved(36);
+  bool ok[3];
+  index_t found[3];
+  geometry::cameras_from_matches<float>(solved.data(), o.descriptors.data(), o.foreground.data(), o.depth.data(),
+                                        o.intrinsics.data(), 3, c.image_h, c.image_w, 4, ok, found);
+  index_t from_matches = 0;
+  for (index_t v = 1; v < 3; ++v) {
+    CHECK(p.camera_matches[static_cast<std::size_t>(v)] == (ok[v] ? found[v] : 0));
+    const float* want = ok[v] ? solved.data() + 12 * v : o.extrinsics.data() + 12 * v;
+    for (int i = 0; i < 12; ++i) CHECK(p.geometry.extrinsics[static_cast<std::size_t>(12 * v + i)] == want[i]);
+    from_matches += ok[v];
+  }
+  INFO("views solved from matches on random weights: " << from_matches);
+  for (int i = 0; i < 12; ++i) CHECK(p.geometry.extrinsics[static_cast<std::size_t>(i)] == o.extrinsics.data()[i]);
+}

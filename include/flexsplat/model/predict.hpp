@@ -19,6 +19,7 @@
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/model.hpp"
 #include "flexsplat/geometry/pose_encoding.hpp"
+#include "flexsplat/geometry/procrustes.hpp"
 #include "flexsplat/image/resample.hpp"
 #include "flexsplat/model/geometry_stage.hpp"
 #include "flexsplat/model/objective.hpp"
@@ -33,6 +34,8 @@ struct Prediction {
   index_t views = 0, h = 0, w = 0;
   GeometryResult<T> geometry;   // w2c [V, 3, 4], K [V, 3, 3] (pixel centres at +0.5), depth, confidence, features
   std::vector<T> pose_enc;      // [V, 9] the camera head's last refinement iteration
+  // Per view, the descriptor matches its camera was solved from (match head); 0: the camera head's camera.
+  std::vector<index_t> camera_matches;
   GaussianSet<T> gaussians;     // the last decoder layer
   double geometry_ms = 0, decoder_ms = 0;  // wall time of the two stages
 };
@@ -100,6 +103,23 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
   detail::require_finite(g.extrinsics.data(), g.extrinsics.size(), "camera extrinsic");
   detail::require_finite(g.K.data(), g.K.size(), "camera intrinsic");
   detail::require_finite(g.depth.data(), g.depth.size(), "depth");
+  // With the match head each view's camera is solved from its matches with the first view where that fit is
+  // determined; the camera head's camera stays for the others.
+  std::vector<index_t> matched(static_cast<std::size_t>(views), 0);
+  if (c.geometry.match_dim > 0 && views > 1) {
+    const auto& o = ws.geometry.outputs;
+    std::vector<T> solved(static_cast<std::size_t>(12 * views));
+    std::unique_ptr<bool[]> ok(new bool[static_cast<std::size_t>(views)]);
+    geometry::cameras_from_matches<T>(solved.data(), o.descriptors.data(), o.foreground.data(), o.depth.data(),
+                                      o.intrinsics.data(), views, h, wd, c.geometry.match_dim, ok.get(), matched.data());
+    for (index_t v = 1; v < views; ++v) {
+      if (!ok[static_cast<std::size_t>(v)]) {
+        matched[static_cast<std::size_t>(v)] = 0;
+        continue;
+      }
+      std::copy(solved.begin() + 12 * v, solved.begin() + 12 * (v + 1), ws.geometry.result.extrinsics.begin() + 12 * v);
+    }
+  }
   if (before_decoder) before_decoder(ws.geometry.result);
   ws.model.keep_for_backward = false;  // no backward follows: the decoder's layers share one cache, no RGB head
   decoder::model_forward(ws.model, n, w.appearance(), c.appearance, images, h, wd, g.features.data(), g.feature_h,
@@ -114,6 +134,7 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
   detail::require_finite(s.sh.data(), static_cast<std::size_t>(s.sh.size()), "Gaussian colour");
   const std::size_t last = static_cast<std::size_t>((ws.geometry.iterations - 1) * views * geometry::pose_encoding_dim);
   p.pose_enc.assign(ws.geometry.pose_enc.begin() + static_cast<std::ptrdiff_t>(last), ws.geometry.pose_enc.end());
+  p.camera_matches = std::move(matched);
   p.geometry = std::move(ws.geometry.result);  // the workspace refills it on the next call
   p.geometry_ms = std::chrono::duration<double, std::milli>(t1 - t0).count();
   p.decoder_ms = std::chrono::duration<double, std::milli>(t2 - t1).count();
