@@ -155,7 +155,10 @@ TEST_CASE("a training example's ground-truth points are each view's surface in t
     CHECK(gap < 0.1);  // within about one pixel's footprint (28 x 28 views of a unit-size object)
     CHECK(m.view_a != m.view_b);
   }
-  CHECK(static_cast<index_t>(e.matches.size()) <= e.views * (e.views - 1) * model::matches_per_pair);
+  CHECK(static_cast<index_t>(e.matches.size()) <= e.views * (e.views - 1) * model::matches_per_pair(e.views));
+  CHECK(model::matches_per_pair(4) == 64);
+  CHECK(model::matches_per_pair(8) == 13);
+  CHECK(model::matches_per_pair(1) == 0);
 }
 
 TEST_CASE("point_weight and match_weight: scene_gradient is the derivative of scene_loss along a random direction",

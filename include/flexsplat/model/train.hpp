@@ -41,7 +41,7 @@ struct TrainExample {
   std::vector<T> gt_depth;       // [V, h, w] camera z / scale, 0 for background
   std::vector<T> gt_pose_enc;    // [V, 9] VGGT's encoding of the ground-truth cameras
   std::vector<T> gt_points;      // [V, h, w, 3] surface points in the model's frame (background: the camera centre)
-  std::vector<loss::PixelMatch> matches;  // ground-truth correspondences, up to matches_per_pair per ordered view pair
+  std::vector<loss::PixelMatch> matches;  // ground-truth correspondences (matches_per_pair), for the match loss
   std::vector<T> target_images;  // [M, h, w, 3]
   std::vector<std::array<T, 9>> target_K;
   std::vector<std::array<T, 12>> target_w2c;
@@ -60,8 +60,12 @@ inline void camera_arrays(const data::Camera& c, double* K, double* w2c) {
 }
 }  // namespace detail
 
-// Ground-truth correspondences a training example keeps per ordered pair of input views (the match loss's samples).
-inline constexpr index_t matches_per_pair = 64;
+// Ground-truth correspondences a training example keeps: about match_samples per scene spread over its ordered view
+// pairs, at least 8 per pair (64 per pair for 4 views; the match loss's cost grows with their number).
+inline constexpr index_t match_samples = 768;
+inline index_t matches_per_pair(index_t views) {
+  return views < 2 ? 0 : std::max<index_t>(8, match_samples / (views * (views - 1)));
+}
 
 // A data::SceneSample (inputs and targets of one scene, square views of the model's size) in the model's frame.
 template <class T>
@@ -102,7 +106,7 @@ TrainExample<T> make_train_example(const data::SceneSample& s, const FlexSplatCo
   geometry::unproject_depth_forward<T>(e.gt_points.data(), e.gt_depth.data(), e.gt_extrinsics.data(), K_vggt.data(), V,
                                        h, w);
   e.matches = loss::ground_truth_matches(e.gt_depth.data(), e.gt_K.data(), e.gt_extrinsics.data(), V, h, w,
-                                         matches_per_pair);
+                                         matches_per_pair(V));
 
   e.target_images.assign(s.targets.rgb.data(), s.targets.rgb.data() + M * px * 3);
   for (index_t m = 0; m < M; ++m) {
