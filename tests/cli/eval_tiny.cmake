@@ -51,6 +51,21 @@ if(NOT rt STREQUAL "NULL")
   message(FATAL_ERROR "the white baseline has a rotation error (${rt}); it has no cameras")
 endif()
 message(STATUS "eval.json: model ${model}, object ${name}")
+# Scored at the folder's own size by default (the shared renders are 256 x 256), at the model's with --resolution model.
+string(JSON res GET "${doc}" resolution)
+string(JSON rh GET "${doc}" objects 0 resolution 0)
+string(JSON rw GET "${doc}" objects 0 resolution 1)
+if(NOT res STREQUAL "native" OR NOT rh EQUAL 256 OR NOT rw EQUAL 256)
+  message(FATAL_ERROR "eval.json: resolution '${res}' [${rh}, ${rw}], expected native [256, 256]")
+endif()
+run(${FLEXSPLAT} eval ${OBJECT} --model ${WORK_DIR}/run/model.safetensors --max-targets 2 --quiet --resolution model
+    --json ${WORK_DIR}/eval_model_size.json)
+file(READ ${WORK_DIR}/eval_model_size.json doc_m)
+string(JSON res GET "${doc_m}" resolution)
+string(JSON rh GET "${doc_m}" objects 0 resolution 0)
+if(NOT res MATCHES "^model$" OR NOT rh EQUAL 28)  # MATCHES: "model" also names a variable here
+  message(FATAL_ERROR "eval --resolution model: resolution '${res}', height ${rh}, expected model, 28 (the tiny model)")
+endif()
 
 # --refine, --rotation-noise and --baseline posed-fit: keys and ranges; the same seed gives the same noise.
 foreach(run a b)
@@ -92,6 +107,7 @@ endfunction()
 expect_eval_refusal("--refine '-1' must be a positive number" --refine -1)
 expect_eval_refusal("--rotation-noise 200 must be at most 180" --rotation-noise 200)
 expect_eval_refusal("--baseline 'posed' is not known" --baseline white,posed)
+expect_eval_refusal("--resolution 'full' is neither 'native'" --resolution full)
 
 set(images ${OBJECT}/images/000.png ${OBJECT}/images/001.png)
 execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/out.glb
