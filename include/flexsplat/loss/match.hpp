@@ -47,6 +47,23 @@ void normalize(const T* desc, index_t n, index_t D, std::vector<double>& unit, s
   }
 }
 
+// s_k of one correspondence against every pixel of view b; returns sum_k exp(s_k - top), top = max_k s_k.
+inline double logits(const std::vector<double>& unit, const PixelMatch& m, index_t px, index_t D, double temperature,
+                     std::vector<double>& s, double& top) {
+  const double* a = unit.data() + (m.view_a * px + m.pixel_a) * D;
+  top = -1e300;
+  for (index_t k = 0; k < px; ++k) {
+    const double* b = unit.data() + (m.view_b * px + k) * D;
+    double dot = 0;
+    for (index_t d = 0; d < D; ++d) dot += a[d] * b[d];
+    s[static_cast<std::size_t>(k)] = dot / temperature;
+    top = std::max(top, s[static_cast<std::size_t>(k)]);
+  }
+  double sum = 0;
+  for (double v : s) sum += std::exp(v - top);
+  return sum;
+}
+
 inline void check(const PixelMatch& m, index_t views, index_t px) {
   require(m.view_a >= 0 && m.view_a < views && m.view_b >= 0 && m.view_b < views && m.pixel_a >= 0 &&
               m.pixel_a < px && m.pixel_b >= 0 && m.pixel_b < px,
@@ -69,17 +86,8 @@ MatchLossParts match_loss_forward(const T* desc, const T* prob, const T* alpha, 
   std::vector<double> s(static_cast<std::size_t>(px));
   for (const PixelMatch& m : matches) {
     match_detail::check(m, views, px);
-    const double* a = unit.data() + (m.view_a * px + m.pixel_a) * D;
-    double top = -1e300;
-    for (index_t k = 0; k < px; ++k) {
-      const double* b = unit.data() + (m.view_b * px + k) * D;
-      double dot = 0;
-      for (index_t d = 0; d < D; ++d) dot += a[d] * b[d];
-      s[static_cast<std::size_t>(k)] = dot / c.temperature;
-      top = std::max(top, s[static_cast<std::size_t>(k)]);
-    }
-    double sum = 0;
-    for (double v : s) sum += std::exp(v - top);
+    double top = 0;
+    const double sum = match_detail::logits(unit, m, px, D, c.temperature, s, top);
     out.match += top + std::log(sum) - s[static_cast<std::size_t>(m.pixel_b)];
   }
   if (!matches.empty()) out.match /= static_cast<double>(matches.size());
@@ -107,17 +115,9 @@ void match_loss_backward(T* d_desc, T* d_prob, double d_total, const T* desc, co
     const double scale = d_total / static_cast<double>(matches.size()) / c.temperature;
     for (const PixelMatch& m : matches) {
       match_detail::check(m, views, px);
+      double top = 0;
+      const double sum = match_detail::logits(unit, m, px, D, c.temperature, s, top);
       const double* a = unit.data() + (m.view_a * px + m.pixel_a) * D;
-      double top = -1e300;
-      for (index_t k = 0; k < px; ++k) {
-        const double* b = unit.data() + (m.view_b * px + k) * D;
-        double dot = 0;
-        for (index_t d = 0; d < D; ++d) dot += a[d] * b[d];
-        s[static_cast<std::size_t>(k)] = dot / c.temperature;
-        top = std::max(top, s[static_cast<std::size_t>(k)]);
-      }
-      double sum = 0;
-      for (double v : s) sum += std::exp(v - top);
       double* da = d_unit.data() + (m.view_a * px + m.pixel_a) * D;
       for (index_t k = 0; k < px; ++k) {
         const double g = (std::exp(s[static_cast<std::size_t>(k)] - top) / sum - (k == m.pixel_b ? 1.0 : 0.0)) * scale;
