@@ -1,6 +1,7 @@
 #pragma once
 // Pinhole cameras of the data module (OpenCV axes: x right, y down, z forward; pixel centres at +0.5) and the
 // orbit samplers: random views covering the shared Blender renders, and the structured 4-view evaluation set.
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <numbers>
