@@ -300,9 +300,10 @@ struct VggtBackwardScratch {
 };
 
 // Backward of vggt_forward_train: world points -> depth and cameras, cameras -> pose encoding -> camera head, depth,
-// confidence and depth features -> DPT head, points / descriptors and their maps -> point / match head, the heads -> aggregator outputs -> aggregator -> DINO. Adds (+=) into
-// the parameter gradients g (null slots skipped) and, when not null, into d_images [S, 3, H, W]. `out` is the
-// forward's result, unchanged. The camera head's fed-back encodings carry no gradient (VGGT detaches them).
+// confidence and depth features -> DPT head, points / descriptors and their maps -> point / match head, the heads ->
+// aggregator outputs -> aggregator -> DINO. Adds (+=) into the parameter gradients g (null slots skipped) and, when
+// not null, into d_images [S, 3, H, W]. `out` is the forward's result, unchanged. The camera head's fed-back
+// encodings carry no gradient (VGGT detaches them).
 template <class T>
 void vggt_backward(T* d_images, const VggtGrads<T>& g, const VggtOutputGrads<T>& d_out, const VggtOutputs<T>& out,
                    VggtCache<T>& cache, const VggtConfig& c, const VggtWeights<T>& w, VggtBackwardScratch<T>& scratch) {
