@@ -30,3 +30,22 @@ foreach(picture validation.png curves.png)
   endif()
 endforeach()
 message(STATUS "validation lines, validation.png and curves.png present")
+# flexsplat curves over the run: one row per set and metric, the validation steps 2 and 4 as x, a PNG; a metric no
+# run has is refused.
+execute_process(COMMAND ${FLEXSPLAT} curves ${WORK_DIR}/run --x step --metrics rotation_deg,rra30,chance_rotation_deg
+                        --out ${WORK_DIR}/pilots.png
+                RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
+if(NOT code EQUAL 0 OR NOT out MATCHES "procedural rra30" OR NOT out MATCHES "objects chance_rotation_deg"
+   OR NOT out MATCHES " 2: [0-9.e+-]+ .* 4: [0-9.e+-]+")
+  message(FATAL_ERROR "flexsplat curves (${code}):\n${out}\n${err}")
+endif()
+file(READ ${WORK_DIR}/pilots.png magic LIMIT 4 HEX)
+if(NOT magic STREQUAL "89504e47")
+  message(FATAL_ERROR "curves --out wrote no PNG (header ${magic})")
+endif()
+execute_process(COMMAND ${FLEXSPLAT} curves ${WORK_DIR}/run --metrics no_such_metric
+                RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
+if(code EQUAL 0 OR NOT err MATCHES "no run has any of the metrics no_such_metric")
+  message(FATAL_ERROR "curves with an unknown metric gave ${code} and '${err}'")
+endif()
+message(STATUS "flexsplat curves: table and picture")
