@@ -190,9 +190,12 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
     if (backward)
       loss::camera_loss_backward(d_stages, sc.camera_weight, stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss);
   }
-  if (sc.depth_weight > 0) {
+  // Pixels with ground-truth depth: where the depth and point losses compare.
+  if (sc.depth_weight > 0 || sc.point_weight > 0) {
     ws.depth_mask.resize(static_cast<std::size_t>(V * px));
     for (index_t i = 0; i < V * px; ++i) ws.depth_mask[static_cast<std::size_t>(i)] = e.gt_depth[static_cast<std::size_t>(i)] > T(0);
+  }
+  if (sc.depth_weight > 0) {
     r.depth = sc.depth_weight * loss::depth_loss_forward(g.depth.data(), g.confidence.data(), e.gt_depth.data(),
                                                         ws.depth_mask.data(), V, e.h, e.w, sc.depth_loss).total;
     if (backward)
@@ -202,8 +205,6 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
   }
   if (sc.point_weight > 0) {
     require(c.geometry.point_head, "training: point_weight ", sc.point_weight, " needs a model with the point head");
-    ws.depth_mask.resize(static_cast<std::size_t>(V * px));
-    for (index_t i = 0; i < V * px; ++i) ws.depth_mask[static_cast<std::size_t>(i)] = e.gt_depth[static_cast<std::size_t>(i)] > T(0);
     const auto& o = ws.geometry.outputs;
     r.points = sc.point_weight * loss::point_loss_forward(o.points.data(), o.points_conf.data(), e.gt_points.data(),
                                                           ws.depth_mask.data(), V * px, sc.point_loss).total;
