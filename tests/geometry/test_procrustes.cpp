@@ -98,69 +98,161 @@ TEST_CASE("cameras_from_points solves each view's camera from a point map and de
                     Catch::Contains("frame 0 has focal lengths 0"));
 }
 
+namespace {
+// Views of a textured bump z = 3 + 0.3 sin(2x) cos(2y) (world = view 0's frame): the descriptor of a pixel is the code
+// of the surface point it sees (a fixed random projection through a sine), so nearest neighbours find the true
+// correspondences. Pixels count as object where `object(view, X)` holds for the surface point X they see.
+struct BumpViews {
+  static constexpr index_t H = 24, W = 24, px = H * W, D = 8;
+  index_t S;
+  std::vector<double> E, K, depth, desc, fg;
+  std::vector<Eigen::Vector3d> seen;  // the surface point of every pixel
+  std::vector<double> proj;
+
+  template <class Object>
+  BumpViews(const std::vector<Eigen::Matrix3d>& R, const std::vector<Eigen::Vector3d>& t, Object object, std::mt19937& rng)
+      : S(static_cast<index_t>(R.size())), E(12 * S), K(9 * S), depth(S * px), desc(S * px * D), fg(S * px, 0.0),
+        seen(S * px), proj(3 * D) {
+    std::uniform_real_distribution<double> u(-1, 1);
+    for (double& p : proj) p = u(rng);
+    for (index_t v = 0; v < S; ++v) {
+      for (int r = 0; r < 3; ++r) {
+        for (int c = 0; c < 3; ++c) E[12 * v + 4 * r + c] = R[v](r, c);
+        E[12 * v + 4 * r + 3] = t[v](r);
+      }
+      const double k[9] = {30, 0, 11.5, 0, 30, 11.5, 0, 0, 1};
+      std::copy(k, k + 9, K.begin() + 9 * v);
+      for (index_t y = 0; y < H; ++y)
+        for (index_t x = 0; x < W; ++x) {
+          // March along the pixel's ray (camera frame of view v) to the surface.
+          const Eigen::Vector3d dir((x - 11.5) / 30, (y - 11.5) / 30, 1);
+          double z = 1;
+          for (int it = 0; it < 200; ++it) {
+            const Eigen::Vector3d X = R[v].transpose() * (z * dir - t[v]);
+            z += 0.5 * (surface_z(X(0), X(1)) - X(2));
+          }
+          const Eigen::Vector3d X = R[v].transpose() * (z * dir - t[v]);
+          const index_t p = v * px + y * W + x;
+          depth[p] = z;
+          seen[p] = X;
+          fg[p] = std::abs(surface_z(X(0), X(1)) - X(2)) < 1e-6 && object(v, X) ? 0.9 : 0.1;
+          code(X, &desc[p * D]);
+        }
+    }
+  }
+  static double surface_z(double x, double y) { return 3 + 0.3 * std::sin(2 * x) * std::cos(2 * y); }
+  void code(const Eigen::Vector3d& X, double* out) const {
+    for (index_t k = 0; k < D; ++k)
+      out[k] = std::sin(3 * (proj[3 * k] * X(0) + proj[3 * k + 1] * X(1) + proj[3 * k + 2] * X(2)));
+  }
+  // Rotation error (degrees) and translation error of the solved camera of view v against the truth.
+  std::pair<double, double> error(const std::vector<double>& solved, index_t v) const {
+    const Eigen::Map<const Eigen::Matrix<double, 3, 4, Eigen::RowMajor>> got(solved.data() + 12 * v), want(E.data() + 12 * v);
+    const double angle =
+        Eigen::AngleAxisd(got.block<3, 3>(0, 0) * want.block<3, 3>(0, 0).transpose()).angle() * 180 / 3.14159265358979;
+    return {angle, (got.col(3) - want.col(3)).norm()};
+  }
+};
+}  // namespace
+
 TEST_CASE("cameras_from_matches solves cameras from descriptor matches and depth, wrong matches voted out",
           "[geometry][procrustes]") {
-  // Two views of a textured bump: the descriptor of a pixel is the (unit) code of the surface point it sees, so
-  // nearest neighbours find the true correspondences; 10% of view 1's descriptors are scrambled.
   std::mt19937 rng(7);
   std::uniform_real_distribution<double> u(-1, 1);
-  const index_t H = 24, W = 24, px = H * W, D = 8;
   const Eigen::Matrix3d R1 = Eigen::AngleAxisd(0.35, Eigen::Vector3d(0.2, 1, 0.1).normalized()).toRotationMatrix();
-  const Eigen::Vector3d t1(0.4, -0.1, 0.3);
-  std::vector<double> E(24), K(18), depth(2 * px), desc(2 * px * D), fg(2 * px, 0.0);
-  for (int r = 0; r < 3; ++r) {
-    for (int c = 0; c < 3; ++c) E[4 * r + c] = r == c, E[12 + 4 * r + c] = R1(r, c);
-    E[4 * r + 3] = 0, E[12 + 4 * r + 3] = t1(r);
-  }
-  for (int v = 0; v < 2; ++v) {
-    const double k[9] = {30, 0, 11.5, 0, 30, 11.5, 0, 0, 1};
-    std::copy(k, k + 9, K.begin() + 9 * v);
-  }
-  // The surface: z = 3 + 0.3 sin(x) cos(y) in view 0's frame; its code a fixed random projection of (x, y, z).
-  std::vector<double> proj(3 * D);
-  for (double& p : proj) p = u(rng);
-  auto code = [&](const Eigen::Vector3d& X, double* out) {
-    for (index_t k = 0; k < D; ++k) out[k] = std::sin(3 * (proj[3 * k] * X(0) + proj[3 * k + 1] * X(1) + proj[3 * k + 2] * X(2)));
-  };
-  auto surface_z = [](double x, double y) { return 3 + 0.3 * std::sin(2 * x) * std::cos(2 * y); };
-  for (int v = 0; v < 2; ++v)
-    for (index_t y = 0; y < H; ++y)
-      for (index_t x = 0; x < W; ++x) {
-        // March along the pixel's ray (camera frame of view v) to the surface.
-        const Eigen::Vector3d dir((x - 11.5) / 30, (y - 11.5) / 30, 1);
-        const Eigen::Matrix3d Rv = v == 0 ? Eigen::Matrix3d::Identity() : R1;
-        const Eigen::Vector3d tv = v == 0 ? Eigen::Vector3d::Zero() : t1;
-        double z = 1;
-        for (int it = 0; it < 200; ++it) {
-          const Eigen::Vector3d X = Rv.transpose() * (z * dir - tv);
-          const double gap = surface_z(X(0), X(1)) - X(2);
-          z += 0.5 * gap;
-        }
-        const Eigen::Vector3d X = Rv.transpose() * (z * dir - tv);
-        const index_t p = v * px + y * W + x;
-        depth[p] = z;
-        fg[p] = std::abs(surface_z(X(0), X(1)) - X(2)) < 1e-6 ? 0.9 : 0.1;
-        code(X, &desc[p * D]);
-        if (v == 1 && p % 10 == 3)
-          for (index_t k = 0; k < D; ++k) desc[p * D + k] = u(rng);
-      }
+  BumpViews b({Eigen::Matrix3d::Identity(), R1}, {Eigen::Vector3d::Zero(), Eigen::Vector3d(0.4, -0.1, 0.3)},
+              [](index_t, const Eigen::Vector3d&) { return true; }, rng);
+  const index_t px = BumpViews::px, D = BumpViews::D;
+  for (index_t p = px; p < 2 * px; ++p)  // 10% of view 1's descriptors scrambled
+    if (p % 10 == 3)
+      for (index_t k = 0; k < D; ++k) b.desc[p * D + k] = u(rng);
   std::vector<double> solved(24);
   bool ok[2];
   index_t found[2];
-  geometry::cameras_from_matches<double>(solved.data(), desc.data(), fg.data(), depth.data(), K.data(), 2, H, W, D, ok,
-                                         found);
+  geometry::cameras_from_matches<double>(solved.data(), b.desc.data(), b.fg.data(), b.depth.data(), b.K.data(), 2,
+                                         BumpViews::H, BumpViews::W, D, ok, found);
   CHECK(ok[0]);
   CHECK(ok[1]);
+  CHECK(found[0] == 0);
   CHECK(found[1] > px / 4);
-  for (int i = 0; i < 12; ++i) CHECK(solved[i] == Approx(E[i]).margin(1e-12));
+  for (int i = 0; i < 12; ++i) CHECK(solved[i] == Approx(b.E[i]).margin(1e-12));
   // Matches snap to pixels (one pixel is 1.9 degrees of view here): within a pixel's angle and 3% of the depth.
-  const Eigen::Map<const Eigen::Matrix<double, 3, 4, Eigen::RowMajor>> got(solved.data() + 12);
-  const double angle = Eigen::AngleAxisd(got.block<3, 3>(0, 0) * R1.transpose()).angle() * 180 / 3.14159265358979;
+  const auto [angle, shift] = b.error(solved, 1);
   INFO("rotation error " << angle << " deg");
   CHECK(angle < 1.9);
-  CHECK((got.col(3) - t1).norm() < 0.09);
+  CHECK(shift < 0.09);
+  // The same twice: hypotheses come from a fixed sequence.
+  std::vector<double> again(24);
+  geometry::cameras_from_matches<double>(again.data(), b.desc.data(), b.fg.data(), b.depth.data(), b.K.data(), 2,
+                                         BumpViews::H, BumpViews::W, D);
+  CHECK(again == solved);
   // No pixel counts as object: nothing to match.
-  std::fill(fg.begin(), fg.end(), 0.0);
-  geometry::cameras_from_matches<double>(solved.data(), desc.data(), fg.data(), depth.data(), K.data(), 2, H, W, D, ok);
+  std::fill(b.fg.begin(), b.fg.end(), 0.0);
+  geometry::cameras_from_matches<double>(solved.data(), b.desc.data(), b.fg.data(), b.depth.data(), b.K.data(), 2,
+                                         BumpViews::H, BumpViews::W, D, ok);
   CHECK_FALSE(ok[1]);
+  for (int i = 0; i < 12; ++i) CHECK(solved[12 + i] == (i == 0 || i == 5 || i == 10 ? 1.0 : 0.0));
+}
+
+TEST_CASE("cameras_from_matches keeps the pose when most matches are confidently wrong", "[geometry][procrustes]") {
+  // 60% of view 1's pixels carry the code of another surface point view 0 sees, so their matches are exact in
+  // descriptor space and wrong in 3-D: a least-squares start (all matches weighted alike) lands far off.
+  std::mt19937 rng(11);
+  const Eigen::Matrix3d R1 = Eigen::AngleAxisd(0.3, Eigen::Vector3d(-0.1, 1, 0.2).normalized()).toRotationMatrix();
+  BumpViews b({Eigen::Matrix3d::Identity(), R1}, {Eigen::Vector3d::Zero(), Eigen::Vector3d(0.5, 0.1, 0.2)},
+              [](index_t, const Eigen::Vector3d&) { return true; }, rng);
+  const index_t px = BumpViews::px, D = BumpViews::D;
+  std::uniform_int_distribution<index_t> pick(0, px - 1);
+  std::uniform_real_distribution<double> coin(0, 1);
+  for (index_t p = px; p < 2 * px; ++p)
+    if (coin(rng) < 0.6) b.code(b.seen[static_cast<std::size_t>(pick(rng))], &b.desc[p * D]);
+  std::vector<double> solved(24);
+  bool ok[2];
+  geometry::cameras_from_matches<double>(solved.data(), b.desc.data(), b.fg.data(), b.depth.data(), b.K.data(), 2,
+                                         BumpViews::H, BumpViews::W, D, ok);
+  REQUIRE(ok[1]);
+  const auto [angle, shift] = b.error(solved, 1);
+  INFO("rotation error " << angle << " deg, translation error " << shift);
+  CHECK(angle < 1.9);
+  CHECK(shift < 0.09);
+}
+
+TEST_CASE("cameras_from_matches places a view that shares nothing with the first through one that does",
+          "[geometry][procrustes]") {
+  // Three cameras side by side along x: view 2's object pixels are surface points view 0 cannot see (x > 1.25, past
+  // the edge of its field of view at this depth), all of which view 1 sees.
+  std::mt19937 rng(5);
+  const std::vector<Eigen::Matrix3d> R{Eigen::Matrix3d::Identity(),
+                                       Eigen::AngleAxisd(-0.1, Eigen::Vector3d::UnitY()).toRotationMatrix(),
+                                       Eigen::AngleAxisd(-0.2, Eigen::Vector3d::UnitY()).toRotationMatrix()};
+  const std::vector<Eigen::Vector3d> t{Eigen::Vector3d::Zero(), R[1] * Eigen::Vector3d(-0.9, 0, 0),
+                                       R[2] * Eigen::Vector3d(-1.8, 0, 0)};
+  BumpViews b(R, t, [](index_t v, const Eigen::Vector3d& X) { return v != 2 || X(0) > 1.25; }, rng);
+  std::vector<double> solved(36);
+  bool ok[3];
+  index_t found[3];
+  geometry::cameras_from_matches<double>(solved.data(), b.desc.data(), b.fg.data(), b.depth.data(), b.K.data(), 3,
+                                         BumpViews::H, BumpViews::W, BumpViews::D, ok, found);
+  REQUIRE(ok[1]);
+  REQUIRE(ok[2]);
+  CHECK(found[2] > 20);
+  for (index_t v = 1; v < 3; ++v) {
+    const auto [angle, shift] = b.error(solved, v);
+    INFO("view " << v << ": rotation error " << angle << " deg, translation error " << shift);
+    CHECK(angle < 1.9);
+    CHECK(shift < 0.09);
+  }
+  // The pixels of view 2 do not see anything view 0 sees as object, so view 0 alone cannot place it.
+  std::vector<double> two(24), d2, f2, z2, k2;
+  for (index_t v : {0, 2}) {
+    d2.insert(d2.end(), b.desc.begin() + v * BumpViews::px * BumpViews::D, b.desc.begin() + (v + 1) * BumpViews::px * BumpViews::D);
+    f2.insert(f2.end(), b.fg.begin() + v * BumpViews::px, b.fg.begin() + (v + 1) * BumpViews::px);
+    z2.insert(z2.end(), b.depth.begin() + v * BumpViews::px, b.depth.begin() + (v + 1) * BumpViews::px);
+    k2.insert(k2.end(), b.K.begin() + 9 * v, b.K.begin() + 9 * v + 9);
+  }
+  geometry::cameras_from_matches<double>(two.data(), d2.data(), f2.data(), z2.data(), k2.data(), 2, BumpViews::H,
+                                         BumpViews::W, BumpViews::D, ok);
+  const Eigen::Map<const Eigen::Matrix<double, 3, 4, Eigen::RowMajor>> got(two.data() + 12);
+  const double angle = Eigen::AngleAxisd(got.block<3, 3>(0, 0) * R[2].transpose()).angle() * 180 / 3.14159265358979;
+  CHECK((!ok[1] || angle > 1.9 || (got.col(3) - t[2]).norm() > 0.09));
 }

@@ -5,6 +5,7 @@
 // confidence above its floor of 1 (background, trained towards the floor, drops out). Closed form; no gradient.
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <vector>
 
 #include <Eigen/Dense>
@@ -99,111 +100,184 @@ void cameras_from_points(T* extrinsics, const T* points, const T* points_conf, c
   }
 }
 
-// Each view's world-to-camera from descriptor matches with the first view (the world): pixels whose object
-// probability is at least `min_foreground` are matched by mutual nearest neighbours of unit-length descriptors, both
-// ends unprojected with their own depth and intrinsics (pixel (u, v) at integer coordinates), and the rigid fit from the
-// first view's points to view v's is refined by iteratively reweighted least squares (Cauchy weights at 1.5 x the
-// median residual, 5 rounds) so that wrong matches drop out. View 0 gets [I | 0]; a view with fewer than 3 matches
-// [I | 0] and solved false. extrinsics [S, 3, 4] out; descriptors [S, H, W, D]; foreground, depth [S, H, W];
-// intrinsics [S, 3, 3]; matches_out (may be null, [S]): mutual matches found per view.
+// Settings of cameras_from_matches. The inlier distance is relative to the median depth of a pair's matched points.
+struct MatchFitConfig {
+  double min_foreground = 0.5;  // pixels below this object probability are not matched
+  double inlier_rel = 0.05;     // a match is an inlier when the fit maps it within this fraction of the median depth
+  int ransac_rounds = 256;      // minimal (3-match) hypotheses per pair
+  index_t min_inliers = 6;      // a pair with fewer inliers does not link its views
+  unsigned seed = 1;            // hypotheses are drawn from a fixed sequence: the same maps give the same cameras
+};
+
+// The rigid fit of dst ~ R src + t from n pairs [n, 3] by RANSAC over 3-pair samples, then least squares on the inliers
+// (three rounds of re-selection). Returns the inlier count (0 when nothing fits); R, t hold the fit.
+inline index_t robust_rigid_fit(const double* src, const double* dst, index_t n, double tau, int rounds,
+                                unsigned seed, double* R, double* t) {
+  if (n < 3) return 0;
+  std::vector<double> ones(3, 1.0), w(static_cast<std::size_t>(n));
+  std::vector<double> s3(9), d3(9);
+  auto count = [&](const double* Rc, const double* tc, double* weights) {
+    index_t c = 0;
+    for (index_t i = 0; i < n; ++i) {
+      double r2 = 0;
+      for (int r = 0; r < 3; ++r) {
+        double y = tc[r] - dst[3 * i + r];
+        for (int k = 0; k < 3; ++k) y += Rc[3 * r + k] * src[3 * i + k];
+        r2 += y * y;
+      }
+      const bool in = r2 < tau * tau;
+      if (weights) weights[i] = in ? 1.0 : 0.0;
+      c += in;
+    }
+    return c;
+  };
+  std::uint64_t state = 0x9E3779B97F4A7C15ull ^ seed;
+  auto draw = [&]() {  // splitmix64: a fixed, platform-independent sequence
+    std::uint64_t z = (state += 0x9E3779B97F4A7C15ull);
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+    return static_cast<index_t>((z ^ (z >> 31)) % static_cast<std::uint64_t>(n));
+  };
+  index_t best = 0;
+  double Rh[9], th[3];
+  for (int it = 0; it < rounds; ++it) {
+    const index_t a = draw(), b = draw(), c = draw();
+    if (a == b || b == c || a == c) continue;
+    const index_t pick[3] = {a, b, c};
+    for (int j = 0; j < 3; ++j)
+      for (int k = 0; k < 3; ++k) s3[3 * j + k] = src[3 * pick[j] + k], d3[3 * j + k] = dst[3 * pick[j] + k];
+    if (!rigid_fit(s3.data(), d3.data(), ones.data(), 3, Rh, th)) continue;
+    if (const index_t c2 = count(Rh, th, nullptr); c2 > best) {
+      best = c2;
+      std::copy(Rh, Rh + 9, R), std::copy(th, th + 3, t);
+    }
+  }
+  for (int round = 0; best >= 3 && round < 3; ++round) {
+    count(R, t, w.data());
+    if (!rigid_fit(src, dst, w.data(), n, Rh, th)) break;
+    const index_t c2 = count(Rh, th, nullptr);
+    if (c2 < best) break;
+    best = c2;
+    std::copy(Rh, Rh + 9, R), std::copy(th, th + 3, t);
+  }
+  return best;
+}
+
+// Each view's world-to-camera from descriptor matches, the first view's camera being the world: pixels whose object
+// probability is at least `min_foreground` are matched between every pair of views by mutual nearest neighbours of
+// unit-length descriptors, both ends unprojected with their own depth and intrinsics (pixel (u, v) at integer
+// coordinates), and each pair's relative pose is fitted robustly (robust_rigid_fit). The views are then linked from
+// the first along the pairs with the most inliers (a maximum spanning tree), so a view that shares nothing with the
+// first is still placed through one that does. View 0 gets [I | 0]; a view no pair links gets [I | 0] and solved
+// false. extrinsics [S, 3, 4] out; descriptors [S, H, W, D]; foreground, depth [S, H, W]; intrinsics [S, 3, 3];
+// matches_out (may be null, [S]): the inliers of the pair that placed each view (0 for view 0 and unplaced views).
 template <class T>
 void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foreground, const T* depth, const T* intrinsics,
                           index_t frames, index_t height, index_t width, index_t D, bool* solved = nullptr,
-                          index_t* matches_out = nullptr, double min_foreground = 0.5) {
+                          index_t* matches_out = nullptr, const MatchFitConfig& cfg = {}) {
   require(frames >= 1 && height >= 1 && width >= 1 && D >= 1, "cameras_from_matches: empty maps (", frames, " x ",
           height, " x ", width, " x ", D, ")");
   const index_t px = height * width;
-  auto set_camera = [&](index_t f, const double* R, const double* t) {
-    T* E = extrinsics + 12 * f;
-    for (int r = 0; r < 3; ++r) {
-      for (int c = 0; c < 3; ++c) E[4 * r + c] = static_cast<T>(R[3 * r + c]);
-      E[4 * r + 3] = static_cast<T>(t[r]);
-    }
-  };
-  const double I[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1}, zero[3] = {0, 0, 0};
-  // Foreground pixels of a view: their indices, unit descriptors and camera-frame points.
+  // Foreground pixels of a view: their unit descriptors (rows) and camera-frame points.
   struct ViewSet {
-    std::vector<index_t> pixel;
-    std::vector<double> unit, point;
+    Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> unit;
+    std::vector<double> point;
   };
-  auto gather = [&](index_t f) {
-    ViewSet v;
+  std::vector<ViewSet> views(static_cast<std::size_t>(frames));
+  for (index_t f = 0; f < frames; ++f) {
     const T* K = intrinsics + 9 * f;
     const double fx = static_cast<double>(K[0]), fy = static_cast<double>(K[4]);
     const double cx = static_cast<double>(K[2]), cy = static_cast<double>(K[5]);
     require(std::isfinite(fx) && std::isfinite(fy) && fx != 0 && fy != 0, "cameras_from_matches: frame ", f,
             " has focal lengths ", fx, ", ", fy);
+    std::vector<float> unit;
+    ViewSet& v = views[static_cast<std::size_t>(f)];
     for (index_t p = 0; p < px; ++p) {
       const double fg = static_cast<double>(foreground[f * px + p]), z = static_cast<double>(depth[f * px + p]);
-      if (!(fg >= min_foreground) || !(z > 0) || !std::isfinite(z)) continue;
+      if (!(fg >= cfg.min_foreground) || !(z > 0) || !std::isfinite(z)) continue;
       const T* d = descriptors + (f * px + p) * D;
       double n2 = 0;
       for (index_t k = 0; k < D; ++k) n2 += static_cast<double>(d[k]) * static_cast<double>(d[k]);
       if (!(n2 > 0) || !std::isfinite(n2)) continue;
       const double inv = 1 / std::sqrt(n2);
-      v.pixel.push_back(p);
-      for (index_t k = 0; k < D; ++k) v.unit.push_back(static_cast<double>(d[k]) * inv);
+      for (index_t k = 0; k < D; ++k) unit.push_back(static_cast<float>(static_cast<double>(d[k]) * inv));
       const double x = static_cast<double>(p % width), y = static_cast<double>(p / width);
       v.point.insert(v.point.end(), {(x - cx) / fx * z, (y - cy) / fy * z, z});
     }
-    return v;
-  };
-  auto best = [&](const ViewSet& from, const ViewSet& to, std::vector<index_t>& out) {
-    const index_t n = static_cast<index_t>(from.pixel.size()), m = static_cast<index_t>(to.pixel.size());
-    out.assign(static_cast<std::size_t>(n), -1);
-    for (index_t i = 0; i < n; ++i) {
-      double top = -2;
-      for (index_t j = 0; j < m; ++j) {
-        double dot = 0;
-        for (index_t k = 0; k < D; ++k) dot += from.unit[static_cast<std::size_t>(i * D + k)] * to.unit[static_cast<std::size_t>(j * D + k)];
-        if (dot > top) top = dot, out[static_cast<std::size_t>(i)] = j;
-      }
-    }
-  };
-  set_camera(0, I, zero);
-  if (solved) solved[0] = true;
-  if (matches_out) matches_out[0] = 0;
-  if (frames == 1) return;
-  const ViewSet first = gather(0);
-  std::vector<index_t> ab, ba;
-  for (index_t f = 1; f < frames; ++f) {
-    const ViewSet other = gather(f);
-    best(first, other, ab);
-    best(other, first, ba);
-    std::vector<double> src, dst;
-    for (std::size_t i = 0; i < ab.size(); ++i) {
-      const index_t j = ab[i];
-      if (j < 0 || ba[static_cast<std::size_t>(j)] != static_cast<index_t>(i)) continue;
-      src.insert(src.end(), first.point.begin() + static_cast<std::ptrdiff_t>(3 * i), first.point.begin() + static_cast<std::ptrdiff_t>(3 * i + 3));
-      dst.insert(dst.end(), other.point.begin() + 3 * j, other.point.begin() + 3 * j + 3);
-    }
-    const index_t n = static_cast<index_t>(src.size() / 3);
-    if (matches_out) matches_out[f] = n;
+    v.unit = Eigen::Map<Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>>(
+        unit.data(), static_cast<Eigen::Index>(v.point.size() / 3), static_cast<Eigen::Index>(D));
+  }
+  // Every pair's relative pose a -> b (x_b = R x_a + t) and inlier count.
+  struct Edge {
+    index_t inliers = 0;
     double R[9], t[3];
-    std::vector<double> wts(static_cast<std::size_t>(n), 1.0), res(static_cast<std::size_t>(n));
-    bool ok = rigid_fit(src.data(), dst.data(), wts.data(), n, R, t);
-    for (int round = 0; ok && round < 5; ++round) {
-      for (index_t i = 0; i < n; ++i) {
-        double r2 = 0;
-        for (int r = 0; r < 3; ++r) {
-          double y = t[r];
-          for (int k = 0; k < 3; ++k) y += R[3 * r + k] * src[static_cast<std::size_t>(3 * i + k)];
-          r2 += (y - dst[static_cast<std::size_t>(3 * i + r)]) * (y - dst[static_cast<std::size_t>(3 * i + r)]);
-        }
-        res[static_cast<std::size_t>(i)] = std::sqrt(r2);
+  };
+  std::vector<Edge> edge(static_cast<std::size_t>(frames * frames));
+  for (index_t a = 0; a < frames; ++a)
+    for (index_t b = a + 1; b < frames; ++b) {
+      const ViewSet &A = views[static_cast<std::size_t>(a)], &B = views[static_cast<std::size_t>(b)];
+      if (A.unit.rows() < 3 || B.unit.rows() < 3) continue;
+      const Eigen::MatrixXf sim = A.unit * B.unit.transpose();
+      Eigen::VectorXi col_best(sim.cols());
+      for (Eigen::Index j = 0; j < sim.cols(); ++j) sim.col(j).maxCoeff(&col_best(j));
+      std::vector<double> src, dst, depths;
+      for (Eigen::Index i = 0; i < sim.rows(); ++i) {
+        Eigen::Index j;
+        sim.row(i).maxCoeff(&j);
+        if (col_best(j) != i) continue;
+        src.insert(src.end(), A.point.begin() + 3 * i, A.point.begin() + 3 * i + 3);
+        dst.insert(dst.end(), B.point.begin() + 3 * j, B.point.begin() + 3 * j + 3);
+        depths.push_back(A.point[static_cast<std::size_t>(3 * i + 2)]);
       }
-      std::vector<double> sorted(res);
-      std::nth_element(sorted.begin(), sorted.begin() + n / 2, sorted.end());
-      const double scale = std::max(1.5 * sorted[static_cast<std::size_t>(n / 2)], 1e-9);
-      for (index_t i = 0; i < n; ++i) {
-        const double u = res[static_cast<std::size_t>(i)] / scale;
-        wts[static_cast<std::size_t>(i)] = 1 / (1 + u * u);
+      const index_t n = static_cast<index_t>(depths.size());
+      if (n < 3) continue;
+      std::nth_element(depths.begin(), depths.begin() + n / 2, depths.end());
+      const double tau = cfg.inlier_rel * depths[static_cast<std::size_t>(n / 2)];
+      Edge& e = edge[static_cast<std::size_t>(a * frames + b)];
+      e.inliers = robust_rigid_fit(src.data(), dst.data(), n, tau, cfg.ransac_rounds,
+                                   cfg.seed + static_cast<unsigned>(a * frames + b), e.R, e.t);
+      // The reverse edge b -> a: R^T, -R^T t.
+      Edge& r = edge[static_cast<std::size_t>(b * frames + a)];
+      r.inliers = e.inliers;
+      for (int i = 0; i < 3; ++i) {
+        r.t[i] = 0;
+        for (int k = 0; k < 3; ++k) r.R[3 * i + k] = e.R[3 * k + i], r.t[i] -= e.R[3 * k + i] * e.t[k];
       }
-      ok = rigid_fit(src.data(), dst.data(), wts.data(), n, R, t);
     }
+  // Prim's maximum spanning tree from view 0: each view placed by composing its edge with its parent's camera.
+  std::vector<double> cam(static_cast<std::size_t>(12 * frames), 0.0);
+  std::vector<char> placed(static_cast<std::size_t>(frames), 0);
+  std::vector<index_t> by(static_cast<std::size_t>(frames), 0);
+  cam[0] = cam[5] = cam[10] = 1;
+  placed[0] = 1;
+  for (;;) {
+    index_t best = cfg.min_inliers - 1, from = -1, to = -1;
+    for (index_t a = 0; a < frames; ++a)
+      for (index_t b = 0; b < frames; ++b)
+        if (placed[static_cast<std::size_t>(a)] && !placed[static_cast<std::size_t>(b)] &&
+            edge[static_cast<std::size_t>(a * frames + b)].inliers > best)
+          best = edge[static_cast<std::size_t>(a * frames + b)].inliers, from = a, to = b;
+    if (to < 0) break;
+    const Edge& e = edge[static_cast<std::size_t>(from * frames + to)];
+    const double* P = cam.data() + 12 * from;  // [R_a | t_a]; view b: R_e R_a, R_e t_a + t_e
+    double* Q = cam.data() + 12 * to;
+    for (int r = 0; r < 3; ++r) {
+      Q[4 * r + 3] = e.t[r];
+      for (int c = 0; c < 4; ++c) {
+        double acc = c == 3 ? Q[4 * r + 3] : 0.0;
+        for (int k = 0; k < 3; ++k) acc += e.R[3 * r + k] * P[4 * k + c];
+        Q[4 * r + c] = acc;
+      }
+    }
+    placed[static_cast<std::size_t>(to)] = 1;
+    by[static_cast<std::size_t>(to)] = best;
+  }
+  for (index_t f = 0; f < frames; ++f) {
+    const bool ok = placed[static_cast<std::size_t>(f)] != 0;
     if (solved) solved[f] = ok;
-    if (ok) set_camera(f, R, t);
-    else set_camera(f, I, zero);
+    if (matches_out) matches_out[f] = by[static_cast<std::size_t>(f)];
+    for (int i = 0; i < 12; ++i)
+      extrinsics[12 * f + i] = static_cast<T>(ok ? cam[static_cast<std::size_t>(12 * f + i)] : (i == 0 || i == 5 || i == 10));
   }
 }
 

@@ -34,7 +34,7 @@ struct Prediction {
   index_t views = 0, h = 0, w = 0;
   GeometryResult<T> geometry;   // w2c [V, 3, 4], K [V, 3, 3] (pixel centres at +0.5), depth, confidence, features
   std::vector<T> pose_enc;      // [V, 9] the camera head's last refinement iteration
-  // Per view, the descriptor matches its camera was solved from (match head); 0: the camera head's camera.
+  // Per view, the inlier matches of the view pair that placed its camera (match head); 0: the camera head's camera.
   std::vector<index_t> camera_matches;
   GaussianSet<T> gaussians;     // the last decoder layer
   double geometry_ms = 0, decoder_ms = 0;  // wall time of the two stages
