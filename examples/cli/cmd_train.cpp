@@ -292,6 +292,7 @@ int train_command(Args args) {
   auto w = model::FlexSplatWeights<float>::create(cfg.model, true);
   w->init(cfg.seed);
   std::uint64_t step = 0;
+  double cpu_offset = 0;
   if (root) {
     fs::create_directories(run);
     if (fs::exists(run / "config.json")) {
@@ -320,7 +321,11 @@ int train_command(Args args) {
       std::istringstream lines(read_text(log_path));
       for (std::string line; std::getline(lines, line);) {
         try {
-          if (json::parse(line).at("step").get<std::uint64_t>() <= step) kept += line + "\n";
+          const json j = json::parse(line);
+          if (j.at("step").get<std::uint64_t>() > step) continue;
+          kept += line + "\n";
+          // cpu_seconds counts across resumes: this invocation's CPU time adds to the last kept line's.
+          if (j.contains("cpu_seconds")) cpu_offset = j.at("cpu_seconds").get<double>();
         } catch (const json::exception&) {
         }
       }
@@ -376,7 +381,7 @@ int train_command(Args args) {
                          {"depth", r.depth}, {"points", r.points}, {"match", r.match}, {"rgb_head", r.rgb_head}, {"render", r.render},
                          {"render_depth", r.render_depth}, {"lpips", r.lpips}, {"psnr", r.psnr},
                          {"grad_norm", r.grad_norm}, {"seconds", now}, {"scenes_per_s", speed},
-                         {"cpu_seconds", static_cast<double>(std::clock()) / CLOCKS_PER_SEC}};
+                         {"cpu_seconds", cpu_offset + static_cast<double>(std::clock()) / CLOCKS_PER_SEC}};
       log << line.dump() << "\n";
       log.flush();
       last_log_time = now, last_log_step = done;
