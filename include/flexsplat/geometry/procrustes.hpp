@@ -12,6 +12,7 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
+#include "flexsplat/geometry/unproject.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -63,6 +64,16 @@ bool rigid_fit(const T* src, const T* dst, const T* w, index_t n, double* R, dou
   return true;
 }
 
+// View f's pixels in its own camera frame ([H * W, 3], double): its depth unprojected with identity extrinsics.
+template <class T>
+std::vector<double> camera_frame_points(const T* depth, const T* intrinsics, index_t f, index_t height, index_t width) {
+  const index_t px = height * width;
+  const T identity[12] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0};
+  std::vector<T> points(static_cast<std::size_t>(3 * px));
+  unproject_depth_forward<T>(points.data(), depth + f * px, identity, intrinsics + 9 * f, 1, height, width);
+  return std::vector<double>(points.begin(), points.end());
+}
+
 // Solves each view's world-to-camera from its point map. extrinsics [S, 3, 4] out; points [S, H, W, 3];
 // points_conf [S, H, W] (weights conf - 1); depth [S, H, W]; intrinsics [S, 3, 3] with pixel (u, v) at integer
 // coordinates (VGGT's convention, as geometry/unproject.hpp). A view whose fit is undetermined gets [I | 0] and a
@@ -73,21 +84,11 @@ void cameras_from_points(T* extrinsics, const T* points, const T* points_conf, c
   require(frames >= 1 && height >= 1 && width >= 1, "cameras_from_points: empty maps (", frames, " x ", height, " x ",
           width, ")");
   const index_t px = height * width;
-  std::vector<double> cam(static_cast<std::size_t>(3 * px)), wts(static_cast<std::size_t>(px));
+  std::vector<double> wts(static_cast<std::size_t>(px));
   for (index_t f = 0; f < frames; ++f) {
-    const T* K = intrinsics + 9 * f;
-    const double fx = static_cast<double>(K[0]), fy = static_cast<double>(K[4]);
-    const double cx = static_cast<double>(K[2]), cy = static_cast<double>(K[5]);
-    require(std::isfinite(fx) && std::isfinite(fy) && fx != 0 && fy != 0, "cameras_from_points: frame ", f,
-            " has focal lengths ", fx, ", ", fy);
-    for (index_t y = 0; y < height; ++y)
-      for (index_t x = 0; x < width; ++x) {
-        const index_t p = y * width + x;
-        const double d = static_cast<double>(depth[f * px + p]);
-        double* c = cam.data() + 3 * p;
-        c[0] = (static_cast<double>(x) - cx) / fx * d, c[1] = (static_cast<double>(y) - cy) / fy * d, c[2] = d;
-        wts[static_cast<std::size_t>(p)] = d > 0 ? static_cast<double>(points_conf[f * px + p]) - 1.0 : 0.0;
-      }
+    const std::vector<double> cam = camera_frame_points(depth, intrinsics, f, height, width);
+    for (index_t p = 0; p < px; ++p)
+      wts[static_cast<std::size_t>(p)] = depth[f * px + p] > T(0) ? static_cast<double>(points_conf[f * px + p]) - 1.0 : 0.0;
     std::vector<double> src(points + 3 * f * px, points + 3 * (f + 1) * px);
     double R[9], t[3];
     const bool ok = rigid_fit(src.data(), cam.data(), wts.data(), px, R, t);
@@ -185,11 +186,7 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
   };
   std::vector<ViewSet> views(static_cast<std::size_t>(frames));
   for (index_t f = 0; f < frames; ++f) {
-    const T* K = intrinsics + 9 * f;
-    const double fx = static_cast<double>(K[0]), fy = static_cast<double>(K[4]);
-    const double cx = static_cast<double>(K[2]), cy = static_cast<double>(K[5]);
-    require(std::isfinite(fx) && std::isfinite(fy) && fx != 0 && fy != 0, "cameras_from_matches: frame ", f,
-            " has focal lengths ", fx, ", ", fy);
+    const std::vector<double> cam = camera_frame_points(depth, intrinsics, f, height, width);
     std::vector<float> unit;
     ViewSet& v = views[static_cast<std::size_t>(f)];
     for (index_t p = 0; p < px; ++p) {
@@ -201,8 +198,7 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
       if (!(n2 > 0) || !std::isfinite(n2)) continue;
       const double inv = 1 / std::sqrt(n2);
       for (index_t k = 0; k < D; ++k) unit.push_back(static_cast<float>(static_cast<double>(d[k]) * inv));
-      const double x = static_cast<double>(p % width), y = static_cast<double>(p / width);
-      v.point.insert(v.point.end(), {(x - cx) / fx * z, (y - cy) / fy * z, z});
+      v.point.insert(v.point.end(), cam.begin() + 3 * p, cam.begin() + 3 * p + 3);
     }
     v.unit = Eigen::Map<Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>>(
         unit.data(), static_cast<Eigen::Index>(v.point.size() / 3), static_cast<Eigen::Index>(D));

@@ -98,12 +98,12 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
     for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
     detail::score_rotations(pred.data(), gt.data(), V, s.points_rotation_deg, s.points_rra15, s.points_rra30);
   }
-  if (const index_t D = w.config().geometry.match_dim; D > 0) {
-    const auto& o = ws.predict.geometry.outputs;
-    std::vector<T> solved(static_cast<std::size_t>(12 * V));
-    geometry::cameras_from_matches<T>(solved.data(), o.descriptors.data(), o.foreground.data(), o.depth.data(),
-                                      o.intrinsics.data(), V, e.h, e.w, D);
-    for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
+  if (w.config().geometry.match_dim > 0) {
+    // predict's matched cameras; a view no match placed counts as the first view's camera, not the camera head's.
+    for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(p.geometry.extrinsics[i]);
+    for (index_t v = 1; v < V; ++v)
+      if (p.camera_matches[static_cast<std::size_t>(v)] == 0)
+        for (int i = 0; i < 12; ++i) pred[static_cast<std::size_t>(12 * v + i)] = (i == 0 || i == 5 || i == 10) ? 1.0 : 0.0;
     detail::score_rotations(pred.data(), gt.data(), V, s.matches_rotation_deg, s.matches_rra15, s.matches_rra30);
   }
   double err = 0;
