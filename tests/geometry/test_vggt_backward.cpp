@@ -165,11 +165,13 @@ TEST_CASE("VGGT end to end: images -> cameras, depth, confidence, world points, 
 }
 
 TEST_CASE("VGGT point and match heads: outputs as in inference, backward matches central differences for both heads, "
-          "the trunk and the images",
+          "the trunk and the images (also through the match head's image input)",
           "[geometry][vggt][backward]") {
   VggtConfig c = tiny_vggt();
   c.point_head = true;
   c.match_dim = 3;
+  c.match_image = GENERATE(false, true);  // true: the match head's output_conv2 also reads the image's pixels
+  INFO("match_image " << c.match_image);
   FlatVggt<double> m(c, 5);
   // Output logits near 0.1, where inv_log (sign(x)(exp|x| - 1)) is tame, as a trained head's are: at the random scale
   // they reach the exponential's steep end and central differences of step 1e-6 lose their last digits.

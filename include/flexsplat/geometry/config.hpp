@@ -185,6 +185,8 @@ struct VggtConfig {
   // finds the same surface point in another view, and the probability that the pixel shows the object. Cameras follow
   // from matched pixels' depths in closed form (geometry/procrustes.hpp), so pose is learnt as local matching.
   index_t match_dim = 0;
+  // The match head also sees the image's pixels at full resolution (DptHeadConfig::image_channels 3).
+  bool match_image = false;
 
   // The point head is the depth head's architecture with 3 + 1 outputs and VGGT's inv_log activation.
   DptHeadConfig point() const {
@@ -200,6 +202,7 @@ struct VggtConfig {
     p.output_dim = match_dim + 1;
     p.activation = DptActivation::linear;
     p.conf_activation = DptConfActivation::sigmoid;
+    p.image_channels = match_image ? 3 : 0;
     return p;
   }
 
@@ -216,6 +219,7 @@ struct VggtConfig {
     require(depth.output_dim == 2, "VGGT config: the depth head predicts depth + confidence (output_dim 2), got ",
             depth.output_dim);
     require(match_dim >= 0 && match_dim <= 256, "VGGT config: match_dim ", match_dim, " must be in [0, 256]");
+    require(!match_image || match_dim > 0, "VGGT config: match_image needs the match head (match_dim > 0)");
     for (index_t i : depth.intermediate_layer_idx)
       require(i < aggregator.depth, "VGGT config: depth head reads aggregator output ", i, ", depth is ",
               aggregator.depth);
@@ -243,6 +247,11 @@ inline VggtConfig vggt_config_from_json(const std::string& text) {
     require(v.is_number_integer() && v.get<std::int64_t>() >= 0 && v.get<std::int64_t>() <= 256,
             "VGGT config: 'match_dim' = ", v.dump(), " is not an integer in [0, 256]");
     c.match_dim = v.get<index_t>();
+  }
+  if (j.contains("match_image")) {
+    require(j.at("match_image").is_boolean(), "VGGT config: 'match_image' = ", j.at("match_image").dump(),
+            " is not true or false");
+    c.match_image = j.at("match_image").get<bool>();
   }
   c.validate();
   return c;

@@ -46,14 +46,20 @@ struct DptHeadConfig {
   double pos_embed_ratio = 0.1;
   double pos_embed_omega = 100.0;
   double norm_eps = 1e-5;
+  // > 0: the input image's channels join the full-resolution map entering output_conv2 (FlexSplat's match head: a
+  // small model's patch tokens cannot place a descriptor within its patch, the pixels can). 0: VGGT's head.
+  index_t image_channels = 0;
 
   index_t head_features() const { return features / 2; }  // channels after output_conv1
+  index_t conv2_in() const { return head_features() + image_channels; }  // output_conv2.0's input channels
   static constexpr index_t head_hidden = 32;                // output_conv2's hidden channels
   void validate() const {
     require(dim_in > 0 && patch_size > 0 && features >= 2 && output_dim >= 2, "DPT head config: dim_in ", dim_in,
             ", patch_size ", patch_size, ", features ", features, ", output_dim ", output_dim,
             " (need positive sizes, features >= 2, output_dim >= 2)");
     for (index_t oc : out_channels) require(oc > 0, "DPT head config: out_channels entry ", oc, " must be positive");
+    require(image_channels >= 0 && image_channels <= 4, "DPT head config: image_channels ", image_channels,
+            " must be in [0, 4]");
     for (index_t i : intermediate_layer_idx)
       require(i >= 0, "DPT head config: intermediate_layer_idx entry ", i, " must be non-negative");
     if (pos_embed) {
@@ -135,7 +141,7 @@ inline void append_dpt_head_specs(std::vector<TensorSpec>& out, const DptHeadCon
       for (int k = 1; k <= 2; ++k) conv(p + "resConfUnit" + std::to_string(u) + ".conv" + std::to_string(k), {F, F, 3, 3});
   }
   conv("scratch.output_conv1", {c.head_features(), F, 3, 3});
-  conv("scratch.output_conv2.0", {DptHeadConfig::head_hidden, c.head_features(), 3, 3});
+  conv("scratch.output_conv2.0", {DptHeadConfig::head_hidden, c.conv2_in(), 3, 3});
   conv("scratch.output_conv2.2", {c.output_dim, DptHeadConfig::head_hidden, 1, 1});
 }
 
@@ -170,7 +176,7 @@ DptHeadWeights<T> bind_dpt_head_weights(const DptHeadConfig& c, Get&& get) {
     conv(fb.unit2.conv2, p + "resConfUnit2.conv2.", {F, F, 3, 3});
   }
   conv(w.output_conv1, "scratch.output_conv1.", {c.head_features(), F, 3, 3});
-  conv(w.output_conv2_0, "scratch.output_conv2.0.", {DptHeadConfig::head_hidden, c.head_features(), 3, 3});
+  conv(w.output_conv2_0, "scratch.output_conv2.0.", {DptHeadConfig::head_hidden, c.conv2_in(), 3, 3});
   conv(w.output_conv2_2, "scratch.output_conv2.2.", {c.output_dim, DptHeadConfig::head_hidden, 1, 1});
   return w;
 }
@@ -252,7 +258,7 @@ inline DptWorkspaceLayout dpt_workspace_layout(const DptHeadConfig& cfg, const D
   L.fused = take(F * g.fused_h * g.fused_w);
   L.head_in = take(Fh * g.fused_h * g.fused_w);
   const index_t full = g.out_h * g.out_w;
-  L.up = take(Fh * full);
+  L.up = take(cfg.conv2_in() * full);
   L.hidden = take(DptHeadConfig::head_hidden * full);
   L.out = take(cfg.output_dim * full);
   L.pos_table = take(std::max({max_oc, Fh}) / 2 * (std::max(g.out_h, g.h[0]) + std::max(g.out_w, g.w[0])));
@@ -263,7 +269,7 @@ inline DptWorkspaceLayout dpt_workspace_layout(const DptHeadConfig& cfg, const D
   for (int i = 0; i < 4; ++i) s = std::max(s, dpt_band_scratch(cfg.out_channels[i], 3, g.h[i], g.w[i]));
   for (int i = 0; i < 4; ++i) s = std::max(s, dpt_band_scratch(F, 3, g.h[i], g.w[i]));
   s = std::max(s, dpt_band_scratch(F, 3, g.fused_h, g.fused_w));
-  s = std::max(s, dpt_band_scratch(Fh, 3, g.out_h, g.out_w));
+  s = std::max(s, dpt_band_scratch(cfg.conv2_in(), 3, g.out_h, g.out_w));
   L.scratch = take(s);
   L.scratch_size = s;
   L.total = cursor;
@@ -509,7 +515,7 @@ struct DptHeadCache {
   std::array<std::vector<T>, 4> unit1_r, unit1_u, unit2_r, unit2_u;  // [frames, F, h_i, w_i]: relu(x), relu(conv1(relu(x)))
   std::array<std::vector<T>, 4> block_out;  // [frames, F, h_i, w_i]: unit2's output, out_conv's input
   std::vector<T> fused;                     // [frames, F, 8 ph, 8 pw]: output_conv1's input
-  std::vector<T> up;                        // [frames, F/2, OH, OW]: the depth features, output_conv2.0's input
+  std::vector<T> up;                        // [frames, F/2 + image_channels, OH, OW]: output_conv2.0's input
   std::vector<T> hidden;                    // [frames, 32, OH, OW] after its ReLU
   std::vector<T> logits;                    // [frames, output_dim, OH, OW] before the activations
   std::vector<T> grad_ws;                   // dpt_head_backward's buffers
@@ -523,7 +529,7 @@ inline index_t dpt_head_cache_elements(const DptHeadConfig& cfg, index_t patch_h
   const auto& oc = cfg.out_channels;
   index_t n = 8 * P + (oc[0] + oc[1] + oc[3]) * P;
   for (int i = 0; i < 4; ++i) n += oc[i] * g.level_size(i) + (i == 3 ? 3 : 5) * F * g.level_size(i);
-  n += F * g.fused_h * g.fused_w + (cfg.head_features() + DptHeadConfig::head_hidden + cfg.output_dim) * full;
+  n += F * g.fused_h * g.fused_w + (cfg.conv2_in() + DptHeadConfig::head_hidden + cfg.output_dim) * full;
   return frames * n;
 }
 
@@ -531,13 +537,17 @@ namespace detail {
 template <class T>
 void dpt_head_run(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, const DptHeadWeights<T>& wt,
                   std::span<const T* const> layers, index_t frames, index_t tokens, index_t patch_start,
-                  index_t image_h, index_t image_w, std::span<T> workspace, DptHeadCache<T>* k) {
+                  index_t image_h, index_t image_w, std::span<T> workspace, DptHeadCache<T>* k, const T* image) {
   cfg.validate();
   require(out.preds && out.conf, "DPT head: the prediction and confidence outputs are required");
+
   require(image_h >= cfg.patch_size && image_w >= cfg.patch_size, "DPT head: image ", image_h, "x", image_w,
           " is smaller than one ", cfg.patch_size, "-pixel patch");
   const DptGeometry g(image_h / cfg.patch_size, image_w / cfg.patch_size, cfg.patch_size);
   const index_t P = g.patch_h * g.patch_w;
+  require(cfg.image_channels == 0 || (image && g.out_h == image_h && g.out_w == image_w), "DPT head: image_channels ",
+          cfg.image_channels, " needs the image, whole patches (", image_h, "x", image_w, " in ", cfg.patch_size,
+          "-pixel patches)");
   require(patch_start >= 0 && tokens == patch_start + P, "DPT head: ", tokens, " tokens per frame, expected ",
           patch_start, " special + ", P, " patch tokens (", g.patch_h, "x", g.patch_w, " grid of a ", image_h, "x",
           image_w, " image)");
@@ -571,7 +581,7 @@ void dpt_head_run(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, const 
       fit(k->block_out[i], n);
     }
     fit(k->fused, fused_n);
-    fit(k->up, Fh * full);
+    fit(k->up, cfg.conv2_in() * full);
     fit(k->hidden, Hh * full);
     fit(k->logits, cfg.output_dim * full);
   }
@@ -660,9 +670,11 @@ void dpt_head_run(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, const 
     if (cfg.pos_embed)
       add_uv_pos_embed(up, Fh, g.out_h, g.out_w, aspect, cfg.pos_embed_ratio, cfg.pos_embed_omega, ws + L.pos_table);
     if (out.features) std::copy(up, up + Fh * full, out.features + f * Fh * full);
-    if (k) save(k->up, f, up, Fh * full);
+    const index_t Ci = cfg.image_channels, Cin = cfg.conv2_in();
+    if (Ci > 0) std::copy(image + f * Ci * full, image + (f + 1) * Ci * full, up + Fh * full);
+    if (k) save(k->up, f, up, Cin * full);
     T* hidden = ws + L.hidden;
-    conv2d_same(hidden, up, wt.output_conv2_0.weight, wt.output_conv2_0.bias, Fh, Hh, g.out_h, g.out_w, 3, scratch);
+    conv2d_same(hidden, up, wt.output_conv2_0.weight, wt.output_conv2_0.bias, Cin, Hh, g.out_h, g.out_w, 3, scratch);
     relu_copy(hidden, hidden, Hh * full);
     if (k) save(k->hidden, f, hidden, Hh * full);
     T* logits = ws + L.out;
@@ -684,11 +696,13 @@ void dpt_head_run(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, const 
 
 // layers[i] points to aggregator block output i as [frames, tokens, dim_in] (one batch entry); tokens =
 // patch_start + patch_h * patch_w with patch_h = image_h / patch, patch_w = image_w / patch (integer division).
+// image: [frames, image_channels, OH, OW], read only when cfg.image_channels > 0.
 template <class T>
 void dpt_head_forward(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, const DptHeadWeights<T>& wt,
                       std::span<const T* const> layers, index_t frames, index_t tokens, index_t patch_start,
-                      index_t image_h, index_t image_w, std::span<T> workspace) {
-  detail::dpt_head_run<T>(out, cfg, wt, layers, frames, tokens, patch_start, image_h, image_w, workspace, nullptr);
+                      index_t image_h, index_t image_w, std::span<T> workspace, const T* image = nullptr) {
+  detail::dpt_head_run<T>(out, cfg, wt, layers, frames, tokens, patch_start, image_h, image_w, workspace, nullptr,
+                          image);
 }
 
 // dpt_head_forward (same arguments, same results bit for bit) that also fills `cache` for dpt_head_backward.
@@ -696,22 +710,24 @@ template <class T>
 void dpt_head_forward_train(const DptHeadOutputs<T>& out, DptHeadCache<T>& cache, const DptHeadConfig& cfg,
                             const DptHeadWeights<T>& wt, std::span<const T* const> layers, index_t frames,
                             index_t tokens, index_t patch_start, index_t image_h, index_t image_w,
-                            std::span<T> workspace) {
-  detail::dpt_head_run<T>(out, cfg, wt, layers, frames, tokens, patch_start, image_h, image_w, workspace, &cache);
+                            std::span<T> workspace, const T* image = nullptr) {
+  detail::dpt_head_run<T>(out, cfg, wt, layers, frames, tokens, patch_start, image_h, image_w, workspace, &cache, image);
 }
 
-// Backward of dpt_head_forward_train. Adds into `grads` (null slots skipped) and into d_layers[i] (parallel to
+// Backward of dpt_head_forward_train. Adds into `grads` (null slots skipped), into d_layers[i] (parallel to
 // `layers`; entries or the whole span may be empty/null): only the patch-token rows of the intermediate layers
-// receive gradient, the special tokens get none. `layers` must hold the values the forward saw.
+// receive gradient, the special tokens get none; and, with image_channels, into d_image (may be null, as the image).
+// `layers` must hold the values the forward saw.
 template <class T>
 void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grads, const DptHeadOutputGrads<T>& d_out,
                        DptHeadCache<T>& k, const DptHeadConfig& cfg, const DptHeadWeights<T>& wt,
-                       std::span<const T* const> layers) {
+                       std::span<const T* const> layers, T* d_image = nullptr) {
   cfg.validate();
   require(k.frames >= 1 && !k.up.empty(), "DPT head backward: the cache is empty (run dpt_head_forward_train first)");
   const DptGeometry g(k.image_h / cfg.patch_size, k.image_w / cfg.patch_size, cfg.patch_size);
   const index_t P = g.patch_h * g.patch_w, F = cfg.features, Fh = cfg.head_features(), D = cfg.dim_in;
-  require(static_cast<index_t>(k.up.size()) == k.frames * Fh * g.out_h * g.out_w,
+  const index_t Ci = cfg.image_channels, Cin = cfg.conv2_in();
+  require(static_cast<index_t>(k.up.size()) == k.frames * Cin * g.out_h * g.out_w,
           "DPT head backward: the cache was filled for another configuration");
   for (index_t idx : cfg.intermediate_layer_idx)
     require(idx < static_cast<index_t>(layers.size()) && layers[idx] != nullptr, "DPT head backward: intermediate layer ",
@@ -733,7 +749,7 @@ void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grad
     cursor += (n + 15) / 16 * 16;
     return at;
   };
-  const index_t o_logits = take(od * full), o_hidden = take(Hh * full), o_up = take(Fh * full),
+  const index_t o_logits = take(od * full), o_hidden = take(Hh * full), o_up = take(Cin * full),
                 o_head_in = take(Fh * fused_hw), o_fused = take(F * fused_hw), o_c = take(l0), o_b = take(l0),
                 o_a = take(l0), o_r = take(l0), o_u = take(l0);
   index_t o_rn[4];
@@ -786,9 +802,11 @@ void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grad
     T* d_up = ws + o_up;
     if (d_out.features) std::copy(d_out.features + f * Fh * full, d_out.features + (f + 1) * Fh * full, d_up);
     else zero(d_up, Fh * full);
+    zero(d_up + Fh * full, Ci * full);
     detail::conv2d_same_backward(d_up, grads.output_conv2_0.weight, grads.output_conv2_0.bias, d_hidden,
-                                 k.up.data() + f * Fh * full, wt.output_conv2_0.weight, Fh, Hh, g.out_h, g.out_w, 3,
+                                 k.up.data() + f * Cin * full, wt.output_conv2_0.weight, Cin, Hh, g.out_h, g.out_w, 3,
                                  scratch);
+    if (d_image && Ci > 0) detail::add_into(d_image + f * Ci * full, d_up + Fh * full, Ci * full);
     // The uv embedding is a constant add; the upsampling and output_conv1 are linear.
     T* d_head_in = ws + o_head_in;
     if (d_out.fused_features)

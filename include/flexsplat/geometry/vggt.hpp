@@ -257,10 +257,10 @@ VggtOutputs<T> vggt_forward_impl(const T* images, index_t frames, index_t image_
     o.conf = map.data();
     if (hk)
       dpt_head_forward_train<T>(o, *hk, hc, hw, layer_span, frames, N, out.aggregator.patch_start_idx, image_h, image_w,
-                                std::span<T>(ws.head.data(), ws.head.size()));
+                                std::span<T>(ws.head.data(), ws.head.size()), images);
     else
       dpt_head_forward<T>(o, hc, hw, layer_span, frames, N, out.aggregator.patch_start_idx, image_h, image_w,
-                          std::span<T>(ws.head.data(), ws.head.size()));
+                          std::span<T>(ws.head.data(), ws.head.size()), images);
     report(name, 1, 1);
   };
   if (c.point_head)
@@ -357,7 +357,7 @@ void vggt_backward(T* d_images, const VggtGrads<T>& g, const VggtOutputGrads<T>&
     d.preds = d_preds;
     d.conf = d_map;
     dpt_head_backward<T>(std::span<T* const>(d_layers.data(), d_layers.size()), hg, d, hk, hc, hw,
-                         std::span<const T* const>(layers.data(), layers.size()));
+                         std::span<const T* const>(layers.data(), layers.size()), d_images);
   };
   if (c.point_head && (d_out.points || d_out.points_conf))
     extra_head(g.point, d_out.points, d_out.points_conf, cache.point, c.point(), w.point);

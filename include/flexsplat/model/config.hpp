@@ -83,6 +83,7 @@ inline nlohmann::json to_json(const geometry::VggtConfig& c) {
           {"out_channels", c.depth.out_channels}, {"intermediate_layer_idx", c.depth.intermediate_layer_idx}};
   if (c.point_head) j["point_head"] = true;  // absent in files made before the key existed
   if (c.match_dim > 0) j["match_dim"] = c.match_dim;
+  if (c.match_image) j["match_image"] = true;
   return j;
 }
 
