@@ -28,7 +28,7 @@
 #include "flexsplat/model/train.hpp"
 #include "flexsplat/model/train_data.hpp"
 #include "flexsplat/model/weights.hpp"
-#include "flexsplat/train/run_config.hpp"
+#include "flexsplat/model/run_config.hpp"
 #include "sgemm_rate.hpp"
 
 using namespace flexsplat;
@@ -70,7 +70,7 @@ static int run_recipe(const RecipeOptions& ro) {
   } catch (const nlohmann::json::exception& e) {
     fail("train_step bench: '", ro.recipe, "' is not valid JSON: ", e.what());
   }
-  const train::TrainRunConfig cfg = train::parse_train_config(raw);
+  const model::TrainRunConfig cfg = model::parse_train_config(raw);
   std::size_t si = cfg.stages.size() - 1;
   if (!ro.stage.empty()) {
     si = cfg.stages.size();
@@ -92,7 +92,7 @@ static int run_recipe(const RecipeOptions& ro) {
                               : ro.state.empty() || !ro.stage.empty() ? stage_start
                                                                        : state_step;
   std::uint64_t at_start = 0;
-  const train::TrainStage& stage = cfg.stages[cfg.stage_at(start, at_start)];
+  const model::TrainStage& stage = cfg.stages[cfg.stage_at(start, at_start)];
   std::unique_ptr<loss::LpipsWeights<float>> lpips;
   if (!cfg.lpips_weights.empty())
     lpips = std::make_unique<loss::LpipsWeights<float>>(
@@ -125,7 +125,7 @@ static int run_recipe(const RecipeOptions& ro) {
     for (index_t b = 0; b < cfg.batch; ++b) batch.push_back(model::make_train_scene(data, cfg, step, b));
     const auto t1 = std::chrono::steady_clock::now();
     std::uint64_t s0 = 0;
-    const train::TrainStage& st = cfg.stages[cfg.stage_at(step, s0)];
+    const model::TrainStage& st = cfg.stages[cfg.stage_at(step, s0)];
     const double lr = train::CosineSchedule{st.lr, 0.0, st.warmup, st.steps}.lr(step - s0);
     // train_step adds into the PhaseTimes it is given: the counted steps accumulate in `phases`.
     const auto r = model::train_step<float>(ws, *w, batch, cfg.batch, st.step, lr, step, solo, lpips.get(),

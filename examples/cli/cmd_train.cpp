@@ -29,7 +29,7 @@
 #include "flexsplat/train/checkpoint.hpp"
 #include "flexsplat/train/distributed.hpp"
 #include "flexsplat/train/optimizer.hpp"
-#include "flexsplat/train/run_config.hpp"
+#include "flexsplat/model/run_config.hpp"
 #include "registry.hpp"
 
 namespace flexsplat::cli {
@@ -38,9 +38,9 @@ namespace {
 namespace fs = std::filesystem;
 using nlohmann::json;
 
-using train::parse_train_config;
-using train::TrainRunConfig;
-using train::TrainStage;
+using model::parse_train_config;
+using model::TrainRunConfig;
+using model::TrainStage;
 
 using model::TrainData;
 

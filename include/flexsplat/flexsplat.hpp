@@ -93,7 +93,7 @@
 #include "flexsplat/train/optimizer.hpp"
 #include "flexsplat/train/checkpoint.hpp"
 #include "flexsplat/train/distributed.hpp"
-#include "flexsplat/train/run_config.hpp"
+#include "flexsplat/model/run_config.hpp"
 #include "flexsplat/model/config.hpp"
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/model/frames.hpp"

@@ -1,11 +1,11 @@
-// libFuzzer harness: the `flexsplat train` configuration (train::parse_train_config, with the FlexSplat model config
+// libFuzzer harness: the `flexsplat train` configuration (model::parse_train_config, with the FlexSplat model config
 // object it may hold) on arbitrary bytes parsed as JSON text the way cmd_train reads the file.
 #include <cstddef>
 #include <cstdint>
 
 #include <nlohmann/json.hpp>
 
-#include "flexsplat/train/run_config.hpp"
+#include "flexsplat/model/run_config.hpp"
 
 namespace fuzz_train_config {
 
@@ -14,7 +14,7 @@ int test_one_input(const std::uint8_t* data, std::size_t size) {
   const nlohmann::json doc = nlohmann::json::parse(data, data + size, nullptr, false);
   if (doc.is_discarded()) return 0;
   try {
-    const train::TrainRunConfig c = train::parse_train_config(doc);
+    const model::TrainRunConfig c = model::parse_train_config(doc);
     std::uint64_t start = 0;
     (void)c.stage_at(c.total_steps(), start);
   } catch (const Error&) {

@@ -8,7 +8,7 @@
 #include "flexsplat/core/profile.hpp"
 #include "flexsplat/data/dataset.hpp"
 #include "flexsplat/model/train.hpp"
-#include "flexsplat/train/run_config.hpp"
+#include "flexsplat/model/run_config.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -21,13 +21,13 @@ struct TrainData {
 };
 
 // The input view count of scene `scene` of step `step`, in [inputs_min, inputs_max].
-inline int scene_view_count(const train::TrainRunConfig& c, std::uint64_t step, index_t scene) {
+inline int scene_view_count(const model::TrainRunConfig& c, std::uint64_t step, index_t scene) {
   std::uint64_t x = c.seed ^ (step * 0x9E3779B97F4A7C15ull) ^ (static_cast<std::uint64_t>(scene) * 0xD1B54A32D192ED03ull);
   x ^= x >> 31, x *= 0xBF58476D1CE4E5B9ull, x ^= x >> 27, x *= 0x94D049BB133111EBull, x ^= x >> 31;
   return c.inputs_min + static_cast<int>(x % static_cast<std::uint64_t>(c.inputs_max - c.inputs_min + 1));
 }
 
-inline TrainExample<float> make_train_scene(const TrainData& d, const train::TrainRunConfig& c, std::uint64_t step,
+inline TrainExample<float> make_train_scene(const TrainData& d, const model::TrainRunConfig& c, std::uint64_t step,
                                             index_t scene) {
   const profile::Scope timed(profile::Op::data);
   data::BatchOptions o;

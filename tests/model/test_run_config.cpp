@@ -2,7 +2,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "flexsplat/train/run_config.hpp"
+#include "flexsplat/model/run_config.hpp"
 
 using namespace flexsplat;
 
@@ -10,36 +10,36 @@ TEST_CASE("train config: structured_inputs and point_weight are read, checked an
   nlohmann::json j = {{"model", "tiny"},
                       {"stages", {{{"name", "geometry"}, {"appearance", false}, {"point_weight", 0.5}}}}};
   // The tiny model has no point head: the weight would train nothing.
-  CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("point_weight 0.5 but the model has no point head"));
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("point_weight 0.5 but the model has no point head"));
   auto m = model::to_json(model::flexsplat_tiny_config());
   m["geometry"]["point_head"] = true;
   j["model"] = m;
-  auto c = train::parse_train_config(j);
+  auto c = model::parse_train_config(j);
   CHECK(c.stages[0].step.point_weight == 0.5);
   CHECK(c.structured_inputs);  // the default keeps old recipes' scenes
   j["structured_inputs"] = false;
-  CHECK_FALSE(train::parse_train_config(j).structured_inputs);
+  CHECK_FALSE(model::parse_train_config(j).structured_inputs);
   j["structured_inputs"] = "no";
-  CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("'structured_inputs' is \"no\""));
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("'structured_inputs' is \"no\""));
   j["structured_inputs"] = false;
   j["stages"][0]["point_weight"] = 0.0;
-  CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("point_weight and match_weight are 0"));
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("point_weight and match_weight are 0"));
 }
 
 TEST_CASE("train config: the baseline curriculum grows linearly, then holds, and is checked", "[train][config]") {
   nlohmann::json j = {{"model", "tiny"}, {"structured_inputs", false},
                       {"curriculum", {{"baseline_deg", {20, 180}}, {"steps", 100u}}}};
-  const auto c = train::parse_train_config(j);
+  const auto c = model::parse_train_config(j);
   CHECK(c.baseline_at(0) == 20.0);
   CHECK(c.baseline_at(50) == Approx(100.0));
   CHECK(c.baseline_at(100) == 180.0);
   CHECK(c.baseline_at(1000) == 180.0);
-  CHECK(train::parse_train_config({{"model", "tiny"}}).baseline_at(7) == 0.0);  // none: independent views
+  CHECK(model::parse_train_config({{"model", "tiny"}}).baseline_at(7) == 0.0);  // none: independent views
   j["structured_inputs"] = true;
-  CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("needs structured_inputs false"));
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("needs structured_inputs false"));
   j["structured_inputs"] = false;
   j["curriculum"]["baseline_deg"] = {0, 90};
-  CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("entry 0 must be in (0, 360]"));
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("entry 0 must be in (0, 360]"));
   j["curriculum"] = {{"baseline_deg", {20, 90}}};
-  CHECK_THROWS_WITH(train::parse_train_config(j), Catch::Contains("needs 'steps'"));
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("needs 'steps'"));
 }

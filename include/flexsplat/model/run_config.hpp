@@ -21,7 +21,7 @@
 
 namespace flexsplat {
 inline namespace v0 {
-namespace train {
+namespace model {
 
 struct TrainStage {
   std::string name;
@@ -260,6 +260,6 @@ inline TrainRunConfig parse_train_config(const nlohmann::json& j) {
   return c;
 }
 
-}  // namespace train
+}  // namespace model
 }  // namespace v0
 }  // namespace flexsplat
