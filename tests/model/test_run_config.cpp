@@ -43,3 +43,15 @@ TEST_CASE("train config: the baseline curriculum grows linearly, then holds, and
   j["curriculum"] = {{"baseline_deg", {20, 90}}};
   CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("needs 'steps'"));
 }
+
+TEST_CASE("train config: match_samples sets the correspondences of a training scene", "[train][config]") {
+  CHECK(model::parse_train_config({{"model", "tiny"}}).match_samples == 768);
+  const auto c = model::parse_train_config({{"model", "tiny"}, {"match_samples", 3072u}});
+  CHECK(c.match_samples == 3072);
+  CHECK(model::matches_per_pair(4, c.match_samples) == 256);
+  CHECK(model::matches_per_pair(8, c.match_samples) == 54);
+  CHECK(model::matches_per_pair(8) == 13);
+  CHECK(model::matches_per_pair(8, 100) == 8);  // at least 8 per pair
+  CHECK(model::matches_per_pair(1, c.match_samples) == 0);
+  CHECK_THROWS_WITH(model::parse_train_config({{"model", "tiny"}, {"match_samples", 0u}}), Catch::Contains("match_samples"));
+}

@@ -50,6 +50,7 @@ struct TrainRunConfig {
   // 4-view procedural scenes (training and validation) are the fixed evaluation rig; false: random orbit views in
   // random order for every scene, so that input order carries no pose.
   bool structured_inputs = true;
+  index_t match_samples = model::match_samples;  // ground-truth correspondences per training scene (match head)
   // Procedural views' baseline (data::OrbitRanges::max_baseline_deg) grows linearly from baseline_deg[0] at step 0 to
   // baseline_deg[1] at baseline_steps, then stays; baseline_steps 0: no curriculum (independent views).
   std::array<double, 2> baseline_deg{0, 0};
@@ -199,6 +200,7 @@ inline TrainRunConfig parse_train_config(const nlohmann::json& j) {
           " (the decoder's max_views)");
   c.targets = static_cast<int>(k.integer("targets", 2, 0, 64));
   c.structured_inputs = k.boolean("structured_inputs", true);
+  c.match_samples = static_cast<index_t>(k.integer("match_samples", static_cast<std::uint64_t>(model::match_samples), 1, 1000000));
   if (const nlohmann::json* cu = k.find("curriculum")) {
     detail::Keys ck(*cu, "curriculum");
     c.baseline_steps = ck.integer("steps", 0, 1, UINT64_MAX);

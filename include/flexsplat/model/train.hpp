@@ -60,16 +60,18 @@ inline void camera_arrays(const data::Camera& c, double* K, double* w2c) {
 }
 }  // namespace detail
 
-// Ground-truth correspondences a training example keeps: about match_samples per scene spread over its ordered view
-// pairs, at least 8 per pair (64 per pair for 4 views; the match loss's cost grows with their number).
+// Ground-truth correspondences a training example keeps: about `samples` per scene (the run config's match_samples)
+// spread over its ordered view pairs, at least 8 per pair (64 per pair for 4 views at the default 768; the match
+// loss's cost grows with their number).
 inline constexpr index_t match_samples = 768;
-inline index_t matches_per_pair(index_t views) {
-  return views < 2 ? 0 : std::max<index_t>(8, match_samples / (views * (views - 1)));
+inline index_t matches_per_pair(index_t views, index_t samples = match_samples) {
+  return views < 2 ? 0 : std::max<index_t>(8, samples / (views * (views - 1)));
 }
 
 // A data::SceneSample (inputs and targets of one scene, square views of the model's size) in the model's frame.
 template <class T>
-TrainExample<T> make_train_example(const data::SceneSample& s, const FlexSplatConfig& c) {
+TrainExample<T> make_train_example(const data::SceneSample& s, const FlexSplatConfig& c,
+                                   index_t samples = match_samples) {
   const index_t V = s.inputs.rgb.shape(0), M = s.targets.rgb.empty() ? 0 : s.targets.rgb.shape(0);
   require(V >= 1, "training example '", s.name, "': no input views");
   const index_t h = s.inputs.rgb.shape(1), w = s.inputs.rgb.shape(2);
@@ -106,7 +108,7 @@ TrainExample<T> make_train_example(const data::SceneSample& s, const FlexSplatCo
   geometry::unproject_depth_forward<T>(e.gt_points.data(), e.gt_depth.data(), e.gt_extrinsics.data(), K_vggt.data(), V,
                                        h, w);
   e.matches = loss::ground_truth_matches(e.gt_depth.data(), e.gt_K.data(), e.gt_extrinsics.data(), V, h, w,
-                                         matches_per_pair(V));
+                                         matches_per_pair(V, samples));
 
   e.target_images.assign(s.targets.rgb.data(), s.targets.rgb.data() + M * px * 3);
   for (index_t m = 0; m < M; ++m) {

@@ -44,7 +44,7 @@ inline TrainExample<float> make_train_scene(const TrainData& d, const model::Tra
     o.crop = static_cast<int>(c.model.image_h);
     s = data::sample_batch(d.objects, 1, c.seed, index, o);
   }
-  return make_train_example<float>(s[0], c.model);
+  return make_train_example<float>(s[0], c.model, c.match_samples);
 }
 
 }  // namespace model
