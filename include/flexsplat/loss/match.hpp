@@ -7,10 +7,12 @@
 // total = match + foreground_weight * foreground. Backward adds d_total * d(total)/d(x) (+=).
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <span>
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/tensor.hpp"
 
 namespace flexsplat {
@@ -33,9 +35,9 @@ struct MatchLossParts {
 namespace match_detail {
 inline constexpr double prob_floor = 1e-6;
 
-// Unit-length copies of every descriptor ([n, D]) and their norms.
+// Unit-length copies of every descriptor ([n, D], in T for the products) and their norms (double).
 template <class T>
-void normalize(const T* desc, index_t n, index_t D, std::vector<double>& unit, std::vector<double>& norm) {
+void normalize(const T* desc, index_t n, index_t D, std::vector<T>& unit, std::vector<double>& norm) {
   unit.resize(static_cast<std::size_t>(n * D));
   norm.resize(static_cast<std::size_t>(n));
   for (index_t i = 0; i < n; ++i) {
@@ -43,25 +45,8 @@ void normalize(const T* desc, index_t n, index_t D, std::vector<double>& unit, s
     for (index_t d = 0; d < D; ++d) s += static_cast<double>(desc[i * D + d]) * static_cast<double>(desc[i * D + d]);
     const double r = std::sqrt(s + 1e-12);
     norm[static_cast<std::size_t>(i)] = r;
-    for (index_t d = 0; d < D; ++d) unit[static_cast<std::size_t>(i * D + d)] = static_cast<double>(desc[i * D + d]) / r;
+    for (index_t d = 0; d < D; ++d) unit[static_cast<std::size_t>(i * D + d)] = static_cast<T>(static_cast<double>(desc[i * D + d]) / r);
   }
-}
-
-// s_k of one correspondence against every pixel of view b; returns sum_k exp(s_k - top), top = max_k s_k.
-inline double logits(const std::vector<double>& unit, const PixelMatch& m, index_t px, index_t D, double temperature,
-                     std::vector<double>& s, double& top) {
-  const double* a = unit.data() + (m.view_a * px + m.pixel_a) * D;
-  top = -1e300;
-  for (index_t k = 0; k < px; ++k) {
-    const double* b = unit.data() + (m.view_b * px + k) * D;
-    double dot = 0;
-    for (index_t d = 0; d < D; ++d) dot += a[d] * b[d];
-    s[static_cast<std::size_t>(k)] = dot / temperature;
-    top = std::max(top, s[static_cast<std::size_t>(k)]);
-  }
-  double sum = 0;
-  for (double v : s) sum += std::exp(v - top);
-  return sum;
 }
 
 inline void check(const PixelMatch& m, index_t views, index_t px) {
@@ -69,6 +54,44 @@ inline void check(const PixelMatch& m, index_t views, index_t px) {
               m.pixel_a < px && m.pixel_b >= 0 && m.pixel_b < px,
           "match loss: correspondence (view ", m.view_a, " pixel ", m.pixel_a, ") -> (view ", m.view_b, " pixel ",
           m.pixel_b, ") is outside ", views, " views of ", px, " pixels");
+}
+
+// Calls f(first, count, q, e, top, sum, picked) for each run of consecutive matches sharing (view_a, view_b): q
+// [count, D] their view-a unit descriptors; e [count, px] exp(s - top) of their logits s against every pixel of view b
+// (one GEMM per run); per row the maximum logit top, sum of e, and the logit at the true pixel, picked.
+template <class T, class F>
+void for_each_run(const std::vector<T>& unit, std::span<const PixelMatch> matches, index_t views, index_t px, index_t D,
+                  double temperature, F&& f) {
+  std::vector<T> q, e;
+  std::vector<double> top, sum, picked;
+  for (std::size_t i0 = 0; i0 < matches.size();) {
+    std::size_t i1 = i0;
+    while (i1 < matches.size() && matches[i1].view_a == matches[i0].view_a && matches[i1].view_b == matches[i0].view_b) {
+      check(matches[i1], views, px);
+      ++i1;
+    }
+    const index_t n = static_cast<index_t>(i1 - i0), vb = matches[i0].view_b;
+    q.resize(static_cast<std::size_t>(n * D));
+    for (index_t r = 0; r < n; ++r) {
+      const PixelMatch& m = matches[i0 + static_cast<std::size_t>(r)];
+      std::copy_n(unit.data() + (m.view_a * px + m.pixel_a) * D, D, q.data() + r * D);
+    }
+    e.resize(static_cast<std::size_t>(n * px));
+    gemm(Trans::no, Trans::yes, n, px, D, static_cast<T>(1 / temperature), q.data(), D, unit.data() + vb * px * D, D,
+         T(0), e.data(), px);
+    top.resize(static_cast<std::size_t>(n)), sum.resize(static_cast<std::size_t>(n)), picked.resize(static_cast<std::size_t>(n));
+    for (index_t r = 0; r < n; ++r) {
+      T* row = e.data() + r * px;
+      T t = row[0];
+      for (index_t k = 1; k < px; ++k) t = std::max(t, row[k]);
+      picked[static_cast<std::size_t>(r)] = static_cast<double>(row[matches[i0 + static_cast<std::size_t>(r)].pixel_b]);
+      double acc = 0;
+      for (index_t k = 0; k < px; ++k) acc += static_cast<double>(row[k] = std::exp(row[k] - t));
+      top[static_cast<std::size_t>(r)] = static_cast<double>(t), sum[static_cast<std::size_t>(r)] = acc;
+    }
+    f(i0, n, q, e, top, sum, picked);
+    i0 = i1;
+  }
 }
 }  // namespace match_detail
 
@@ -79,17 +102,18 @@ MatchLossParts match_loss_forward(const T* desc, const T* prob, const T* alpha, 
   require(desc && prob && alpha && views >= 1 && px >= 1 && D >= 1, "match loss: null or empty maps");
   require(c.temperature > 0 && c.foreground_weight >= 0, "match loss: temperature ", c.temperature,
           " must be positive and foreground_weight ", c.foreground_weight, " non-negative");
-  std::vector<double> unit, norm;
+  std::vector<T> unit;
+  std::vector<double> norm;
   match_detail::normalize(desc, views * px, D, unit, norm);
   for (double r : norm) require(std::isfinite(r), "match loss: a descriptor is not finite");
   MatchLossParts out;
-  std::vector<double> s(static_cast<std::size_t>(px));
-  for (const PixelMatch& m : matches) {
-    match_detail::check(m, views, px);
-    double top = 0;
-    const double sum = match_detail::logits(unit, m, px, D, c.temperature, s, top);
-    out.match += top + std::log(sum) - s[static_cast<std::size_t>(m.pixel_b)];
-  }
+  match_detail::for_each_run(unit, matches, views, px, D, c.temperature,
+                             [&](std::size_t, index_t n, const std::vector<T>&, const std::vector<T>&,
+                                 const std::vector<double>& top, const std::vector<double>& sum,
+                                 const std::vector<double>& picked) {
+                               for (std::size_t r = 0; r < static_cast<std::size_t>(n); ++r)
+                                 out.match += top[r] + std::log(sum[r]) - picked[r];
+                             });
   if (!matches.empty()) out.match /= static_cast<double>(matches.size());
   for (index_t i = 0; i < views * px; ++i) {
     const double p = std::clamp(static_cast<double>(prob[i]), match_detail::prob_floor, 1 - match_detail::prob_floor);
@@ -109,31 +133,40 @@ void match_loss_backward(T* d_desc, T* d_prob, double d_total, const T* desc, co
                          std::span<const PixelMatch> matches, index_t views, index_t px, index_t D,
                          const MatchLossConfig& c) {
   if (d_desc && !matches.empty()) {
-    std::vector<double> unit, norm, d_unit(static_cast<std::size_t>(views * px * D), 0.0);
+    std::vector<T> unit, d_unit(static_cast<std::size_t>(views * px * D), T(0)), g, dq;
+    std::vector<double> norm;
     match_detail::normalize(desc, views * px, D, unit, norm);
-    std::vector<double> s(static_cast<std::size_t>(px));
     const double scale = d_total / static_cast<double>(matches.size()) / c.temperature;
-    for (const PixelMatch& m : matches) {
-      match_detail::check(m, views, px);
-      double top = 0;
-      const double sum = match_detail::logits(unit, m, px, D, c.temperature, s, top);
-      const double* a = unit.data() + (m.view_a * px + m.pixel_a) * D;
-      double* da = d_unit.data() + (m.view_a * px + m.pixel_a) * D;
-      for (index_t k = 0; k < px; ++k) {
-        const double g = (std::exp(s[static_cast<std::size_t>(k)] - top) / sum - (k == m.pixel_b ? 1.0 : 0.0)) * scale;
-        const double* b = unit.data() + (m.view_b * px + k) * D;
-        double* db = d_unit.data() + (m.view_b * px + k) * D;
-        for (index_t d = 0; d < D; ++d) da[d] += g * b[d], db[d] += g * a[d];
-      }
-    }
+    match_detail::for_each_run(
+        unit, matches, views, px, D, c.temperature,
+        [&](std::size_t i0, index_t n, const std::vector<T>& q, const std::vector<T>& e, const std::vector<double>&,
+            const std::vector<double>& sum, const std::vector<double>&) {
+          // g = (softmax - one-hot) x scale; d q = g B_b, d B_b += g^T q.
+          g.resize(static_cast<std::size_t>(n * px));
+          for (index_t r = 0; r < n; ++r) {
+            const T w = static_cast<T>(scale / sum[static_cast<std::size_t>(r)]);
+            for (index_t k = 0; k < px; ++k) g[static_cast<std::size_t>(r * px + k)] = e[static_cast<std::size_t>(r * px + k)] * w;
+            g[static_cast<std::size_t>(r * px + matches[i0 + static_cast<std::size_t>(r)].pixel_b)] -= static_cast<T>(scale);
+          }
+          const index_t vb = matches[i0].view_b;
+          dq.resize(static_cast<std::size_t>(n * D));
+          gemm(Trans::no, Trans::no, n, D, px, T(1), g.data(), px, unit.data() + vb * px * D, D, T(0), dq.data(), D);
+          gemm(Trans::yes, Trans::no, px, D, n, T(1), g.data(), px, q.data(), D, T(1), d_unit.data() + vb * px * D, D);
+          for (index_t r = 0; r < n; ++r) {
+            const PixelMatch& m = matches[i0 + static_cast<std::size_t>(r)];
+            T* da = d_unit.data() + (m.view_a * px + m.pixel_a) * D;
+            for (index_t d = 0; d < D; ++d) da[d] += dq[static_cast<std::size_t>(r * D + d)];
+          }
+        });
     // Through the normalisation: d f = (d n - n <n, d n>) / |f|.
     for (index_t i = 0; i < views * px; ++i) {
-      const double* n = unit.data() + i * D;
-      const double* dn = d_unit.data() + i * D;
+      const T* n = unit.data() + i * D;
+      const T* dn = d_unit.data() + i * D;
       double proj = 0;
-      for (index_t d = 0; d < D; ++d) proj += n[d] * dn[d];
+      for (index_t d = 0; d < D; ++d) proj += static_cast<double>(n[d]) * static_cast<double>(dn[d]);
       for (index_t d = 0; d < D; ++d)
-        d_desc[i * D + d] += static_cast<T>((dn[d] - n[d] * proj) / norm[static_cast<std::size_t>(i)]);
+        d_desc[i * D + d] += static_cast<T>((static_cast<double>(dn[d]) - static_cast<double>(n[d]) * proj) /
+                                            norm[static_cast<std::size_t>(i)]);
     }
   }
   if (d_prob && c.foreground_weight > 0) {
