@@ -333,8 +333,8 @@ TEST_CASE("with VGGT's two frame-token sets and two decoder view slots, reorderi
                      static_cast<std::size_t>(a2.gaussians.means.size())) > 1e-4);
 }
 
-TEST_CASE("with the match head, predict takes each view's camera from its matches with the first view when solved "
-          "and the camera head's otherwise", "[model][predict]") {
+TEST_CASE("with the match head, predict takes each view's camera from the view pairs' matches when placed and the "
+          "camera head's otherwise", "[model][predict]") {
   auto c = model::flexsplat_tiny_config();
   c.geometry.match_dim = 4;
   auto w = model::FlexSplatWeights<float>::create(c, false);

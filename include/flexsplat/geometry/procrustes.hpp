@@ -101,13 +101,13 @@ void cameras_from_points(T* extrinsics, const T* points, const T* points_conf, c
   }
 }
 
-// Settings of cameras_from_matches. The inlier distance is relative to the median depth of a pair's matched points.
+// Settings of cameras_from_matches.
 struct MatchFitConfig {
   double min_foreground = 0.5;  // pixels below this object probability are not matched
-  double inlier_rel = 0.05;     // a match is an inlier when the fit maps it within this fraction of the median depth
+  double inlier_rel = 0.05;     // an inlier lies within this fraction of the median depth of the pair's matched pixels
   int ransac_rounds = 256;      // minimal (3-match) hypotheses per pair
   index_t min_inliers = 6;      // a pair with fewer inliers does not link its views
-  unsigned seed = 1;            // hypotheses are drawn from a fixed sequence: the same maps give the same cameras
+  unsigned seed = 1;            // every pair draws hypotheses from this fixed sequence: the same maps, the same cameras
 };
 
 // The rigid fit of dst ~ R src + t from n pairs [n, 3] by RANSAC over 3-pair samples, then least squares on the inliers
@@ -183,6 +183,7 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
   struct ViewSet {
     Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> unit;
     std::vector<double> point;
+    std::vector<index_t> pixel;
   };
   std::vector<ViewSet> views(static_cast<std::size_t>(frames));
   for (index_t f = 0; f < frames; ++f) {
@@ -199,6 +200,7 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
       const double inv = 1 / std::sqrt(n2);
       for (index_t k = 0; k < D; ++k) unit.push_back(static_cast<float>(static_cast<double>(d[k]) * inv));
       v.point.insert(v.point.end(), cam.begin() + 3 * p, cam.begin() + 3 * p + 3);
+      v.pixel.push_back(p);
     }
     v.unit = Eigen::Map<Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>>(
         unit.data(), static_cast<Eigen::Index>(v.point.size() / 3), static_cast<Eigen::Index>(D));
@@ -216,22 +218,33 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
       const Eigen::MatrixXf sim = A.unit * B.unit.transpose();
       Eigen::VectorXi col_best(sim.cols());
       for (Eigen::Index j = 0; j < sim.cols(); ++j) sim.col(j).maxCoeff(&col_best(j));
-      std::vector<double> src, dst, depths;
+      // Mutual nearest neighbours, in an order that does not depend on which view is a (so that reordering the
+      // input views reorders the cameras): by (smaller, larger) of the two pixel indices.
+      struct Pair {
+        index_t lo, hi, i, j;
+      };
+      std::vector<Pair> mutual;
       for (Eigen::Index i = 0; i < sim.rows(); ++i) {
         Eigen::Index j;
         sim.row(i).maxCoeff(&j);
         if (col_best(j) != i) continue;
-        src.insert(src.end(), A.point.begin() + 3 * i, A.point.begin() + 3 * i + 3);
-        dst.insert(dst.end(), B.point.begin() + 3 * j, B.point.begin() + 3 * j + 3);
-        depths.push_back(A.point[static_cast<std::size_t>(3 * i + 2)]);
+        const index_t pa = A.pixel[static_cast<std::size_t>(i)], pb = B.pixel[static_cast<std::size_t>(j)];
+        mutual.push_back({std::min(pa, pb), std::max(pa, pb), static_cast<index_t>(i), static_cast<index_t>(j)});
       }
-      const index_t n = static_cast<index_t>(depths.size());
+      std::sort(mutual.begin(), mutual.end(), [](const Pair& x, const Pair& y) { return x.lo != y.lo ? x.lo < y.lo : x.hi < y.hi; });
+      std::vector<double> src, dst, depths;
+      for (const Pair& m : mutual) {
+        src.insert(src.end(), A.point.begin() + 3 * m.i, A.point.begin() + 3 * m.i + 3);
+        dst.insert(dst.end(), B.point.begin() + 3 * m.j, B.point.begin() + 3 * m.j + 3);
+        depths.push_back(A.point[static_cast<std::size_t>(3 * m.i + 2)]);
+        depths.push_back(B.point[static_cast<std::size_t>(3 * m.j + 2)]);
+      }
+      const index_t n = static_cast<index_t>(mutual.size());
       if (n < 3) continue;
-      std::nth_element(depths.begin(), depths.begin() + n / 2, depths.end());
-      const double tau = cfg.inlier_rel * depths[static_cast<std::size_t>(n / 2)];
+      std::nth_element(depths.begin(), depths.begin() + n, depths.end());
+      const double tau = cfg.inlier_rel * depths[static_cast<std::size_t>(n)];
       Edge& e = edge[static_cast<std::size_t>(a * frames + b)];
-      e.inliers = robust_rigid_fit(src.data(), dst.data(), n, tau, cfg.ransac_rounds,
-                                   cfg.seed + static_cast<unsigned>(a * frames + b), e.R, e.t);
+      e.inliers = robust_rigid_fit(src.data(), dst.data(), n, tau, cfg.ransac_rounds, cfg.seed, e.R, e.t);
       // The reverse edge b -> a: R^T, -R^T t.
       Edge& r = edge[static_cast<std::size_t>(b * frames + a)];
       r.inliers = e.inliers;
