@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <vector>
 
 #include <Eigen/Dense>
@@ -215,19 +216,30 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
     for (index_t b = a + 1; b < frames; ++b) {
       const ViewSet &A = views[static_cast<std::size_t>(a)], &B = views[static_cast<std::size_t>(b)];
       if (A.unit.rows() < 3 || B.unit.rows() < 3) continue;
-      const Eigen::MatrixXf sim = A.unit * B.unit.transpose();
-      Eigen::VectorXi col_best(sim.cols());
-      for (Eigen::Index j = 0; j < sim.cols(); ++j) sim.col(j).maxCoeff(&col_best(j));
+      // Nearest neighbours both ways, the similarities in blocks of rows (memory stays bounded at any image size).
+      const Eigen::Index na = A.unit.rows(), nb = B.unit.rows(), block = 1024;
+      std::vector<Eigen::Index> row_best(static_cast<std::size_t>(na)), col_best(static_cast<std::size_t>(nb), -1);
+      std::vector<float> col_top(static_cast<std::size_t>(nb), -std::numeric_limits<float>::infinity());
+      Eigen::MatrixXf sim;
+      for (Eigen::Index r0 = 0; r0 < na; r0 += block) {
+        const Eigen::Index rows = std::min(block, na - r0);
+        sim.noalias() = A.unit.middleRows(r0, rows) * B.unit.transpose();
+        for (Eigen::Index i = 0; i < rows; ++i) sim.row(i).maxCoeff(&row_best[static_cast<std::size_t>(r0 + i)]);
+        for (Eigen::Index j = 0; j < nb; ++j) {
+          Eigen::Index i;
+          const float top = sim.col(j).maxCoeff(&i);
+          if (top > col_top[static_cast<std::size_t>(j)]) col_top[static_cast<std::size_t>(j)] = top, col_best[static_cast<std::size_t>(j)] = r0 + i;
+        }
+      }
       // Mutual nearest neighbours, in an order that does not depend on which view is a (so that reordering the
       // input views reorders the cameras): by (smaller, larger) of the two pixel indices.
       struct Pair {
         index_t lo, hi, i, j;
       };
       std::vector<Pair> mutual;
-      for (Eigen::Index i = 0; i < sim.rows(); ++i) {
-        Eigen::Index j;
-        sim.row(i).maxCoeff(&j);
-        if (col_best(j) != i) continue;
+      for (Eigen::Index i = 0; i < na; ++i) {
+        const Eigen::Index j = row_best[static_cast<std::size_t>(i)];
+        if (col_best[static_cast<std::size_t>(j)] != i) continue;
         const index_t pa = A.pixel[static_cast<std::size_t>(i)], pb = B.pixel[static_cast<std::size_t>(j)];
         mutual.push_back({std::min(pa, pb), std::max(pa, pb), static_cast<index_t>(i), static_cast<index_t>(j)});
       }
