@@ -24,7 +24,7 @@ namespace {
 
 template <class T>
 struct Scene : GaussianSet<T> {
-  Camera<T> camera;
+  View<T> camera;
 };
 
 // The OpenSplat comparison scene: means uniform in a cube of side 2 centred 4 units in front of a pinhole camera
@@ -60,7 +60,7 @@ template <class T>
 struct Result {
   RenderOutputs<T> out;
   GaussianSetGrad<T> d;
-  CameraGrad<T> d_cam;
+  ViewGrad<T> d_cam;
   double forward_ms = 0, backward_ms = 0, forward_cpu_ms = 0, backward_cpu_ms = 0;  // wall and process CPU time
   double contributors_per_pixel = 0, entries = 0;
   ForwardStageTimes stages;  // medians over the repetitions

@@ -124,9 +124,9 @@ static int run_recipe(const RecipeOptions& ro) {
     std::vector<model::TrainExample<float>> batch;
     for (index_t b = 0; b < cfg.batch; ++b) batch.push_back(model::make_train_scene(data, cfg, step, b));
     const auto t1 = std::chrono::steady_clock::now();
-    std::uint64_t s0 = 0;
-    const model::TrainStage& st = cfg.stages[cfg.stage_at(step, s0)];
-    const double lr = train::CosineSchedule{st.lr, 0.0, st.warmup, st.steps}.lr(step - s0);
+    const model::StepSchedule at = cfg.schedule_at(step);
+    const model::TrainStage& st = cfg.stages[at.stage];
+    const double lr = at.lr;
     // train_step adds into the PhaseTimes it is given: the counted steps accumulate in `phases`.
     const auto r = model::train_step<float>(ws, *w, batch, cfg.batch, st.step, lr, step, solo, lpips.get(),
                                             k < 0 ? nullptr : &phases);

@@ -83,7 +83,10 @@ int main(int argc, char** argv) {
     std::printf("quantized16.glb: %zu bytes\n", gltf::write_glb(set, dir / "quantized16.glb", medium).bytes);
     gltf::WriteOptions with_cameras;
     if (argc == 3) with_cameras.cameras = gaussians::load_cameras_json(argv[2]);
-    else with_cameras.cameras = {gaussians::Camera{"synthetic", 64, 48, {60, 0, 32, 0, 60, 24, 0, 0, 1}, {1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 3}}};
+    else {
+      const double K[9] = {60, 0, 32, 0, 60, 24, 0, 0, 1}, w2c[12] = {1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 3};
+      with_cameras.cameras = {camera_from_arrays(K, w2c, 64, 48, "synthetic")};
+    }
     std::printf("cameras.glb: %zu bytes, %zu cameras\n", gltf::write_glb(set, dir / "cameras.glb", with_cameras).bytes,
                 with_cameras.cameras.size());
     write_broken(gltf::encode_glb(set, with_cameras), dir / "broken_max.glb");

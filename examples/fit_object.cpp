@@ -108,12 +108,12 @@ int main(int argc, char** argv) {
 
     // Views composited on white; every fourth is held out.
     const auto cameras = gaussians::load_cameras_json(dir + "/cameras.json");
-    std::vector<raster::Camera<float>> cams;
+    std::vector<raster::View<float>> cams;
     std::vector<Tensor<float, 3>> images;
     std::vector<int> train, test;
     for (const auto& c : cameras) {
       (cams.size() % 4 == 3 ? test : train).push_back(int(cams.size()));
-      cams.push_back(gaussians::raster_camera<float>(c));
+      cams.push_back(raster::camera_view<float>(c));
       images.push_back(image::read_rgb<float>(dir + "/" + c.name));
       require(images.back().shape(0) == c.height && images.back().shape(1) == c.width, "fit_object: '", c.name,
               "' does not have the size cameras.json gives");
@@ -123,10 +123,7 @@ int main(int argc, char** argv) {
     // Where the optical axes meet (one-pixel unit "depth" maps only serve the parallel-axes fallback).
     const index_t V = index_t(cameras.size());
     std::vector<double> K(9 * V), E(12 * V), depth(V, 1.0);
-    for (index_t v = 0; v < V; ++v) {
-      std::copy(cameras[v].K.begin(), cameras[v].K.end(), K.begin() + 9 * v);
-      std::copy(cameras[v].w2c.begin(), cameras[v].w2c.end(), E.begin() + 12 * v);
-    }
+    for (index_t v = 0; v < V; ++v) camera_arrays(cameras[v], K.data() + 9 * v, E.data() + 12 * v);
     const decoder::ViewGeometry<double> geometry{V, cameras[0].width, cameras[0].height, 1, 1, K.data(), E.data(), depth.data()};
     const decoder::SceneCentre scene = decoder::scene_centre_from_axes(geometry);
 

@@ -42,14 +42,7 @@ int main(int argc, char** argv) try {
 
   // 4. Export with the predicted cameras as glTF camera nodes.
   gltf::WriteOptions options;
-  for (index_t v = 0; v < p.views; ++v) {
-    gaussians::Camera cam;
-    cam.name = files[static_cast<std::size_t>(v)];
-    cam.width = static_cast<int>(p.w), cam.height = static_cast<int>(p.h);
-    for (int i = 0; i < 9; ++i) cam.K[static_cast<std::size_t>(i)] = p.geometry.K[static_cast<std::size_t>(9 * v + i)];
-    for (int i = 0; i < 12; ++i) cam.w2c[static_cast<std::size_t>(i)] = p.geometry.extrinsics[static_cast<std::size_t>(12 * v + i)];
-    options.cameras.push_back(cam);
-  }
+  options.cameras = model::input_cameras(p, files);
   gaussians::write_gaussians(p.gaussians, output, options);
   std::printf("%s: %lld Gaussians from %zu photos (%.0f ms geometry, %.0f ms decoder)\n", output.c_str(),
               static_cast<long long>(p.gaussians.size()), files.size(), p.geometry_ms, p.decoder_ms);

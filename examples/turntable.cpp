@@ -11,7 +11,7 @@
 #include <glm/glm.hpp>
 #include <glm/gtc/matrix_transform.hpp>
 
-#include "flexsplat/data/cameras.hpp"
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/export/file.hpp"
 #include "flexsplat/export/render_set.hpp"
 #include "flexsplat/image/image_io.hpp"
@@ -36,7 +36,7 @@ int main(int argc, char** argv) try {
   }
 
   // 1. The Gaussians, and the cameras a .glb holds (a reconstruction's input photos).
-  std::vector<gaussians::Camera> cameras;
+  std::vector<Camera> cameras;
   const GaussianSet<float> set = gaussians::read_gaussians(input, &cameras);
 
   // 2. The orbit: about the opacity-weighted centre of the Gaussians. A file with cameras sets the up axis and the
@@ -59,12 +59,10 @@ int main(int argc, char** argv) try {
   const double half_fov = 22.5 * std::numbers::pi / 180, elevation = 20 * std::numbers::pi / 180;
   glm::dvec3 up(0, 0, 1), eye = centre + radius / std::sin(half_fov) * glm::dvec3(std::cos(elevation), 0, std::sin(elevation));
   if (!cameras.empty()) {
-    const auto& E = cameras[0].w2c;  // [R | t], rows are the camera's axes in the world
-    const glm::dmat3 Rt(E[0], E[1], E[2], E[4], E[5], E[6], E[8], E[9], E[10]);  // columns = rows of R
-    up = -Rt[1];
-    eye = -(Rt * glm::dvec3(E[3], E[7], E[11]));
+    up = -glm::transpose(cameras[0].R)[1];  // rows of R are the camera's axes in the world; y points down
+    eye = cameras[0].centre();
   }
-  const glm::dmat3 K = data::intrinsics_from_fov(size, size, 45.0);
+  const glm::dmat3 K = intrinsics_from_fov(size, size, 45.0);
 
   // 3. Render each view on white with the CPU rasterizer.
   raster::RenderOptions options;
@@ -76,14 +74,7 @@ int main(int argc, char** argv) try {
   for (int f = 0; f < views; ++f) {
     const double angle = 2 * std::numbers::pi * f / views;
     const glm::dvec3 e = centre + glm::dvec3(glm::rotate(glm::dmat4(1.0), angle, up) * glm::dvec4(eye - centre, 0.0));
-    const glm::dvec3 forward = glm::normalize(centre - e), right = glm::normalize(glm::cross(forward, up));
-    const glm::dvec3 down = glm::cross(forward, right);
-    gaussians::Camera cam;
-    cam.width = cam.height = size;
-    cam.K = {K[0][0], 0, K[2][0], 0, K[1][1], K[2][1], 0, 0, 1};
-    for (int c = 0; c < 3; ++c) cam.w2c[c] = right[c], cam.w2c[4 + c] = down[c], cam.w2c[8 + c] = forward[c];
-    cam.w2c[3] = -glm::dot(right, e), cam.w2c[7] = -glm::dot(down, e), cam.w2c[11] = -glm::dot(forward, e);
-    gaussians::render_set(set, cam, options, workspace, out);
+    gaussians::render_set(set, look_at(e, centre, size, size, K, up), options, workspace, out);
     frames.push_back(out.image);
   }
   for (const Tensor<float, 3>& fr : frames)

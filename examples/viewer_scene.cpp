@@ -43,7 +43,7 @@ int main(int argc, char** argv) {
     }
     gltf::WriteOptions write_options;
     write_options.cameras = gaussians::load_camera_spec(argv[2]);
-    const gaussians::Camera& camera = write_options.cameras.at(0);
+    const Camera& camera = write_options.cameras.at(0);
     gltf::write_glb(set, dir / "scene.glb", write_options);
     raster::RenderOptions options;
     options.background = {0, 0, 0};

@@ -17,6 +17,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "flexsplat/core/atomic_file.hpp"
 #include "flexsplat/image/image_io.hpp"
 #include "flexsplat/image/plot.hpp"
 #include "flexsplat/loss/lpips.hpp"
@@ -406,10 +407,7 @@ int eval_command(Args args) {
     };
     if (eo.white_baseline) add_baseline("white", white_rows);
     if (x.posed_fit) add_baseline("posed-fit", posed_rows);
-    std::ofstream f(json_path, std::ios::binary | std::ios::trunc);
-    require(f.good(), "eval: cannot write '", json_path, "'");
-    f << j.dump(1) << "\n";
-    require(f.good(), "eval: writing '", json_path, "' failed");
+    write_file_atomic(json_path, "eval --json", j.dump(1) + "\n");
   }
   if (!grid_path.empty()) write_grid(grid_path, results, w->config().image_h, w->config().image_w);
   return 0;

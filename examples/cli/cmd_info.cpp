@@ -10,7 +10,7 @@ namespace {
 
 int info(Args args) {
   require(args.size() == 1, "info needs exactly one FILE");
-  std::vector<gaussians::Camera> cameras;
+  std::vector<Camera> cameras;
   const auto set = gaussians::read_gaussians(args[0], &cameras);
   const auto b = gaussians::position_bounds(set);
   std::printf("file: %s\n", args[0].c_str());
@@ -27,8 +27,8 @@ int info(Args args) {
   }
   std::printf("cameras: %zu\n", cameras.size());
   for (const auto& cam : cameras)
-    std::printf("  %s %dx%d fx=%.6g fy=%.6g cx=%.6g cy=%.6g\n", cam.name.c_str(), cam.width, cam.height, cam.K[0],
-                cam.K[4], cam.K[2], cam.K[5]);
+    std::printf("  %s %dx%d fx=%.6g fy=%.6g cx=%.6g cy=%.6g\n", cam.name.c_str(), cam.width, cam.height, cam.K[0][0],
+                cam.K[1][1], cam.K[2][0], cam.K[2][1]);
   return 0;
 }
 

@@ -29,7 +29,7 @@ void write_make_data_grid(const std::string& path, const std::string& shared, in
         for (index_t c = 0; c < 3; ++c) planar(c, y, x) = rgba(y, x, c) * rgba(y, x, 3) + (1 - rgba(y, x, 3));
     tiles.push_back(interpolate_bicubic_antialias<float>(TensorView<const float, 3>(planar.view()), tile, tile));
   };
-  const data::Camera cam = data::orbit_camera(20, 45, 3.0, 45, 256, 256);
+  const Camera cam = data::orbit_camera(20, 45, 3.0, 45, 256, 256);
   for (int i = 0; i < count; ++i) {
     const data::ProceduralObject obj = data::make_object(data::object_seed(seed, static_cast<std::uint64_t>(i)), cfg.object);
     data::RenderOutput out;

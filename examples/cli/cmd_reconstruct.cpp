@@ -47,12 +47,9 @@ void write_turntable(const fs::path& path, const model::Prediction<float>& p, in
   }
   require(weight > 0, "turntable: every Gaussian is transparent");
   centre /= weight;
-  const float* E = p.geometry.extrinsics.data();
-  glm::dmat3 R;  // glm is column-major: R[col][row]
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) R[c][r] = E[4 * r + c];
-  const glm::dvec3 eye0 = -glm::transpose(R) * glm::dvec3(E[3], E[7], E[11]);
-  const glm::dvec3 up = -glm::transpose(R)[1];  // OpenCV y points down
+  const Camera first = model::input_cameras(p)[0];
+  const glm::dvec3 eye0 = first.centre();
+  const glm::dvec3 up = -glm::transpose(first.R)[1];  // rows of R are the camera's axes; OpenCV y points down
   const index_t h = p.h, w = p.w, gap = 2;
   Tensor<float, 3> strip(Shape<3>{h, frames * w + (frames - 1) * gap, 3}, 1.0f);
   raster::RenderOptions ro;
@@ -63,15 +60,9 @@ void write_turntable(const fs::path& path, const model::Prediction<float>& p, in
     const double angle = 2.0 * 3.14159265358979323846 * f / frames;
     const glm::dmat4 turn = glm::rotate(glm::dmat4(1.0), angle, glm::normalize(up));
     const glm::dvec3 eye = centre + glm::dvec3(turn * glm::dvec4(eye0 - centre, 0.0));
-    // glm::lookAt is OpenGL's view (y up, looking down -z); OpenCV flips y and z.
-    const glm::dmat4 gl = glm::lookAt(eye, centre, up);
-    float w2c[12];
-    for (int r = 0; r < 3; ++r) {
-      const double sign = r == 0 ? 1.0 : -1.0;
-      for (int c = 0; c < 4; ++c) w2c[4 * r + c] = static_cast<float>(sign * gl[c][r]);
-    }
-    raster::render_forward(s, model::render_camera(p.geometry.K.data(), w2c, static_cast<int>(w), static_cast<int>(h)),
-                           ro, ws, out);
+    raster::render_forward(
+        s, raster::camera_view<float>(look_at(eye, centre, static_cast<int>(w), static_cast<int>(h), first.K, up)), ro,
+        ws, out);
     for (index_t y = 0; y < h; ++y)
       for (index_t x = 0; x < w; ++x)
         for (int c = 0; c < 3; ++c) strip(y, f * (w + gap) + x, c) = std::clamp(out.image(y, x, c), 0.0f, 1.0f);
@@ -137,15 +128,11 @@ int reconstruct_command(Args args) {
   }
 
   gltf::WriteOptions wo;
-  if (format == gaussians::FileFormat::Glb)
-    for (index_t v = 0; v < p.views; ++v) {
-      gaussians::Camera cam;
-      cam.name = fs::path(args[static_cast<std::size_t>(v)]).filename().string();
-      cam.width = static_cast<int>(p.w), cam.height = static_cast<int>(p.h);
-      for (int i = 0; i < 9; ++i) cam.K[static_cast<std::size_t>(i)] = p.geometry.K[static_cast<std::size_t>(9 * v + i)];
-      for (int i = 0; i < 12; ++i) cam.w2c[static_cast<std::size_t>(i)] = p.geometry.extrinsics[static_cast<std::size_t>(12 * v + i)];
-      wo.cameras.push_back(cam);
-    }
+  if (format == gaussians::FileFormat::Glb) {
+    std::vector<std::string> names;
+    for (const std::string& a : args) names.push_back(fs::path(a).filename().string());
+    wo.cameras = model::input_cameras(p, names);
+  }
   std::fprintf(stderr, "reconstruct: writing %s\n", output.c_str());
   const auto report = gaussians::write_gaussians(p.gaussians, output, wo);
   t.lap("export");

@@ -34,7 +34,7 @@ int render(Args args) {
   const bool rgba = take_flag(args, "--rgba");
   require(args.size() == 1, "render needs exactly one Gaussian FILE (got ", args.size(), " positional arguments)");
   options.background = parse_background(background);
-  std::vector<gaussians::Camera> cameras;
+  std::vector<Camera> cameras;
   const auto set = gaussians::read_gaussians(args[0], &cameras);
   if (!camera_spec.empty()) cameras = gaussians::load_camera_spec(camera_spec);
   require(!cameras.empty(), "render: no camera (pass --camera cameras.json[:index]; '", args[0], "' has none)");

@@ -9,6 +9,8 @@
 #include "flexsplat/core/half.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/core/gaussians.hpp"
+#include "flexsplat/core/camera.hpp"
+#include "flexsplat/core/atomic_file.hpp"
 #include "flexsplat/core/radix_sort.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/reference_check.hpp"
@@ -106,3 +108,4 @@
 #include "flexsplat/model/evaluate.hpp"
 #include "flexsplat/model/refine.hpp"
 #include "flexsplat/model/validate.hpp"
+#include "flexsplat/model/trainer.hpp"

@@ -4,6 +4,9 @@
 #include <random>
 #include <string>
 
+#include <glm/glm.hpp>
+
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/export/gaussian_set.hpp"
 
 namespace flexsplat_test {
@@ -30,28 +33,13 @@ flexsplat::GaussianSet<T> random_set(flexsplat::index_t n, int degree, unsigned 
   return set;
 }
 
-inline flexsplat::gaussians::Camera test_camera(double azimuth_deg, const std::string& name) {
+inline flexsplat::Camera test_camera(double azimuth_deg, const std::string& name) {
   // Looks at the origin from distance 3 in the z = 0.6 plane (Blender-like z-up world, OpenCV camera axes).
   const double a = azimuth_deg * 3.14159265358979323846 / 180.0;
-  const double cx = 3 * std::cos(a), cy = 3 * std::sin(a), cz = 0.6;
-  double f[3] = {-cx, -cy, -cz};
-  double fn = std::sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]);
-  for (double& v : f) v /= fn;
-  double r[3] = {f[1] * 1 - f[2] * 0, f[2] * 0 - f[0] * 1, f[0] * 0 - f[1] * 0};  // forward x up(0,0,1)
-  double rn = std::sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2]);
-  for (double& v : r) v /= rn;
-  double d[3] = {f[1] * r[2] - f[2] * r[1], f[2] * r[0] - f[0] * r[2], f[0] * r[1] - f[1] * r[0]};  // down
-  flexsplat::gaussians::Camera cam;
+  glm::dmat3 K(1.0);
+  K[0][0] = 300, K[1][1] = 290, K[2][0] = 161.5, K[2][1] = 118.25;
+  flexsplat::Camera cam = flexsplat::look_at({3 * std::cos(a), 3 * std::sin(a), 0.6}, glm::dvec3(0.0), 320, 240, K);
   cam.name = name;
-  cam.width = 320;
-  cam.height = 240;
-  cam.K = {300, 0, 161.5, 0, 290, 118.25, 0, 0, 1};
-  const double* rows[3] = {r, d, f};
-  const double c[3] = {cx, cy, cz};
-  for (int i = 0; i < 3; ++i) {
-    for (int j = 0; j < 3; ++j) cam.w2c[i * 4 + j] = rows[i][j];
-    cam.w2c[i * 4 + 3] = -(rows[i][0] * c[0] + rows[i][1] * c[1] + rows[i][2] * c[2]);
-  }
   return cam;
 }
 

@@ -84,10 +84,3 @@ TEST_CASE("element type conversion keeps values and shapes", "[export]") {
   CHECK(d.features.shape() == Shape<2>{5, 2});
   CHECK(d.features(4, 1) == 0.25);
 }
-
-TEST_CASE("cameras are checked for size, finiteness and focal lengths", "[export]") {
-  std::vector<gaussians::Camera> cams{flexsplat_test::test_camera(30, "cam")};
-  CHECK_NOTHROW(gaussians::check_cameras(cams, "test"));
-  cams[0].K[4] = -1;
-  CHECK_THROWS_WITH(gaussians::check_cameras(cams, "test"), Catch::Contains("camera 'cam' has focal lengths"));
-}

@@ -15,8 +15,8 @@ int test_one_input(const std::uint8_t* data, std::size_t size) {
   decltype(gltf::decode_glb(nullptr, 0, "")) set;
   try {
     // Camera nodes are read only when asked for: ask, where the reader offers it.
-    if constexpr (requires(std::vector<gaussians::Camera> c) { gltf::decode_glb(data, size, "", &c); }) {
-      std::vector<gaussians::Camera> cameras;
+    if constexpr (requires(std::vector<Camera> c) { gltf::decode_glb(data, size, "", &c); }) {
+      std::vector<Camera> cameras;
       set = gltf::decode_glb(data, size, "fuzz.glb", &cameras);
     } else {
       set = gltf::decode_glb(data, size, "fuzz.glb");

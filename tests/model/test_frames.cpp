@@ -4,24 +4,18 @@
 #include <random>
 #include <vector>
 
+#include <glm/glm.hpp>
+
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/model/frames.hpp"
 
 using namespace flexsplat;
 
 namespace {
 // A world-to-camera [3, 4] looking from `eye` at `target` (OpenCV axes, world y up).
-std::vector<double> look_at(Eigen::Vector3d eye, Eigen::Vector3d target) {
-  const Eigen::Vector3d z = (target - eye).normalized();
-  const Eigen::Vector3d x = z.cross(Eigen::Vector3d(0, 1, 0)).normalized();
-  const Eigen::Vector3d y = z.cross(x);
-  Eigen::Matrix3d R;
-  R.row(0) = x, R.row(1) = y, R.row(2) = z;
-  const Eigen::Vector3d t = -R * eye;
+std::vector<double> w2c_looking_at(glm::dvec3 eye, glm::dvec3 target) {
   std::vector<double> m(12);
-  for (int r = 0; r < 3; ++r) {
-    for (int c = 0; c < 3; ++c) m[4 * r + c] = R(r, c);
-    m[4 * r + 3] = t(r);
-  }
+  camera_arrays<double>(flexsplat::look_at(eye, target, 1, 1, glm::dmat3(1.0), glm::dvec3(0, 1, 0)), nullptr, m.data());
   return m;
 }
 
@@ -29,7 +23,7 @@ std::vector<double> ring(int views, double radius, double phase) {
   std::vector<double> all;
   for (int v = 0; v < views; ++v) {
     const double a = phase + 2.0 * 3.14159265358979 * v / views;
-    auto m = look_at({radius * std::cos(a), 0.4 * radius, radius * std::sin(a)}, {0.1, 0, -0.2});
+    auto m = w2c_looking_at({radius * std::cos(a), 0.4 * radius, radius * std::sin(a)}, {0.1, 0, -0.2});
     all.insert(all.end(), m.begin(), m.end());
   }
   return all;

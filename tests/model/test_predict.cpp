@@ -201,7 +201,7 @@ TEST_CASE("the evaluation protocol undoes a known similarity and scores ground-t
   for (int v : in) {
     const auto& fr = rec.frames[static_cast<std::size_t>(v)];
     double K[9], E[12];
-    model::detail::camera_arrays(fr.camera, K, E);
+    camera_arrays(fr.camera, K, E);
     model::transform_camera(E, sim);
     for (double e : E) pred_w2c.push_back(static_cast<float>(e));
     const auto depth = image::read_depth_png<double>(fr.depth, rec.depth_scale);
@@ -303,7 +303,7 @@ TEST_CASE("with VGGT's two frame-token sets and two decoder view slots, reorderi
   ro.background = {1, 1, 1};
   double worst = 0, ink = 0;
   for (index_t v = 0; v < V; ++v) {
-    raster::Camera<float> cam;
+    raster::View<float> cam;
     const float* E = a.geometry.extrinsics.data() + 12 * v;
     const float* K = a.geometry.K.data() + 9 * v;
     for (int i = 0; i < 12; ++i) cam.world_to_camera[i] = E[i];
@@ -360,4 +360,28 @@ TEST_CASE("with the match head, predict takes each view's camera from the view p
   }
   INFO("views solved from matches on random weights: " << from_matches);
   for (int i = 0; i < 12; ++i) CHECK(p.geometry.extrinsics[static_cast<std::size_t>(i)] == o.extrinsics.data()[i]);
+}
+
+TEST_CASE("input_cameras gives each predicted view's camera at the model's size, named", "[model][predict]") {
+  model::Prediction<float> p;
+  p.views = 2, p.h = 24, p.w = 32;
+  p.geometry.resize(2, 24, 32, 1, 1, 1);
+  for (index_t v = 0; v < 2; ++v) {
+    const Camera c = look_at({3.0, 1.0 + v, 0.5}, {0, 0, 0}, 32, 24, intrinsics_from_fov(32, 24, 40.0 + 5 * v));
+    camera_arrays(c, p.geometry.K.data() + 9 * v, p.geometry.extrinsics.data() + 12 * v);
+  }
+  const std::vector<Camera> cams = model::input_cameras(p, {"a.png", "b.png"});
+  REQUIRE(cams.size() == 2);
+  for (index_t v = 0; v < 2; ++v) {
+    const Camera& c = cams[static_cast<std::size_t>(v)];
+    CHECK(c.name == (v == 0 ? "a.png" : "b.png"));
+    CHECK(c.width == 32);
+    CHECK(c.height == 24);
+    float K[9], E[12];
+    camera_arrays(c, K, E);
+    for (int i = 0; i < 9; ++i) CHECK(K[i] == p.geometry.K[static_cast<std::size_t>(9 * v + i)]);
+    for (int i = 0; i < 12; ++i) CHECK(E[i] == p.geometry.extrinsics[static_cast<std::size_t>(12 * v + i)]);
+  }
+  CHECK(model::input_cameras(p)[1].name.empty());
+  CHECK_THROWS_WITH(model::input_cameras(p, {"only-one.png"}), Catch::Contains("1 names for 2 views"));
 }

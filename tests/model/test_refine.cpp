@@ -61,7 +61,7 @@ RefineScene<T> refine_scene(index_t views, index_t n = 24, std::uint64_t seed = 
   raster::RenderWorkspace<T> rws;
   raster::RenderOutputs<T> out;
   for (index_t v = 0; v < views; ++v) {
-    raster::render_forward(s.truth, model::render_camera(s.K.data() + 9 * v, s.w2c.data() + 12 * v, 24, 24), ro, rws, out);
+    raster::render_forward(s.truth, raster::view_from_arrays(s.K.data() + 9 * v, s.w2c.data() + 12 * v, 24, 24), ro, rws, out);
     for (index_t i = 0; i < out.image.size(); ++i) s.images.push_back(std::clamp(out.image.data()[i], T(0), T(1)));
   }
   return s;

@@ -13,7 +13,7 @@ using namespace flexsplat::raster;
 // A Gaussian set with the camera and options it is rendered with.
 template <class T>
 struct Scene : GaussianSet<T> {
-  Camera<T> camera;
+  View<T> camera;
   RenderOptions options;
   const GaussianSet<T>& set() const { return *this; }
 };

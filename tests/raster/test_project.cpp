@@ -20,7 +20,7 @@ void check_projection(const double mean[3], bool antialiased, unsigned seed) {
   std::vector<double> m(mean, mean + 3), q(4), s(3), o(1, 0.7);
   for (auto& v : q) v = normal(rng);
   s = {0.05, 0.2, 0.1};
-  CameraParams<double> cam;
+  ViewParams<double> cam;
   const double a = 0.2, c = std::cos(a), si = std::sin(a);
   const double R[9] = {c, 0, si, 0, 1, 0, -si, 0, c};
   std::copy(R, R + 9, cam.R);
@@ -47,7 +47,7 @@ void check_projection(const double mean[3], bool antialiased, unsigned seed) {
     ProjectionGrad<double> g;
     g.u = d[0], g.v = d[1], g.z = d[2], g.conic[0] = d[3], g.conic[1] = d[4], g.conic[2] = d[5], g.opacity = d[6];
     // The camera gradient starts from the checker's junk, so its += contract is checked like the others.
-    CameraGradParams<double> dc;
+    ViewGradParams<double> dc;
     for (int i = 0; i < 9; ++i) dc.R[i] = dR[i];
     for (int i = 0; i < 3; ++i) dc.t[i] = dt[i];
     dc.fx = dintr[0], dc.fy = dintr[1], dc.cx = dintr[2], dc.cy = dintr[3];
@@ -83,7 +83,7 @@ TEST_CASE("project: float64 gradient check with the 1.3x field-of-view clamp act
 }
 
 TEST_CASE("project: culls behind the near plane and far plane, keeps a Gaussian on the image", "[raster][project]") {
-  CameraParams<double> cam{{1, 0, 0, 0, 1, 0, 0, 0, 1}, {0, 0, 0}, 50, 50, 32, 32, 64, 64};
+  ViewParams<double> cam{{1, 0, 0, 0, 1, 0, 0, 0, 1}, {0, 0, 0}, 50, 50, 32, 32, 64, 64};
   ProjectSettings<double> set;
   const double q[4] = {1, 0, 0, 0}, s[3] = {0.1, 0.1, 0.1};
   Projection<double> p;
@@ -105,8 +105,8 @@ TEST_CASE("project: culls behind the near plane and far plane, keeps a Gaussian 
 namespace {
 // A rotated, off-centre 80 x 60 camera 4 units from the origin: the lane tests' Gaussians straddle its frustum.
 template <class T>
-CameraParams<T> lanes_camera() {
-  CameraParams<T> cam;
+ViewParams<T> lanes_camera() {
+  ViewParams<T> cam;
   const double a = 0.3, c = std::cos(a), si = std::sin(a);
   const double R[9] = {c, -si, 0, si, c, 0.1, 0, -0.1, 1};
   for (int i = 0; i < 9; ++i) cam.R[i] = T(R[i]);
@@ -123,7 +123,7 @@ TEMPLATE_TEST_CASE("project: batch lanes are bit-identical to project_forward_on
   std::mt19937 rng(23);
   std::uniform_real_distribution<double> uni(-1, 1), u01(0, 1);
   std::normal_distribution<double> normal;
-  const CameraParams<T> cam = lanes_camera<T>();
+  const ViewParams<T> cam = lanes_camera<T>();
   long visible = 0, culled = 0;
   for (int trial = 0; trial < 6400 / L; ++trial) {  // 6400 Gaussians for any lane count
     ProjectSettings<T> set;
@@ -177,7 +177,7 @@ TEMPLATE_TEST_CASE("project: backward batch lanes are bit-identical to project_b
   std::mt19937 rng(31);
   std::uniform_real_distribution<double> uni(-1, 1), u01(0, 1);
   std::normal_distribution<double> normal;
-  const CameraParams<T> cam = lanes_camera<T>();
+  const ViewParams<T> cam = lanes_camera<T>();
   long compared = 0, off_screen = 0;
   for (int trial = 0; trial < 3200 / L; ++trial) {  // 3200 Gaussians for any lane count
     ProjectSettings<T> set;
@@ -198,7 +198,7 @@ TEMPLATE_TEST_CASE("project: backward batch lanes are bit-identical to project_b
     for (int i = 0; i < 3; ++i) mv[i] = load(m[i]), sv[i] = load(s[i]), dm[i] = load(junk[i]), ds[i] = load(junk[3 + i]);
     for (int i = 0; i < 4; ++i) qv[i] = load(q[i]), dq[i] = load(junk[6 + i]);
     V dopacity = load(junk[10]);
-    CameraGradParams<V> dcam;
+    ViewGradParams<V> dcam;
     for (int i = 0; i < 9; ++i) dcam.R[i] = load(junk[11 + i]);
     for (int i = 0; i < 3; ++i) dcam.t[i] = load(junk[20 + i]);
     dcam.fx = load(junk[23]), dcam.fy = load(junk[24]), dcam.cx = load(junk[25]), dcam.cy = load(junk[26]);
@@ -221,7 +221,7 @@ TEMPLATE_TEST_CASE("project: backward batch lanes are bit-identical to project_b
       T dml[3], dql[4], dsl[3], dol = junk[10][l];
       for (int i = 0; i < 3; ++i) dml[i] = junk[i][l], dsl[i] = junk[3 + i][l];
       for (int i = 0; i < 4; ++i) dql[i] = junk[6 + i][l];
-      CameraGradParams<T> dc;
+      ViewGradParams<T> dc;
       for (int i = 0; i < 9; ++i) dc.R[i] = junk[11 + i][l];
       for (int i = 0; i < 3; ++i) dc.t[i] = junk[20 + i][l];
       dc.fx = junk[23][l], dc.fy = junk[24][l], dc.cx = junk[25][l], dc.cy = junk[26][l];

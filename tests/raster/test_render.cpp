@@ -18,7 +18,7 @@ namespace {
 // Gaussian and camera gradients of one backward pass.
 template <class T>
 struct Grads : GaussianSetGrad<T> {
-  CameraGrad<T> camera;
+  ViewGrad<T> camera;
   explicit Grads(const Scene<T>& s) : GaussianSetGrad<T>(make_gaussian_grad(s.set())) {}
 };
 
@@ -26,7 +26,7 @@ template <class T>
 struct Cotangents {
   Tensor<T, 3> image, features;
   Tensor<T, 2> alpha, depth;
-  Cotangents(const Camera<T>& cam, int F, unsigned seed) {
+  Cotangents(const View<T>& cam, int F, unsigned seed) {
     std::mt19937 rng(seed);
     std::normal_distribution<double> normal;
     image.resize({cam.height, cam.width, 3});
@@ -76,7 +76,7 @@ bool identical(const Run& a, const Run& b) {
          same_bits(a.grads.quats, b.grads.quats) && same_bits(a.grads.scales, b.grads.scales) &&
          same_bits(a.grads.opacities, b.grads.opacities) && same_bits(a.grads.sh, b.grads.sh) &&
          same_bits(a.grads.features, b.grads.features) &&
-         std::memcmp(&a.grads.camera, &b.grads.camera, sizeof(CameraGrad<float>)) == 0;
+         std::memcmp(&a.grads.camera, &b.grads.camera, sizeof(ViewGrad<float>)) == 0;
 }
 
 void full_gradcheck(bool antialiased, bool expected_depth, unsigned seed) {
@@ -121,7 +121,7 @@ void full_gradcheck(bool antialiased, bool expected_depth, unsigned seed) {
                                  {p + pixels * 4, {spec.height, spec.width}},
                                  {p + pixels * 5, {spec.height, spec.width, spec.features}}};
     // The camera gradient starts from the checker's junk too, so its += contract is checked like the others.
-    g.camera = CameraGrad<double>{};
+    g.camera = ViewGrad<double>{};
     for (int i = 0; i < 12; ++i) g.camera.world_to_camera[i] = d_view[i];
     g.camera.fx = d_intr[0], g.camera.fy = d_intr[1], g.camera.cx = d_intr[2], g.camera.cy = d_intr[3];
     render_backward(s.set(), s.camera, s.options, ws, dg, g, &g.camera);
@@ -390,12 +390,12 @@ TEST_CASE("render: the batched per-Gaussian backward is bit-identical to the sca
       for (auto& v : gr.sh.span()) v = value(junk);
       return gr;
     };
-    auto run = [&](detail::BlendKernel kernel, std::vector<CameraGradParams<float>>& partials) {
+    auto run = [&](detail::BlendKernel kernel, std::vector<ViewGradParams<float>>& partials) {
       Grads<float> gr = junk_grads();
       detail::gaussians_backward(detail::backward_pass(s.set(), s.camera, opt, ws, gr), kernel, partials, global_pool());
       return gr;
     };
-    std::vector<CameraGradParams<float>> ref_partials, partials;
+    std::vector<ViewGradParams<float>> ref_partials, partials;
     const Grads<float> ref = run(detail::BlendKernel::scalar, ref_partials);
     for (auto cap : {simd::DispatchLevel::none, simd::DispatchLevel::avx2, simd::DispatchLevel::avx512}) {
       RasterSkips skips;
@@ -412,7 +412,7 @@ TEST_CASE("render: the batched per-Gaussian backward is bit-identical to the sca
       CHECK(same_bits(vec.sh, ref.sh));
       CHECK(same_bits(vec.features, ref.features));
       REQUIRE(partials.size() == ref_partials.size());
-      CHECK(std::memcmp(partials.data(), ref_partials.data(), sizeof(CameraGradParams<float>) * partials.size()) == 0);
+      CHECK(std::memcmp(partials.data(), ref_partials.data(), sizeof(ViewGradParams<float>) * partials.size()) == 0);
       CHECK(all_finite<float>(vec.means.span()));
       CHECK(all_finite<float>(vec.quats.span()));
       CHECK(all_finite<float>(vec.scales.span()));
@@ -575,4 +575,21 @@ TEST_CASE("render: bad input gets a clear error", "[raster][render]") {
     t.quats.resize({4, 4});
     expect_error(t, "quats must be [5, 4]");
   }
+}
+
+TEST_CASE("a camera's view carries its K and world-to-camera, an empty image is refused", "[raster][view]") {
+  Camera cam = look_at({2, 1, 0.5}, {0, 0, 0}, 40, 30, intrinsics_from_fov(40, 30, 60.0));
+  const View<float> v = camera_view<float>(cam);
+  CHECK(v.width == 40);
+  CHECK(v.height == 30);
+  CHECK(v.fx == static_cast<float>(cam.K[0][0]));
+  CHECK(v.cx == 20.0f);
+  CHECK(v.cy == 15.0f);
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) CHECK(v.world_to_camera[static_cast<std::size_t>(4 * r + c)] == static_cast<float>(cam.R[c][r]));
+    CHECK(v.world_to_camera[static_cast<std::size_t>(4 * r + 3)] == static_cast<float>(cam.t[r]));
+  }
+  CHECK(v.world_to_camera[15] == 1.0f);
+  const double K[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1}, E[12] = {};
+  CHECK_THROWS_WITH(view_from_arrays(K, E, 0, 4), Catch::Contains("empty"));
 }

@@ -161,7 +161,7 @@ inline void raster_case(Rng& rng, long, Verdict& v) {
   const index_t n = rng.integer(1, 64);
   const int degree = rng.integer(0, 3);
   auto set = flexsplat::make_gaussian_set<float>(n, degree, rng.chance(0.3) ? rng.integer(1, 4) : 0);
-  raster::Camera<float> cam;
+  raster::View<float> cam;
   cam.width = rng.integer(1, 48), cam.height = rng.integer(1, 48);
   cam.fx = static_cast<float>(rng.log_uniform(1e-3, 1e6)), cam.fy = rng.chance(0.5) ? cam.fx : static_cast<float>(rng.log_uniform(1e-3, 1e6));
   cam.cx = static_cast<float>(rng.uniform(-1, 1) * cam.width), cam.cy = static_cast<float>(rng.uniform(-1, 1) * cam.height);
@@ -242,7 +242,7 @@ inline void raster_case(Rng& rng, long, Verdict& v) {
   for (auto* t : {&d_alpha, &d_depth})
     for (float& x : t->span()) x = static_cast<float>(rng.normal());
   auto grads = flexsplat::make_gaussian_grad(set);
-  raster::CameraGrad<float> d_cam;
+  raster::ViewGrad<float> d_cam;
   raster::render_backward(set, cam, opt, ws,
                           raster::RenderOutputGrads<float>{d_image.view(), d_alpha.view(), d_depth.view(), d_features.view()},
                           grads, &d_cam);

@@ -18,8 +18,7 @@ struct Mailboxes {
   std::mutex m;
   std::condition_variable cv;
   std::map<int, std::vector<char>> to;  // destination rank -> bytes
-  std::vector<char> broadcast;
-  bool has_broadcast = false;
+  std::map<int, std::vector<char>> broadcast;  // root rank -> bytes (each root broadcasts once per test)
 };
 
 class ThreadCommunicator final : public train::Communicator {
@@ -31,8 +30,10 @@ public:
   void receive_partial(double* d, index_t n) override { recv(d, n * 8); }
   void send_partial(const float* d, index_t n) override { send(d, n * 4); }
   void send_partial(const double* d, index_t n) override { send(d, n * 8); }
-  void broadcast_from_last(float* d, index_t n) override { bcast(d, n * 4); }
-  void broadcast_from_last(double* d, index_t n) override { bcast(d, n * 8); }
+  void broadcast_from_last(float* d, index_t n) override { bcast(d, n * 4, size_ - 1); }
+  void broadcast_from_last(double* d, index_t n) override { bcast(d, n * 8, size_ - 1); }
+  void broadcast_from_first(float* d, index_t n) override { bcast(d, n * 4, 0); }
+  void broadcast_from_first(double* d, index_t n) override { bcast(d, n * 8, 0); }
 
 private:
   void recv(void* d, index_t bytes) {
@@ -49,16 +50,15 @@ private:
     buf.assign(static_cast<const char*>(d), static_cast<const char*>(d) + bytes);
     box_.cv.notify_all();
   }
-  void bcast(void* d, index_t bytes) {
+  void bcast(void* d, index_t bytes, int root) {
     std::unique_lock lock(box_.m);
-    if (rank_ == size_ - 1) {
-      box_.broadcast.assign(static_cast<char*>(d), static_cast<char*>(d) + bytes);
-      box_.has_broadcast = true;
+    if (rank_ == root) {
+      box_.broadcast[root].assign(static_cast<char*>(d), static_cast<char*>(d) + bytes);
       box_.cv.notify_all();
       return;
     }
-    box_.cv.wait(lock, [&] { return box_.has_broadcast; });
-    std::memcpy(d, box_.broadcast.data(), static_cast<std::size_t>(bytes));
+    box_.cv.wait(lock, [&] { return box_.broadcast.count(root) > 0; });
+    std::memcpy(d, box_.broadcast[root].data(), static_cast<std::size_t>(bytes));
   }
   Mailboxes& box_;
   int rank_, size_;

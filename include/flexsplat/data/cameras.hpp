@@ -1,6 +1,6 @@
 #pragma once
-// Pinhole cameras of the data module (OpenCV axes: x right, y down, z forward; pixel centres at +0.5) and the
-// orbit samplers: random views covering the shared Blender renders, and the structured 4-view evaluation set.
+// The data module's orbit samplers (the camera type is core/camera.hpp's): random views covering the shared
+// Blender renders, and the structured 4-view evaluation set.
 #include <algorithm>
 #include <array>
 #include <cmath>
@@ -10,62 +10,13 @@
 
 #include <glm/glm.hpp>
 
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/data/random.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
 namespace data {
-
-// World-to-camera x_cam = R * x_world + t; a camera-space point (x, y, z) lands at continuous pixel coordinates
-// (u + 0.5, v + 0.5) = (K * (x, y, z)) / z. GLM matrices are column-major: K[col][row].
-struct Camera {
-  int width = 0, height = 0;
-  glm::dmat3 K{1.0};
-  glm::dmat3 R{1.0};
-  glm::dvec3 t{0.0};
-  double elevation_deg = 0, azimuth_deg = 0;  // orbit parameters when known (written to cameras.json)
-
-  glm::dvec3 centre() const { return -glm::transpose(R) * t; }
-  glm::dvec3 to_camera(glm::dvec3 world) const { return R * world + t; }
-  glm::dvec3 to_world(glm::dvec3 cam) const { return glm::transpose(R) * (cam - t); }
-  // Continuous pixel coordinates (pixel (i, j) covers [i, i + 1) x [j, j + 1)) of a camera-space point.
-  glm::dvec2 project(glm::dvec3 cam) const {
-    const glm::dvec3 h = K * cam;
-    return {h.x / h.z, h.y / h.z};
-  }
-  // Camera-space point at continuous pixel coordinates (u, v) and camera z.
-  glm::dvec3 unproject(glm::dvec2 uv, double z) const {
-    return glm::inverse(K) * glm::dvec3(uv.x * z, uv.y * z, z);
-  }
-};
-
-// fx = fy from a horizontal field of view, principal point at the image centre.
-inline glm::dmat3 intrinsics_from_fov(int width, int height, double hfov_deg) {
-  const double f = 0.5 * width / std::tan(0.5 * hfov_deg * std::numbers::pi / 180.0);
-  glm::dmat3 K(1.0);
-  K[0][0] = f;
-  K[1][1] = f;
-  K[2][0] = 0.5 * width;
-  K[2][1] = 0.5 * height;
-  return K;
-}
-
-// Camera at `eye` looking at `target`, world z up (Blender's frame): x right, y down, z forward.
-inline Camera look_at(glm::dvec3 eye, glm::dvec3 target, int width, int height, const glm::dmat3& K) {
-  const glm::dvec3 forward = glm::normalize(target - eye);
-  glm::dvec3 right = glm::cross(forward, glm::dvec3(0, 0, 1));
-  require(glm::length(right) > 1e-9, "look_at: viewing direction is parallel to the world up axis");
-  right = glm::normalize(right);
-  const glm::dvec3 down = glm::cross(forward, right);
-  Camera cam;
-  cam.width = width;
-  cam.height = height;
-  cam.K = K;
-  cam.R = glm::transpose(glm::dmat3(right, down, forward));  // rows are the camera axes in world coordinates
-  cam.t = -(cam.R * eye);
-  return cam;
-}
 
 // Orbit camera: eye = target + radius * (cos el cos az, cos el sin az, sin el), as in the shared renders.
 inline Camera orbit_camera(double elevation_deg, double azimuth_deg, double radius, double hfov_deg, int width,

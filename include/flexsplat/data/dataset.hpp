@@ -23,6 +23,7 @@
 #include <glm/glm.hpp>
 #include <nlohmann/json.hpp>
 
+#include "flexsplat/core/atomic_file.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/tensor.hpp"
@@ -131,7 +132,7 @@ inline std::string view_name(std::size_t i) {
 }
 
 inline void write_text_atomic(const std::filesystem::path& path, const std::string& text) {
-  image::detail::write_atomic(path, std::vector<unsigned char>(text.begin(), text.end()));
+  write_file_atomic(path, "make-data", text);
 }
 
 }  // namespace detail

@@ -7,8 +7,8 @@
 
 #include <nlohmann/json.hpp>
 
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
-#include "flexsplat/export/gaussian_set.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -40,13 +40,13 @@ inline std::vector<Camera> parse_cameras_json(const nlohmann::json& doc, const s
         }
       }
     };
-    Camera cam;
-    cam.width = frame.contains("width") ? int_field(frame, "width", where) : width;
-    cam.height = frame.contains("height") ? int_field(frame, "height", where) : height;
-    cam.name = frame.contains("file") && frame["file"].is_string() ? frame["file"].get<std::string>() : where;
-    matrix("K", 3, 3, cam.K.data());
-    matrix("w2c", 3, 4, cam.w2c.data());
-    cameras.push_back(cam);
+    double K[9], w2c[12];
+    matrix("K", 3, 3, K);
+    matrix("w2c", 3, 4, w2c);
+    cameras.push_back(camera_from_arrays(
+        K, w2c, frame.contains("width") ? int_field(frame, "width", where) : width,
+        frame.contains("height") ? int_field(frame, "height", where) : height,
+        frame.contains("file") && frame["file"].is_string() ? frame["file"].get<std::string>() : where));
   }
   return cameras;
 }

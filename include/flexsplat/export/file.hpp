@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/export/gaussian_set.hpp"
 #include "flexsplat/export/gltf.hpp"

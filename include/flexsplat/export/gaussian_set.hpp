@@ -23,27 +23,6 @@ inline constexpr double kUnitQuaternionTolerance = 1e-4;
 // Export renormalises quaternions whose norm is further than this from 1 and counts them.
 inline constexpr double kRenormaliseThreshold = 1e-6;
 
-// A pinhole camera in OpenCV axes (x right, y down, z forward), pixel centres at +0.5.
-struct Camera {
-  std::string name;
-  int width = 0;
-  int height = 0;
-  std::array<double, 9> K{};    // row-major 3x3 intrinsics
-  std::array<double, 12> w2c{};  // row-major 3x4 world-to-camera [R | t]
-};
-
-// Image size positive, entries finite, focal lengths positive; throws naming the camera otherwise.
-inline void check_cameras(const std::vector<Camera>& cameras, const std::string& context) {
-  for (const Camera& cam : cameras) {
-    require(cam.width > 0 && cam.height > 0, context, ": camera '", cam.name, "' has image size ", cam.width, "x",
-            cam.height);
-    for (double v : cam.K) require(std::isfinite(v), context, ": camera '", cam.name, "' has a non-finite K entry");
-    for (double v : cam.w2c) require(std::isfinite(v), context, ": camera '", cam.name, "' has a non-finite w2c entry");
-    require(cam.K[0] > 0 && cam.K[4] > 0, context, ": camera '", cam.name, "' has focal lengths fx=", cam.K[0],
-            " fy=", cam.K[4], " (must be positive)");
-  }
-}
-
 template <class T>
 double quaternion_norm(const GaussianSet<T>& set, index_t i) {
   double s = 0;

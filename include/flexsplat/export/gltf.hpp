@@ -17,6 +17,8 @@
 #include <Eigen/Dense>
 #include <tiny_gltf.h>
 
+#include "flexsplat/core/atomic_file.hpp"
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/export/gaussian_set.hpp"
 
@@ -37,7 +39,7 @@ struct WriteOptions {
   UnitEncoding scale = UnitEncoding::Float;
   UnitEncoding opacity = UnitEncoding::Float;
   bool color_fallback = true;  // COLOR_0 for clients without the extension
-  std::vector<gaussians::Camera> cameras;  // written as glTF camera nodes
+  std::vector<Camera> cameras;  // written as glTF camera nodes
   std::string color_space = "srgb_rec709_display";
 };
 
@@ -177,12 +179,12 @@ inline std::string sh_attribute(int degree, int coefficient) {
 }
 
 // OpenCV world-to-camera to a glTF camera node: glTF cameras look down -Z with +Y up (180 degrees about X).
-inline void camera_to_node(const gaussians::Camera& cam, tinygltf::Node& node) {
+inline void camera_to_node(const Camera& cam, tinygltf::Node& node) {
   Eigen::Matrix3d R;
   Eigen::Vector3d t;
   for (int r = 0; r < 3; ++r) {
-    for (int c = 0; c < 3; ++c) R(r, c) = cam.w2c[r * 4 + c];
-    t(r) = cam.w2c[r * 4 + 3];
+    for (int c = 0; c < 3; ++c) R(r, c) = cam.R[c][r];
+    t(r) = cam.t[r];
   }
   Eigen::JacobiSVD<Eigen::Matrix3d> svd(R, Eigen::ComputeFullU | Eigen::ComputeFullV);
   const Eigen::Matrix3d Rn = svd.matrixU() * svd.matrixV().transpose();
@@ -384,12 +386,12 @@ std::vector<unsigned char> encode_glb(const GaussianSet<T>& input, const WriteOp
   tinygltf::Scene scene;
   scene.nodes.push_back(0);
 
-  gaussians::check_cameras(options.cameras, "glb export");
-  for (const gaussians::Camera& cam : options.cameras) {
+  check_cameras(options.cameras, "glb export");
+  for (const Camera& cam : options.cameras) {
     tinygltf::Camera gc;
     gc.type = "perspective";
     gc.name = cam.name;
-    const double fx = cam.K[0], fy = cam.K[4];
+    const double fx = cam.K[0][0], fy = cam.K[1][1];
     gc.perspective.yfov = 2.0 * std::atan(0.5 * cam.height / fy);
     gc.perspective.aspectRatio = (cam.width / fx) / (cam.height / fy);
     gc.perspective.znear = 0.01;
@@ -399,7 +401,9 @@ std::vector<unsigned char> encode_glb(const GaussianSet<T>& input, const WriteOp
     intrinsics["width"] = tinygltf::Value(cam.width);
     intrinsics["height"] = tinygltf::Value(cam.height);
     tinygltf::Value::Array k;
-    for (double v : cam.K) k.emplace_back(v);
+    double K[9];
+    camera_arrays(cam, K, static_cast<double*>(nullptr));
+    for (double v : K) k.emplace_back(v);
     intrinsics["K"] = tinygltf::Value(k);
     tinygltf::Value::Object extras;
     extras["flexsplat_opencv_intrinsics"] = tinygltf::Value(intrinsics);
@@ -439,17 +443,14 @@ WriteReport write_glb(const GaussianSet<T>& set, const std::filesystem::path& pa
                       const WriteOptions& options = {}) {
   WriteReport report;
   const std::vector<unsigned char> bytes = encode_glb(set, options, &report);
-  std::ofstream out(path, std::ios::binary | std::ios::trunc);
-  require(out.good(), "cannot open '", path.string(), "' for writing");
-  out.write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
-  require(out.good(), "failed writing '", path.string(), "'");
+  write_file_atomic(path, "glb writer", std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
   return report;
 }
 
 // Decodes the single KHR_gaussian_splatting primitive of a .glb; float attributes come back bit-exact.
 // Cameras stored as perspective camera nodes go to *cameras when it is given.
 inline GaussianSet<float> decode_glb(const unsigned char* data, std::size_t size, const std::string& source,
-                                     std::vector<gaussians::Camera>* cameras = nullptr) {
+                                     std::vector<Camera>* cameras = nullptr) {
   using namespace detail;
   require(size >= 12, source, ": ", size, " bytes is too short for a glb header");
   require(std::memcmp(data, "glTF", 4) == 0, source, ": not a binary glTF file (magic is not 'glTF')");
@@ -571,7 +572,7 @@ inline GaussianSet<float> decode_glb(const unsigned char* data, std::size_t size
         for (int c = 0; c < 3; ++c) set.sh(i, l * l + m, c) = static_cast<float>(coef[i * 3 + c]);
     }
 
-  std::vector<gaussians::Camera> node_cameras;
+  std::vector<Camera> node_cameras;
   for (std::size_t i = 0; i < model.nodes.size(); ++i) {
     const int ci = model.nodes[i].camera;
     if (ci < 0) continue;
@@ -579,7 +580,7 @@ inline GaussianSet<float> decode_glb(const unsigned char* data, std::size_t size
             " out of range");
     const tinygltf::Camera& gc = model.cameras[ci];
     if (gc.type != "perspective") continue;
-    gaussians::Camera cam;
+    Camera cam;
     cam.name = model.nodes[i].name;
     // tinygltf's Value::Get asserts that it is called on an object; a number cast to int must fit.
     static const tinygltf::Value no_value;
@@ -593,7 +594,7 @@ inline GaussianSet<float> decode_glb(const unsigned char* data, std::size_t size
     if (intr.IsObject() && intr.Get("K").IsArray() && intr.Get("K").ArrayLen() == 9) {
       cam.width = pixel_count("width");
       cam.height = pixel_count("height");
-      for (int k = 0; k < 9; ++k) cam.K[k] = intr.Get("K").Get(k).GetNumberAsDouble();
+      for (int k = 0; k < 9; ++k) cam.K[k % 3][k / 3] = intr.Get("K").Get(k).GetNumberAsDouble();
     } else {
       // Without pixel intrinsics: a 1024-pixel-high image with the principal point at the centre.
       const double aspect = gc.perspective.aspectRatio > 0 ? gc.perspective.aspectRatio : 1.0;
@@ -601,20 +602,22 @@ inline GaussianSet<float> decode_glb(const unsigned char* data, std::size_t size
       cam.height = 1024;
       cam.width = static_cast<int>(std::lround(1024 * aspect));
       const double f = 0.5 * cam.height / std::tan(0.5 * gc.perspective.yfov);
-      cam.K = {f, 0, 0.5 * cam.width, 0, f, 0.5 * cam.height, 0, 0, 1};
+      cam.K = glm::dmat3(1.0);
+      cam.K[0][0] = cam.K[1][1] = f;
+      cam.K[2][0] = 0.5 * cam.width, cam.K[2][1] = 0.5 * cam.height;
     }
     Eigen::Matrix3d c2w_gl = global[i].topLeftCorner<3, 3>();
     for (int c = 0; c < 3; ++c) c2w_gl.col(c).normalize();  // camera nodes ignore scale
     const Eigen::Matrix3d R = (c2w_gl * Eigen::Vector3d(1, -1, -1).asDiagonal()).transpose();
     const Eigen::Vector3d t = -R * global[i].topRightCorner<3, 1>();
     for (int r = 0; r < 3; ++r) {
-      for (int c = 0; c < 3; ++c) cam.w2c[r * 4 + c] = R(r, c);
-      cam.w2c[r * 4 + 3] = t(r);
+      for (int c = 0; c < 3; ++c) cam.R[c][r] = R(r, c);
+      cam.t[r] = t(r);
     }
     node_cameras.push_back(cam);
   }
   gaussians::validate(set, source);
-  gaussians::check_cameras(node_cameras, source);
+  check_cameras(node_cameras, source);
   if (cameras) *cameras = std::move(node_cameras);
   return set;
 }
@@ -626,7 +629,7 @@ inline std::vector<unsigned char> read_file_bytes(const std::filesystem::path& p
 }
 
 inline GaussianSet<float> read_glb(const std::filesystem::path& path,
-                                   std::vector<gaussians::Camera>* cameras = nullptr) {
+                                   std::vector<Camera>* cameras = nullptr) {
   const std::vector<unsigned char> bytes = read_file_bytes(path);
   return decode_glb(bytes.data(), bytes.size(), path.string(), cameras);
 }

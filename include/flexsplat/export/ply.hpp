@@ -18,6 +18,7 @@
 #include <string_view>
 #include <vector>
 
+#include "flexsplat/core/atomic_file.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/export/gaussian_set.hpp"
 #include "flexsplat/nn/activations.hpp"
@@ -85,10 +86,7 @@ template <class T>
 WriteReport write_ply(const GaussianSet<T>& set, const std::filesystem::path& path) {
   WriteReport report;
   const std::vector<unsigned char> bytes = encode_ply(set, &report);
-  std::ofstream out(path, std::ios::binary | std::ios::trunc);
-  require(out.good(), "cannot open '", path.string(), "' for writing");
-  out.write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
-  require(out.good(), "failed writing '", path.string(), "'");
+  write_file_atomic(path, "ply writer", std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
   return report;
 }
 

@@ -28,6 +28,7 @@
 // Exported by Debian's libstb.so; stb_image_write.h declares it only in its implementation section.
 extern "C" unsigned char* stbi_zlib_compress(unsigned char* data, int data_len, int* out_len, int quality);
 
+#include "flexsplat/core/atomic_file.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
 
@@ -267,35 +268,6 @@ Tensor<S, 3> decode(const std::filesystem::path& path, const std::vector<unsigne
   return out;
 }
 
-inline std::filesystem::path temp_sibling(const std::filesystem::path& path) {
-  static std::atomic<unsigned> counter{0};
-  return path.string() + ".tmp" + std::to_string(::getpid()) + "_" + std::to_string(counter.fetch_add(1));
-}
-
-// Writes bytes to a temporary sibling, then renames it over `path`: readers never see a partial file.
-inline void write_atomic(const std::filesystem::path& path, const std::vector<unsigned char>& bytes) {
-  const auto tmp = temp_sibling(path);
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    require(static_cast<bool>(out), "write_png '", path.string(), "': cannot create '", tmp.string(), "'");
-    out.write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
-    out.flush();
-    if (!out) {
-      out.close();
-      std::error_code ignored;
-      std::filesystem::remove(tmp, ignored);
-      fail("write_png '", path.string(), "': writing '", tmp.string(), "' failed");
-    }
-  }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::error_code ignored;
-    std::filesystem::remove(tmp, ignored);
-    fail("write_png '", path.string(), "': cannot rename '", tmp.string(), "': ", ec.message());
-  }
-}
-
 // CRC-32 (ISO-HDLC, as PNG chunks use).
 inline std::uint32_t crc32(const unsigned char* data, std::size_t n, std::uint32_t crc = 0) {
   static const auto table = [] {
@@ -399,7 +371,7 @@ inline void write_png(const std::filesystem::path& path, TensorView<const std::u
   if (!stbi_write_png_to_func(sink, &encoded, static_cast<int>(w), static_cast<int>(h), static_cast<int>(c),
                               contiguous.data(), static_cast<int>(w * c)))
     fail("write_png '", path.string(), "': encoding failed");
-  detail::write_atomic(path, encoded);
+  write_file_atomic(path, "write_png", std::string_view(reinterpret_cast<const char*>(encoded.data()), encoded.size()));
 }
 
 // Float HWC in [0, 1]: clamped and rounded to the nearest 8-bit value; NaN is an error.
@@ -464,7 +436,7 @@ inline void write_png_u16(const std::filesystem::path& path, TensorView<const st
   chunk("IDAT", z, static_cast<std::size_t>(zlen));
   std::free(z);
   chunk("IEND", nullptr, 0);
-  detail::write_atomic(path, png);
+  write_file_atomic(path, "write_png16", std::string_view(reinterpret_cast<const char*>(png.data()), png.size()));
 }
 
 }  // namespace image

@@ -23,6 +23,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "flexsplat/core/atomic_file.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/half.hpp"
 #include "flexsplat/core/tensor.hpp"
@@ -402,52 +403,12 @@ public:
     }
     std::string text = header.dump();
     while ((8 + text.size()) % 8 != 0) text.push_back(' ');  // keeps the data section 8-byte aligned
-    static std::atomic<unsigned> counter{0};
-    const std::filesystem::path tmp =
-        path.string() + ".tmp" + std::to_string(::getpid()) + "_" + std::to_string(counter.fetch_add(1));
-    {
-      std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-      require(static_cast<bool>(out), "safetensors writer: cannot create '", tmp.string(), "' next to '",
-              path.string(), "'");
+    write_file_atomic(path, "safetensors writer", [&](std::ostream& out) {
       const std::uint64_t len = text.size();
       out.write(reinterpret_cast<const char*>(&len), 8);
       out.write(text.data(), static_cast<std::streamsize>(text.size()));
       for (auto& e : entries_) out.write(reinterpret_cast<const char*>(e.bytes.data()), static_cast<std::streamsize>(e.bytes.size()));
-      out.flush();
-      if (!out) {
-        const int err = errno;  // the failed write()'s reason (no space, file too large, I/O error)
-        out.close();
-        std::error_code ec;
-        std::filesystem::remove(tmp, ec);
-        fail("safetensors writer: writing '", tmp.string(), "' failed: ", std::strerror(err));
-      }
-    }
-    // The data reaches the disk before the rename publishes it: after a crash or power loss the name holds the old
-    // file or the complete new one, never a truncated one (and a write error the kernel reports late surfaces here).
-    {
-      const int fd = ::open(tmp.c_str(), O_RDONLY | O_CLOEXEC);
-      const int synced = fd >= 0 ? ::fsync(fd) : -1;
-      const int err = errno;
-      if (fd >= 0) ::close(fd);
-      if (synced != 0) {
-        std::error_code ignored;
-        std::filesystem::remove(tmp, ignored);
-        fail("safetensors writer: cannot flush '", tmp.string(), "' to disk: ", std::strerror(err));
-      }
-    }
-    std::error_code ec;
-    std::filesystem::rename(tmp, path, ec);
-    if (ec) {
-      std::error_code ignored;
-      std::filesystem::remove(tmp, ignored);
-      fail("safetensors writer: cannot rename '", tmp.string(), "' to '", path.string(), "': ", ec.message());
-    }
-    // The rename itself is durable once the folder's entry is (best effort: some file systems refuse fsync on a folder).
-    const std::filesystem::path parent = path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
-    if (const int dir = ::open(parent.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC); dir >= 0) {
-      (void)::fsync(dir);
-      ::close(dir);
-    }
+    });
   }
 
 private:

@@ -112,7 +112,7 @@ inline double eval_object_size(const data::ObjectRecord& rec, const std::vector<
   for (int v : in) {
     const data::FrameRecord& fr = rec.frames[static_cast<std::size_t>(v)];
     const Tensor<double, 2> depth = image::read_depth_png<double>(fr.depth, rec.depth_scale);
-    const data::Camera& c = fr.camera;
+    const Camera& c = fr.camera;
     for (index_t y = 0; y < depth.shape(0); ++y)
       for (index_t x = 0; x < depth.shape(1); ++x) {
         const double z = depth(y, x);
@@ -159,7 +159,7 @@ inline EvalResult score_prediction(const data::ObjectRecord& rec, const std::vec
   std::vector<double> pred(static_cast<std::size_t>(12 * V)), gt(static_cast<std::size_t>(12 * V));
   for (index_t v = 0; v < V; ++v) {
     double K[9];
-    detail::camera_arrays(rec.frames[static_cast<std::size_t>(in[static_cast<std::size_t>(v)])].camera, K, &gt[12 * v]);
+    camera_arrays(rec.frames[static_cast<std::size_t>(in[static_cast<std::size_t>(v)])].camera, K, &gt[12 * v]);
     for (int i = 0; i < 12; ++i) pred[static_cast<std::size_t>(12 * v + i)] = pred_w2c[12 * v + i];
   }
   const Similarity S = align_cameras(pred.data(), gt.data(), V);
@@ -192,13 +192,13 @@ inline EvalResult score_prediction(const data::ObjectRecord& rec, const std::vec
     const ViewMapping map = model_view<float>(ws.target_chw.data(), TensorView<const float, 3>(rgba.view()), h, w);
     image::chw_to_hwc(ws.target.data(), ws.target_chw.data(), h, w);
     double K[9], E[12];
-    detail::camera_arrays(fr.camera, K, E);
+    camera_arrays(fr.camera, K, E);
     map.intrinsics(K);
     transform_camera(E, inv);
     float Kf[9], Ef[12];
     std::copy(K, K + 9, Kf);
     std::copy(E, E + 12, Ef);
-    raster::render_forward(gaussians, render_camera(Kf, Ef, static_cast<int>(w), static_cast<int>(h)), ro, ws.render,
+    raster::render_forward(gaussians, raster::view_from_arrays(Kf, Ef, static_cast<int>(w), static_cast<int>(h)), ro, ws.render,
                            ws.out);
     const float* img = ws.out.image.data();
     detail::add_scores(r.model, ws, o, img, ws.target.data(), h, w);
@@ -266,7 +266,7 @@ inline PosedViews posed_views(const data::ObjectRecord& rec, const std::vector<i
                                               {1.0f, 1.0f, 1.0f}, p.alpha.data() + v * px);
     image::chw_to_hwc(p.images.data() + v * px * 3, chw.data(), h, w);
     double K[9], E[12];
-    detail::camera_arrays(fr.camera, K, E);
+    camera_arrays(fr.camera, K, E);
     map.intrinsics(K);
     p.K.insert(p.K.end(), K, K + 9);
     p.w2c.insert(p.w2c.end(), E, E + 12);

@@ -196,7 +196,7 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
             " is rendered at ", view.width, " x ", view.height, ", the model's input is ", w, " x ", h);
     const T* K = predicted ? g.K.data() + 9 * view.input_view : view.K.data();
     const T* E = predicted ? g.extrinsics.data() + 12 * view.input_view : view.world_to_camera.data();
-    const raster::Camera<T> cam = render_camera(K, E, view.width, view.height);
+    const raster::View<T> cam = raster::view_from_arrays(K, E, view.width, view.height);
     const index_t H = view.height, W = view.width, pixels = H * W;
     const loss::ImageShape shape{1, 3, H, W, loss::Layout::nhwc};
     for (index_t l = 0; l < layers; ++l) {
@@ -265,14 +265,14 @@ LossParts appearance_objective(ObjectiveWorkspace<T>& ws, const T* params, T* d_
       raster::RenderOutputGrads<T> d_out;
       d_out.image = TensorView<const T, 3>(ws.d_image.data(), Shape<3>{H, W, 3});
       if (any_depth) d_out.depth = TensorView<const T, 2>(ws.d_depth.data(), Shape<2>{H, W});
-      raster::CameraGrad<T> d_cam;
+      raster::ViewGrad<T> d_cam;
       const bool camera_grad = predicted && d_geometry;
       clock.lap(&PhaseTimes::losses);
       raster::render_backward(set, cam, ro, ws.render, d_out, ws.d_gaussians[static_cast<std::size_t>(first + l)],
                               camera_grad ? &d_cam : nullptr);
       clock.lap(&PhaseTimes::raster_backward);
       if (camera_grad)
-        render_camera_backward(d_geometry->K.data() + 9 * view.input_view,
+        raster::view_from_arrays_backward(d_geometry->K.data() + 9 * view.input_view,
                                d_geometry->extrinsics.data() + 12 * view.input_view, d_cam);
     }
   }

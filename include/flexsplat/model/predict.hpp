@@ -11,8 +11,10 @@
 #include <functional>
 #include <memory>
 #include <optional>
+#include <string>
 #include <vector>
 
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gaussians.hpp"
 #include "flexsplat/core/gemm.hpp"
@@ -39,6 +41,19 @@ struct Prediction {
   GaussianSet<T> gaussians;     // the last decoder layer
   double geometry_ms = 0, decoder_ms = 0;  // wall time of the two stages
 };
+
+// The predicted input cameras (in the first view's frame, at the model's image size), named by `names` when given.
+template <class T>
+std::vector<Camera> input_cameras(const Prediction<T>& p, const std::vector<std::string>& names = {}) {
+  require(names.empty() || names.size() == static_cast<std::size_t>(p.views), "input_cameras: ", names.size(),
+          " names for ", p.views, " views");
+  std::vector<Camera> cameras;
+  for (index_t v = 0; v < p.views; ++v)
+    cameras.push_back(camera_from_arrays(p.geometry.K.data() + 9 * v, p.geometry.extrinsics.data() + 12 * v,
+                                         static_cast<int>(p.w), static_cast<int>(p.h),
+                                         names.empty() ? std::string() : names[static_cast<std::size_t>(v)]));
+  return cameras;
+}
 
 template <class T>
 struct PredictWorkspace {

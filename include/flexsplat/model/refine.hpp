@@ -250,7 +250,7 @@ double views_loss(RefineWorkspace<T>& ws, const RefineViews<T>& v, const RefineC
     T Kf[9], E[12];
     for (int i = 0; i < 9; ++i) Kf[i] = v.K[9 * k + i];
     for (int i = 0; i < 12; ++i) E[i] = static_cast<T>(ws.w2c[static_cast<std::size_t>(12 * k + i)]);
-    const raster::Camera<T> cam = render_camera(Kf, E, static_cast<int>(v.w), static_cast<int>(v.h));
+    const raster::View<T> cam = raster::view_from_arrays(Kf, E, static_cast<int>(v.w), static_cast<int>(v.h));
     raster::render_forward(ws.set, cam, ro, ws.render, ws.out);
     const T* img = ws.out.image.data();
     const T* target = v.images + k * v.h * v.w * 3;
@@ -266,7 +266,7 @@ double views_loss(RefineWorkspace<T>& ws, const RefineViews<T>& v, const RefineC
       loss::ssim_backward(ws.d_image.data(), static_cast<T*>(nullptr), -per_view * c.ssim_weight, img, target, shape,
                           loss::SsimConfig{}, ws.ssim);
     const bool this_camera = cameras && !(c.fix_first_camera && k == 0);
-    raster::CameraGrad<T> dcam;
+    raster::ViewGrad<T> dcam;
     raster::render_backward(ws.set, cam, ro, ws.render,
                             raster::RenderOutputGrads<T>{TensorView<const T, 3>(ws.d_image.view()), {}, {}, {}},
                             ws.grad, this_camera ? &dcam : nullptr);

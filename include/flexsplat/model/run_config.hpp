@@ -18,6 +18,7 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/model/config.hpp"
 #include "flexsplat/model/train.hpp"
+#include "flexsplat/train/optimizer.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -40,6 +41,12 @@ struct ValidationConfig {
   std::vector<std::string> objects;
 
   bool enabled() const { return every > 0; }
+};
+
+// Where a global step is in a recipe: its stage and learning rate.
+struct StepSchedule {
+  std::size_t stage = 0;
+  double lr = 0;
 };
 
 struct TrainRunConfig {
@@ -80,6 +87,12 @@ struct TrainRunConfig {
       start += stages[i].steps;
     }
     return 0;
+  }
+  // The stage of global step `step` and its learning rate (the stage's cosine schedule after its warm-up).
+  StepSchedule schedule_at(std::uint64_t step) const {
+    std::uint64_t start = 0;
+    const std::size_t i = stage_at(step, start);
+    return {i, train::CosineSchedule{stages[i].lr, 0.0, stages[i].warmup, stages[i].steps}.lr(step - start)};
   }
 };
 

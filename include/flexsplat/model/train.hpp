@@ -48,17 +48,6 @@ struct TrainExample {
   std::array<T, 3> background{1, 1, 1};
 };
 
-namespace detail {
-inline void camera_arrays(const data::Camera& c, double* K, double* w2c) {
-  for (int r = 0; r < 3; ++r) {
-    for (int col = 0; col < 3; ++col) {
-      K[3 * r + col] = c.K[col][r];
-      w2c[4 * r + col] = c.R[col][r];
-    }
-    w2c[4 * r + 3] = c.t[r];
-  }
-}
-}  // namespace detail
 
 // Ground-truth correspondences a training example keeps: about `samples` per scene (the run config's match_samples)
 // spread over its ordered view pairs, at least 8 per pair (64 per pair for 4 views at the default 768; the match
@@ -84,7 +73,7 @@ TrainExample<T> make_train_example(const data::SceneSample& s, const FlexSplatCo
   const index_t px = h * w;
   std::vector<double> K(static_cast<std::size_t>(9 * V)), E(static_cast<std::size_t>(12 * V)),
       depth(static_cast<std::size_t>(V * px));
-  for (index_t v = 0; v < V; ++v) detail::camera_arrays(s.inputs.cameras[static_cast<std::size_t>(v)], &K[9 * v], &E[12 * v]);
+  for (index_t v = 0; v < V; ++v) camera_arrays(s.inputs.cameras[static_cast<std::size_t>(v)], &K[9 * v], &E[12 * v]);
   for (index_t i = 0; i < V * px; ++i) depth[static_cast<std::size_t>(i)] = s.inputs.depth.data()[i];
   const FirstCameraFrame frame = first_camera_frame(E.data(), K.data(), depth.data(), V, h, w);
 
@@ -113,7 +102,7 @@ TrainExample<T> make_train_example(const data::SceneSample& s, const FlexSplatCo
   e.target_images.assign(s.targets.rgb.data(), s.targets.rgb.data() + M * px * 3);
   for (index_t m = 0; m < M; ++m) {
     double k[9], w2c[12];
-    detail::camera_arrays(s.targets.cameras[static_cast<std::size_t>(m)], k, w2c);
+    camera_arrays(s.targets.cameras[static_cast<std::size_t>(m)], k, w2c);
     frame.camera(w2c);
     std::array<T, 9> kk;
     std::array<T, 12> ee;

@@ -108,7 +108,7 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
   for (index_t m = 0; m < e.targets; ++m) {
     const auto& K = e.target_K[static_cast<std::size_t>(m)];
     const auto& E = e.target_w2c[static_cast<std::size_t>(m)];
-    const raster::Camera<T> cam = render_camera(K.data(), E.data(), static_cast<int>(e.w), static_cast<int>(e.h));
+    const raster::View<T> cam = raster::view_from_arrays(K.data(), E.data(), static_cast<int>(e.w), static_cast<int>(e.h));
     raster::render_forward(p.gaussians, cam, ro, ws.render, ws.out);
     const T* target = e.target_images.data() + m * px * 3;
     s.psnr += loss::psnr(ws.out.image.data(), target, 3 * px);

@@ -17,12 +17,12 @@ inline namespace v0 {
 namespace raster {
 
 template <class T>
-void render_brute_force(const GaussianSet<T>& in, const Camera<T>& camera, const RenderOptions& opt,
+void render_brute_force(const GaussianSet<T>& in, const View<T>& camera, const RenderOptions& opt,
                         RenderOutputs<T>& out) {
   const int degree = detail::validate_inputs(in, camera, opt);
   const index_t n = in.means.shape(0), K = in.sh.shape(1);
   const int F = in.features.empty() ? 0 : int(in.features.shape(1));
-  const CameraParams<T> cam = detail::camera_params(camera);
+  const ViewParams<T> cam = detail::view_params(camera);
   T campos[3];
   for (int i = 0; i < 3; ++i) campos[i] = -(cam.R[i] * cam.t[0] + cam.R[3 + i] * cam.t[1] + cam.R[6 + i] * cam.t[2]);
   struct Splat {

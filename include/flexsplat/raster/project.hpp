@@ -13,7 +13,7 @@ inline namespace v0 {
 namespace raster {
 
 template <class T>
-struct CameraParams {
+struct ViewParams {
   T R[9];  // world-to-camera rotation block (row-major)
   T t[3];  // world-to-camera translation
   T fx, fy, cx, cy;
@@ -21,11 +21,11 @@ struct CameraParams {
 };
 
 template <class T>
-struct CameraGradParams {
+struct ViewGradParams {
   T R[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
   T t[3] = {0, 0, 0};
   T fx = 0, fy = 0, cx = 0, cy = 0;
-  void add(const CameraGradParams& o) {
+  void add(const ViewGradParams& o) {
     for (int i = 0; i < 9; ++i) R[i] += o.R[i];
     for (int i = 0; i < 3; ++i) t[i] += o.t[i];
     fx += o.fx, fy += o.fy, cx += o.cx, cy += o.cy;
@@ -60,7 +60,7 @@ FLEXSPLAT_ALWAYS_INLINE void quat_to_rotmat(const T q[4], T R[9]) {
 
 // Half-extents of the field of view (with the 1.3x margin) used to clamp x/z and y/z in the Jacobian.
 template <class T>
-FLEXSPLAT_ALWAYS_INLINE void fov_limits(const CameraParams<T>& cam, T& lim_x_pos, T& lim_x_neg, T& lim_y_pos, T& lim_y_neg) {
+FLEXSPLAT_ALWAYS_INLINE void fov_limits(const ViewParams<T>& cam, T& lim_x_pos, T& lim_x_neg, T& lim_y_pos, T& lim_y_neg) {
   const T mx = T(fov_clamp_margin) * T(0.5) * cam.width / cam.fx;
   const T my = T(fov_clamp_margin) * T(0.5) * cam.height / cam.fy;
   lim_x_pos = (cam.width - cam.cx) / cam.fx + mx;
@@ -105,7 +105,7 @@ FLEXSPLAT_ALWAYS_INLINE V dot_lanes(const V (&a)[N], const V (&b)[N]) {
 }  // namespace detail
 
 template <class V, class T>
-FLEXSPLAT_ALWAYS_INLINE void projection_trace_lanes(const V m[3], const V q[4], const V s[3], const CameraParams<T>& cam,
+FLEXSPLAT_ALWAYS_INLINE void projection_trace_lanes(const V m[3], const V q[4], const V s[3], const ViewParams<T>& cam,
                                                     T eps2d, ProjectionTraceLanes<V>& tr) {
   using detail::dot3_lanes;
   using simd::lane_mul_add;
@@ -176,7 +176,7 @@ FLEXSPLAT_ALWAYS_INLINE V compensation_lanes(const ProjectionTraceLanes<V>& tr, 
 // Returns the visibility mask; the outputs of culled lanes are unspecified.
 template <class V, class T>
 FLEXSPLAT_ALWAYS_INLINE simd::lane_mask<V> project_forward_lanes(const V m[3], const V q[4], const V s[3], V opacity,
-                                                                 const CameraParams<T>& cam,
+                                                                 const ViewParams<T>& cam,
                                                                  const ProjectSettings<T>& set, ProjectionLanes<V>& out) {
   ProjectionTraceLanes<V> tr;
   projection_trace_lanes(m, q, s, cam, set.eps2d, tr);
@@ -204,7 +204,7 @@ FLEXSPLAT_ALWAYS_INLINE simd::lane_mask<V> project_forward_lanes(const V m[3], c
 // Projects one Gaussian; false when it is culled (near/far, degenerate, or too transparent to reach the alpha
 // threshold anywhere).
 template <class T>
-bool project_forward_one(const T m[3], const T q[4], const T s[3], T opacity, const CameraParams<T>& cam,
+bool project_forward_one(const T m[3], const T q[4], const T s[3], T opacity, const ViewParams<T>& cam,
                          const ProjectSettings<T>& set, Projection<T>& out) {
   ProjectionLanes<T> p;
   const bool visible = project_forward_lanes<T, T>(m, q, s, opacity, cam, set, p);
@@ -252,9 +252,9 @@ FLEXSPLAT_ALWAYS_INLINE void covariance_vjp_lanes(const ProjectionTraceLanes<V>&
 // values of other lanes are unspecified). The same arithmetic per lane as project_backward_one.
 template <class V, class T>
 FLEXSPLAT_ALWAYS_INLINE void project_backward_lanes(const V m[3], const V q[4], const V s[3], V opacity,
-                                                    const CameraParams<T>& cam, const ProjectSettings<T>& set,
+                                                    const ViewParams<T>& cam, const ProjectSettings<T>& set,
                                                     const ProjectionGrad<V>& g, V dm[3], V dq[4], V ds[3],
-                                                    V& dopacity, CameraGradParams<V>& dcam) {
+                                                    V& dopacity, ViewGradParams<V>& dcam) {
   using detail::dot3_lanes;
   using simd::lane_mul_add;
   using simd::lane_select;
@@ -360,9 +360,9 @@ FLEXSPLAT_ALWAYS_INLINE void project_backward_lanes(const V m[3], const V q[4], 
 
 // Adds d(mean), d(quat), d(scale), d(opacity) and the camera gradient for one visible Gaussian.
 template <class T>
-void project_backward_one(const T m[3], const T q[4], const T s[3], T opacity, const CameraParams<T>& cam,
+void project_backward_one(const T m[3], const T q[4], const T s[3], T opacity, const ViewParams<T>& cam,
                           const ProjectSettings<T>& set, const ProjectionGrad<T>& g, T dm[3], T dq[4], T ds[3],
-                          T& dopacity, CameraGradParams<T>& dcam) {
+                          T& dopacity, ViewGradParams<T>& dcam) {
   project_backward_lanes<T, T>(m, q, s, opacity, cam, set, g, dm, dq, ds, dopacity, dcam);
 }
 

@@ -41,7 +41,7 @@ void check_raster_case(const safetensors::File& file, const std::string& prefix,
   require(viewmat.shape(0) == 4 && viewmat.shape(1) == 4, "raster bundle: ", prefix, "viewmat must be [4, 4]");
   require(K.shape(0) == 3 && K.shape(1) == 3, "raster bundle: ", prefix, "K must be [3, 3]");
   require(background.size() == 3, "raster bundle: ", prefix, "background must be [3]");
-  Camera<T> cam;
+  View<T> cam;
   for (int i = 0; i < 16; ++i) cam.world_to_camera[i] = viewmat.data()[i];
   cam.fx = K(0, 0), cam.fy = K(1, 1), cam.cx = K(0, 2), cam.cy = K(1, 2);
   cam.width = int(params(0)), cam.height = int(params(1));
@@ -81,7 +81,7 @@ void check_raster_case(const safetensors::File& file, const std::string& prefix,
   const auto d_alpha = file.get<T, 2>(prefix + "d_alpha");
   const auto d_depth = file.get<T, 2>(prefix + "d_depth");
   GaussianSetGrad<T> grads = make_gaussian_grad(in);
-  CameraGrad<T> g_cam;
+  ViewGrad<T> g_cam;
   render_backward(in, cam, opt, ws, RenderOutputGrads<T>{d_image.view(), d_alpha.view(), d_depth.view(), {}}, grads,
                   &g_cam);
   const Tolerance grad_tol{ToleranceKind::relative_to_max_abs, 1e-4};

@@ -3,13 +3,13 @@
 //
 //   GaussianSet<T> set;           // core/gaussians.hpp: means [N,3], quats [N,4] (w,x,y,z, normalised inside),
 //                                 // scales [N,3] (linear), opacities [N] in [0,1], sh [N,K,3], features [N,F] (optional)
-//   Camera<T> cam{world_to_camera (4x4 row-major, OpenCV axes, bottom row 0 0 0 1), fx, fy, cx, cy, width, height};
+//   View<T> cam{world_to_camera (4x4 row-major, OpenCV axes, bottom row 0 0 0 1), fx, fy, cx, cy, width, height};
 //   RenderOptions opt;            // sh_degree (-1: from K), eps2d 0.3, near 0.01, far, antialiased, background
 //   RenderWorkspace<T> ws;        // reuse across calls: buffers only grow
 //   RenderOutputs<T> out;         // image [H,W,3], alpha [H,W], depth [H,W], n_contrib [H,W], features [H,W,F]
 //   render_forward(set, cam, opt, ws, out);
 //   GaussianSetGrad<T> grads = make_gaussian_grad(set);   // empty fields are skipped
-//   CameraGrad<T> d_cam;                                  // optional
+//   ViewGrad<T> d_cam;            // optional
 //   render_backward(set, cam, opt, ws, RenderOutputGrads<T>{d_image, d_alpha, d_depth, d_features}, grads, &d_cam);
 //
 // Semantics follow gsplat: pixel centres at +0.5, EWA projection with the 1.3x field-of-view clamp in the Jacobian,
@@ -26,6 +26,7 @@
 #include <cstdint>
 #include <vector>
 
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gaussians.hpp"
 #include "flexsplat/core/inline.hpp"
@@ -45,17 +46,45 @@ inline namespace v0 {
 namespace raster {
 
 template <class T>
-struct Camera {
+struct View {
   std::array<T, 16> world_to_camera{1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};
   T fx = 1, fy = 1, cx = 0, cy = 0;
   int width = 0, height = 0;
 };
 
 template <class T>
-struct CameraGrad {
+struct ViewGrad {
   std::array<T, 16> world_to_camera{};  // bottom row stays zero
   T fx = 0, fy = 0, cx = 0, cy = 0;
 };
+
+// The view of row-major K [3, 3] and world-to-camera [3, 4] (core/camera.hpp's arrays, pixel-centre convention).
+template <class T>
+View<T> view_from_arrays(const T* K, const T* world_to_camera, int width, int height) {
+  require(width >= 1 && height >= 1, "render view: image size ", width, " x ", height, " is empty");
+  View<T> c;
+  for (int i = 0; i < 12; ++i) c.world_to_camera[static_cast<std::size_t>(i)] = world_to_camera[i];
+  c.world_to_camera[12] = 0, c.world_to_camera[13] = 0, c.world_to_camera[14] = 0, c.world_to_camera[15] = 1;
+  c.fx = K[0], c.fy = K[4], c.cx = K[2], c.cy = K[5];
+  c.width = width, c.height = height;
+  return c;
+}
+
+// Adds a view's gradient into dK [3, 3] (fx, fy, cx, cy entries) and d_world_to_camera [3, 4]; either may be null.
+template <class T>
+void view_from_arrays_backward(T* dK, T* d_world_to_camera, const ViewGrad<T>& g) {
+  if (d_world_to_camera)
+    for (int i = 0; i < 12; ++i) d_world_to_camera[i] += g.world_to_camera[static_cast<std::size_t>(i)];
+  if (dK) dK[0] += g.fx, dK[4] += g.fy, dK[2] += g.cx, dK[5] += g.cy;
+}
+
+// The view of a camera, its entries rounded to T.
+template <class T>
+View<T> camera_view(const Camera& cam) {
+  T K[9], w2c[12];
+  camera_arrays(cam, K, w2c);
+  return view_from_arrays(K, w2c, cam.width, cam.height);
+}
 
 struct RenderOptions {
   int sh_degree = -1;  // -1: the degree that K = sh.shape(1) holds
@@ -108,7 +137,7 @@ struct RenderWorkspace {
   BlendState<T> blend;
   RasterWorkspace<T> raster;
   std::vector<T> blend_depth;  // channel 3 per pixel
-  std::vector<CameraGradParams<T>> camera_partials;
+  std::vector<ViewGradParams<T>> camera_partials;
   std::vector<T> background;
   int sh_degree = 0, channel_count = 0;
   index_t n = 0;
@@ -119,8 +148,8 @@ struct RenderWorkspace {
 namespace detail {
 
 template <class T>
-CameraParams<T> camera_params(const Camera<T>& cam) {
-  CameraParams<T> p;
+ViewParams<T> view_params(const View<T>& cam) {
+  ViewParams<T> p;
   for (int i = 0; i < 3; ++i) {
     for (int j = 0; j < 3; ++j) p.R[i * 3 + j] = cam.world_to_camera[i * 4 + j];
     p.t[i] = cam.world_to_camera[i * 4 + 3];
@@ -140,7 +169,7 @@ ProjectSettings<T> project_settings(const RenderOptions& opt) {
 
 // Camera centre in world coordinates, -R^T t: SH colours are evaluated in the direction mean - centre.
 template <class T>
-std::array<T, 3> camera_centre(const CameraParams<T>& cam) {
+std::array<T, 3> camera_centre(const ViewParams<T>& cam) {
   std::array<T, 3> c;
   for (int i = 0; i < 3; ++i) c[i] = -(cam.R[i] * cam.t[0] + cam.R[3 + i] * cam.t[1] + cam.R[6 + i] * cam.t[2]);
   return c;
@@ -157,7 +186,7 @@ void require_finite(const T* data, index_t count, const char* what) {
 }
 
 template <class T>
-int validate_inputs(const GaussianSet<T>& in, const Camera<T>& cam, const RenderOptions& opt) {
+int validate_inputs(const GaussianSet<T>& in, const View<T>& cam, const RenderOptions& opt) {
   const index_t n = in.means.shape(0);
   require(in.means.shape(1) == 3, "render: means must be [N, 3], got ", shape_string(in.means.shape()));
   require(in.quats.shape(0) == n && in.quats.shape(1) == 4, "render: quats must be [", n, ", 4], got ",
@@ -245,7 +274,7 @@ template <class T>
 struct GaussianPass {
   const GaussianSet<T>* in = nullptr;
   RenderWorkspace<T>* ws = nullptr;
-  CameraParams<T> cam;
+  ViewParams<T> cam;
   ProjectSettings<T> set;
   TileGrid grid;
   RasterSkips skips;
@@ -491,7 +520,7 @@ struct GaussianBackwardPass {
   const GaussianSet<T>* in = nullptr;
   const RenderWorkspace<T>* ws = nullptr;
   GaussianSetGrad<T>* grads = nullptr;
-  CameraParams<T> cam;
+  ViewParams<T> cam;
   ProjectSettings<T> set;
   std::array<T, 3> campos{};
   int degree = 0, F = 0, stride = 0;
@@ -512,7 +541,7 @@ FLEXSPLAT_ALWAYS_INLINE void gaussian_backward_lanes(const GaussianBackwardPass<
                                                      const V s[3], V opacity, const V* coeffs,
                                                      const V gg[backward_record_fields],
                                                      simd::lane_mask<V>& colour_live, V* d_coeffs, V dm[3], V dq[4],
-                                                     V ds[3], V& dopacity, CameraGradParams<V>& dcam) {
+                                                     V ds[3], V& dopacity, ViewGradParams<V>& dcam) {
   const V zero = V(T(0));
   for (int i = 0; i < 3; ++i) dm[i] = zero, ds[i] = zero, dcam.t[i] = zero;
   for (int i = 0; i < 4; ++i) dq[i] = zero;
@@ -582,13 +611,13 @@ void add_gaussian_grads(const GaussianBackwardPass<T>& pass, index_t g, const T*
 
 // Scalar path, one Gaussian with a gradient record: adds its gradients and its camera contribution to dcam.
 template <class T>
-void gaussian_backward_one(const GaussianBackwardPass<T>& pass, index_t g, CameraGradParams<T>& dcam) {
+void gaussian_backward_one(const GaussianBackwardPass<T>& pass, index_t g, ViewGradParams<T>& dcam) {
   const GaussianSet<T>& in = *pass.in;
   T row[max_record_size], gg[backward_record_fields];
   backward_record(pass, g, row, gg);
   T dm[3], dq[4], ds[3], dopacity, d_coeffs[16 * 3];
   bool colour_live = false;
-  CameraGradParams<T> mine;
+  ViewGradParams<T> mine;
   gaussian_backward_lanes<T, T>(pass, in.means.data() + g * 3, in.quats.data() + g * 4, in.scales.data() + g * 3,
                                 in.opacities.data()[g], in.sh.data() + g * pass.K * 3, gg, colour_live, d_coeffs, dm,
                                 dq, ds, dopacity, mine);
@@ -600,7 +629,7 @@ void gaussian_backward_one(const GaussianBackwardPass<T>& pass, index_t g, Camer
 // without a record compute unused values). Adds the same gradients as gaussian_backward_one, Gaussian by Gaussian in
 // index order, camera contributions included.
 template <class V, class T>
-void gaussian_backward_block(const GaussianBackwardPass<T>& pass, index_t g0, CameraGradParams<T>& dcam) {
+void gaussian_backward_block(const GaussianBackwardPass<T>& pass, index_t g0, ViewGradParams<T>& dcam) {
   constexpr int L = int(simd::lane_count<V>::value);
   const GaussianSet<T>& in = *pass.in;
   const RenderWorkspace<T>& ws = *pass.ws;
@@ -650,7 +679,7 @@ void gaussian_backward_block(const GaussianBackwardPass<T>& pass, index_t g0, Ca
   simd::load_columns<V, T>(sh_rows, coeff_count, coeffs);
   V dm[3], dq[4], ds[3], dopacity;
   simd::lane_mask<V> colour_live;
-  CameraGradParams<V> cam;
+  ViewGradParams<V> cam;
   gaussian_backward_lanes<V, T>(pass, m, q, sc, simd::lane_load<V>(a_o), coeffs, gv, colour_live, d_coeffs, dm, dq,
                                 ds, dopacity, cam);
   // Lane values back to arrays, then added Gaussian by Gaussian.
@@ -674,7 +703,7 @@ void gaussian_backward_block(const GaussianBackwardPass<T>& pass, index_t g0, Ca
     const T dql[4] = {a_dq[0][l], a_dq[1][l], a_dq[2][l], a_dq[3][l]};
     add_gaussian_grads(pass, g, rows[l], dml, dql, dsl, a_dop[l], sh_wanted && a_live[l] != T(0) ? &a_dsh[0][l] : nullptr,
                        L);
-    CameraGradParams<T> mine;
+    ViewGradParams<T> mine;
     for (int i = 0; i < 9; ++i) mine.R[i] = a_cam[i][l];
     for (int i = 0; i < 3; ++i) mine.t[i] = a_cam[9 + i][l];
     mine.fx = a_cam[12][l], mine.fy = a_cam[13][l], mine.cx = a_cam[14][l], mine.cy = a_cam[15][l];
@@ -683,11 +712,11 @@ void gaussian_backward_block(const GaussianBackwardPass<T>& pass, index_t g0, Ca
 }
 
 template <class T>
-GaussianBackwardPass<T> backward_pass(const GaussianSet<T>& in, const Camera<T>& camera, const RenderOptions& opt,
+GaussianBackwardPass<T> backward_pass(const GaussianSet<T>& in, const View<T>& camera, const RenderOptions& opt,
                                       const RenderWorkspace<T>& ws, GaussianSetGrad<T>& grads) {
   GaussianBackwardPass<T> pass;
   pass.in = &in, pass.ws = &ws, pass.grads = &grads;
-  pass.cam = camera_params(camera), pass.set = project_settings<T>(opt);
+  pass.cam = view_params(camera), pass.set = project_settings<T>(opt);
   pass.campos = camera_centre(pass.cam);
   pass.degree = ws.sh_degree, pass.F = ws.channel_count - 4, pass.stride = entry_grad_fixed + ws.channel_count;
   pass.n = in.means.shape(0), pass.K = in.sh.shape(1);
@@ -700,11 +729,11 @@ GaussianBackwardPass<T> backward_pass(const GaussianSet<T>& in, const Camera<T>&
 // block order).
 template <class T>
 void gaussians_backward(const GaussianBackwardPass<T>& pass, BlendKernel kernel,
-                        std::vector<CameraGradParams<T>>& partials, ThreadPool& pool) {
+                        std::vector<ViewGradParams<T>>& partials, ThreadPool& pool) {
   constexpr index_t block = 256;
   const index_t n = pass.n, blocks = (n + block - 1) / block;
   const RenderWorkspace<T>& ws = *pass.ws;
-  partials.assign(std::size_t(blocks), CameraGradParams<T>{});
+  partials.assign(std::size_t(blocks), ViewGradParams<T>{});
   parallel_for(blocks, [&](index_t bb, index_t be, int) {
     if (kernel == BlendKernel::scalar) {
       for (index_t b = bb; b < be; ++b)
@@ -731,7 +760,7 @@ void ensure_shape(Tensor_& t, const Shape<R>& shape) {
 }  // namespace detail
 
 template <class T>
-void render_forward(const GaussianSet<T>& in, const Camera<T>& camera, const RenderOptions& opt,
+void render_forward(const GaussianSet<T>& in, const View<T>& camera, const RenderOptions& opt,
                     RenderWorkspace<T>& ws, RenderOutputs<T>& out) {
   const profile::Scope timed(profile::Op::raster_forward);
   using clock = std::chrono::steady_clock;
@@ -756,7 +785,7 @@ void render_forward(const GaussianSet<T>& in, const Camera<T>& camera, const Ren
   ws.color_positive.resize(std::size_t(n * 3));
   ws.background.assign(std::size_t(C), T(0));
   for (int c = 0; c < 3; ++c) ws.background[c] = T(opt.background[c]);
-  const CameraParams<T> cam = detail::camera_params(camera);
+  const ViewParams<T> cam = detail::view_params(camera);
   const ProjectSettings<T> set = detail::project_settings<T>(opt);
   const std::array<T, 3> campos = detail::camera_centre(cam);
   // One pass per Gaussian while its data is in cache: value checks, projection, colour, tiles, kernel record.
@@ -837,9 +866,9 @@ void render_forward(const GaussianSet<T>& in, const Camera<T>& camera, const Ren
 }
 
 template <class T>
-void render_backward(const GaussianSet<T>& in, const Camera<T>& camera, const RenderOptions& opt,
+void render_backward(const GaussianSet<T>& in, const View<T>& camera, const RenderOptions& opt,
                      RenderWorkspace<T>& ws, const RenderOutputGrads<T>& d_out, GaussianSetGrad<T>& grads,
-                     CameraGrad<T>* d_camera = nullptr) {
+                     ViewGrad<T>* d_camera = nullptr) {
   const profile::Scope timed(profile::Op::raster_backward);
   using clock = std::chrono::steady_clock;
   auto stage_end = [last = clock::now()](double& ms) mutable {
@@ -907,7 +936,7 @@ void render_backward(const GaussianSet<T>& in, const Camera<T>& camera, const Re
   detail::gaussians_backward(pass, detail::choose_blend_kernel<T>(opt.skips), ws.camera_partials, pool);
   stage_end(ws.backward_times.gaussians);
   if (d_camera) {
-    CameraGradParams<T> total;
+    ViewGradParams<T> total;
     for (const auto& part : ws.camera_partials) total.add(part);
     for (int i = 0; i < 3; ++i) {
       for (int j = 0; j < 3; ++j) d_camera->world_to_camera[i * 4 + j] += total.R[i * 3 + j];

@@ -21,6 +21,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "flexsplat/core/atomic_file.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/geometry/param_check.hpp"
 #include "flexsplat/geometry/param_source.hpp"
@@ -70,28 +71,6 @@ void add_block(safetensors::Writer& w, const ParamStore<T>& store, const T* bloc
     w.add_raw(prefix + t.name, safetensors::dtype_of<T>(), t.shape, block + t.offset,
               static_cast<std::size_t>(t.numel) * sizeof(T));
 }
-// Removes "<file>.tmp<pid>_<n>" next to `path` left by a safetensors writer that died mid-write (SIGKILL, power
-// loss): only when process <pid> no longer exists, so a concurrent writer's file is never touched. Without this, a
-// run killed during checkpoint writes keeps one model-sized file per kill.
-inline void remove_stale_temp_files(const std::filesystem::path& path) {
-  namespace fs = std::filesystem;
-  const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
-  const std::string prefix = path.filename().string() + ".tmp";
-  std::error_code ec;
-  for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
-    const std::string name = it->path().filename().string();
-    if (name.size() <= prefix.size() || name.compare(0, prefix.size(), prefix) != 0) continue;
-    const std::string rest = name.substr(prefix.size());
-    const std::size_t sep = rest.find('_');
-    if (sep == 0 || sep == std::string::npos || rest.find_first_not_of("0123456789_") != std::string::npos) continue;
-    const long pid = std::strtol(rest.substr(0, sep).c_str(), nullptr, 10);
-    if (pid <= 0 || pid == static_cast<long>(::getpid())) continue;
-    if (::kill(static_cast<pid_t>(pid), 0) == 0 || errno != ESRCH) continue;
-    std::error_code ignored;
-    fs::remove(it->path(), ignored);
-  }
-}
-
 template <class T>
 void write_checkpoint(const std::filesystem::path& path, const ParamStore<T>& store, const nlohmann::json& config,
                       const TrainingState& state, bool training) {

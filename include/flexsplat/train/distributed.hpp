@@ -39,6 +39,9 @@ public:
   // Copies the last rank's `data` to every rank.
   virtual void broadcast_from_last(float* data, index_t n) = 0;
   virtual void broadcast_from_last(double* data, index_t n) = 0;
+  // Copies rank 0's `data` to every rank.
+  virtual void broadcast_from_first(float* data, index_t n) = 0;
+  virtual void broadcast_from_first(double* data, index_t n) = 0;
   virtual void barrier() {}
 };
 
@@ -53,6 +56,8 @@ public:
   void send_partial(const double*, index_t) override {}
   void broadcast_from_last(float*, index_t) override {}
   void broadcast_from_last(double*, index_t) override {}
+  void broadcast_from_first(float*, index_t) override {}
+  void broadcast_from_first(double*, index_t) override {}
 };
 
 // Which scenes of a global batch of `global` scenes a rank computes: contiguous, the first `global % size` ranks one
@@ -130,8 +135,10 @@ public:
   void receive_partial(double* d, index_t n) override { recv(d, n, MPI_DOUBLE); }
   void send_partial(const float* d, index_t n) override { send(d, n, MPI_FLOAT); }
   void send_partial(const double* d, index_t n) override { send(d, n, MPI_DOUBLE); }
-  void broadcast_from_last(float* d, index_t n) override { bcast(d, n, MPI_FLOAT); }
-  void broadcast_from_last(double* d, index_t n) override { bcast(d, n, MPI_DOUBLE); }
+  void broadcast_from_last(float* d, index_t n) override { bcast(d, n, MPI_FLOAT, size_ - 1); }
+  void broadcast_from_last(double* d, index_t n) override { bcast(d, n, MPI_DOUBLE, size_ - 1); }
+  void broadcast_from_first(float* d, index_t n) override { bcast(d, n, MPI_FLOAT, 0); }
+  void broadcast_from_first(double* d, index_t n) override { bcast(d, n, MPI_DOUBLE, 0); }
   void barrier() override { MPI_Barrier(MPI_COMM_WORLD); }
 
 private:
@@ -158,12 +165,12 @@ private:
       check(MPI_Send(static_cast<const char*>(d) + byte, count, t, rank_ + 1, tag, MPI_COMM_WORLD), "send");
     });
   }
-  void bcast(void* d, index_t n, MPI_Datatype t) {
+  void bcast(void* d, index_t n, MPI_Datatype t, int root) {
     if (size_ == 1) return;
     int elem = 0;
     MPI_Type_size(t, &elem);
     chunks(n, static_cast<std::size_t>(elem), [&](index_t byte, int count) {
-      check(MPI_Bcast(static_cast<char*>(d) + byte, count, t, size_ - 1, MPI_COMM_WORLD), "broadcast");
+      check(MPI_Bcast(static_cast<char*>(d) + byte, count, t, root, MPI_COMM_WORLD), "broadcast");
     });
   }
   void check(int code, const char* what) const {

@@ -1,0 +1,84 @@
+#include <catch2/catch.hpp>
+
+#include <filesystem>
+#include <fstream>
+#include <iterator>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "flexsplat/model/trainer.hpp"
+#include "flexsplat/train/distributed.hpp"
+
+using namespace flexsplat;
+namespace fs = std::filesystem;
+
+namespace {
+const char* recipe_text = R"({
+  "model": "tiny", "seed": 11, "batch": 2, "inputs": [1, 3], "targets": 1, "gaussians": 48,
+  "checkpoint_every": 2, "log_every": 1,
+  "stages": [
+    {"name": "geometry", "steps": 2, "lr": 0.001, "warmup": 1, "appearance": false, "camera_weight": 1.0, "depth_weight": 0.1},
+    {"name": "joint", "steps": 2, "lr": 0.001, "objective": {"rgb_head": 1.0, "render": 1.0, "depth": 0.1, "lpips": 0.0}}
+  ]
+})";
+
+std::string bytes_of(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+struct RunDirs {
+  fs::path root = fs::temp_directory_path() / ("flexsplat_trainer_" + std::to_string(::getpid()));
+  RunDirs() { fs::create_directories(root); }
+  ~RunDirs() {
+    std::error_code ec;
+    fs::remove_all(root, ec);
+  }
+};
+}  // namespace
+
+TEST_CASE("run_training resumes exactly and reports its steps", "[model][trainer]") {
+  const nlohmann::json recipe = nlohmann::json::parse(recipe_text);
+  const model::TrainRunConfig cfg = model::parse_train_config(recipe);
+  const model::TrainData data = model::train_data_from({"procedural"}, cfg);
+  train::SoloCommunicator solo;
+  RunDirs dirs;
+
+  model::TrainerOptions straight;
+  straight.run = dirs.root / "straight";
+  std::vector<std::uint64_t> steps;
+  std::vector<std::string> notes;
+  straight.progress = [&](const model::TrainerProgress& p) {
+    steps.push_back(p.step);
+    CHECK(*p.stage == (p.step <= 2 ? "geometry" : "joint"));
+    CHECK(p.total == 4);
+  };
+  straight.note = [&](const std::string& s) { notes.push_back(s); };
+  const model::TrainerResult a = model::run_training(recipe, data, solo, straight);
+  CHECK(a.first_step == 0);
+  CHECK(a.step == 4);
+  CHECK(steps == std::vector<std::uint64_t>{1, 2, 3, 4});
+  REQUIRE(notes.size() == 1);
+  CHECK(notes[0].find("steps 0 -> 4 of 4") != std::string::npos);
+
+  // Stopped after step 3 (a checkpoint is written at the stop), then resumed to the end.
+  model::TrainerOptions parts;
+  parts.run = dirs.root / "parts";
+  parts.stop_at = 3;
+  CHECK(model::run_training(recipe, data, solo, parts).step == 3);
+  parts.stop_at = 0;
+  const model::TrainerResult b = model::run_training(recipe, data, solo, parts);
+  CHECK(b.first_step == 3);
+  CHECK(b.step == 4);
+  CHECK(bytes_of(straight.run / "model.safetensors") == bytes_of(parts.run / "model.safetensors"));
+  CHECK(bytes_of(straight.run / "state.safetensors") == bytes_of(parts.run / "state.safetensors"));
+  for (const char* f : {"config.json", "log.jsonl", "curves.png"}) CHECK(fs::exists(parts.run / f));
+
+  // A folder holding another recipe's run is refused before any compute.
+  nlohmann::json other = recipe;
+  other["seed"] = 12u;  // a parsed positive number is unsigned
+  CHECK_THROWS_WITH(model::run_training(other, data, solo, parts), Catch::Contains("holds a run with a different config"));
+  CHECK_THROWS_WITH(model::train_data_from({}, cfg), Catch::Contains("no training data"));
+}
