@@ -7,17 +7,12 @@
 #include <string>
 
 #include "flexsplat/core/atomic_file.hpp"
+#include "temp_dir.hpp"
 
 using namespace flexsplat;
 namespace fs = std::filesystem;
 
 namespace {
-std::string slurp(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  std::ostringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
 
 int siblings(const fs::path& dir) {
   int n = 0;
@@ -25,28 +20,20 @@ int siblings(const fs::path& dir) {
   return n;
 }
 
-struct TempDir {
-  fs::path path = fs::temp_directory_path() / ("flexsplat_atomic_" + std::to_string(::getpid()));
-  TempDir() { fs::create_directories(path); }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path, ec);
-  }
-};
 }  // namespace
 
 TEST_CASE("write_file_atomic replaces the file whole and leaves no temporary", "[core][atomic_file]") {
-  TempDir dir;
+  flexsplat_test::TempDir dir("atomic_file");
   const fs::path p = dir.path / "out.bin";
   write_file_atomic(p, "test", std::string("first"));
-  CHECK(slurp(p) == "first");
+  CHECK(flexsplat_test::file_bytes(p) == "first");
   write_file_atomic(p, "test", [](std::ostream& out) { out << "second" << ' ' << 2; });
-  CHECK(slurp(p) == "second 2");
+  CHECK(flexsplat_test::file_bytes(p) == "second 2");
   CHECK(siblings(dir.path) == 0);
 }
 
 TEST_CASE("a failing writer keeps the old file and removes its temporary", "[core][atomic_file]") {
-  TempDir dir;
+  flexsplat_test::TempDir dir("atomic_file");
   const fs::path p = dir.path / "keep.txt";
   write_file_atomic(p, "test", std::string("old"));
   CHECK_THROWS_WITH(write_file_atomic(p, "test",
@@ -55,14 +42,14 @@ TEST_CASE("a failing writer keeps the old file and removes its temporary", "[cor
                                         throw std::runtime_error("encoder failed");
                                       }),
                     Catch::Contains("encoder failed"));
-  CHECK(slurp(p) == "old");
+  CHECK(flexsplat_test::file_bytes(p) == "old");
   CHECK(siblings(dir.path) == 0);
   CHECK_THROWS_WITH(write_file_atomic(dir.path / "no_such_folder" / "x.txt", "glb writer", std::string("x")),
                     Catch::Contains("glb writer: cannot create") && Catch::Contains("no_such_folder"));
 }
 
 TEST_CASE("remove_stale_temp_files removes only dead writers' temporaries", "[core][atomic_file]") {
-  TempDir dir;
+  flexsplat_test::TempDir dir("atomic_file");
   const fs::path p = dir.path / "state.safetensors";
   // Above Linux's largest pid_max (2^22): no such process.
   const fs::path dead = dir.path / "state.safetensors.tmp4194399_0";

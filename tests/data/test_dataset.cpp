@@ -11,6 +11,7 @@
 #include <unistd.h>
 
 #include "flexsplat/data/dataset.hpp"
+#include "temp_dir.hpp"
 
 using namespace flexsplat;
 using namespace flexsplat::data;
@@ -20,23 +21,8 @@ namespace {
 
 const fs::path shared_objects = fs::path(FLEXSPLAT_SHARED_DIR) / "data/objects";
 
-struct TempDir {
-  fs::path path;
-  explicit TempDir(const std::string& name)
-      : path(fs::temp_directory_path() / ("flexsplat_test_data_" + std::to_string(::getpid()) + "_" + name)) {
-    fs::remove_all(path);
-    fs::create_directories(path);
-  }
-  ~TempDir() {
-    std::error_code ignored;
-    fs::remove_all(path, ignored);
-  }
-};
-
-std::string file_bytes(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
-}
+using flexsplat_test::file_bytes;
+using flexsplat_test::TempDir;
 
 void write_text(const fs::path& p, const std::string& text) {
   std::ofstream out(p, std::ios::binary | std::ios::trunc);

@@ -78,3 +78,30 @@ TEST_CASE("ground_truth_matches pairs pixels that see the same surface point and
   CHECK(pairs01 == h * (w - 1));
   CHECK(loss::ground_truth_matches(depth.data(), K.data(), E.data(), 3, h, w, 5).size() == 10);
 }
+
+TEST_CASE("match_accuracy counts correspondences whose nearest descriptor is within a pixel of the true one",
+          "[loss][match]") {
+  // Two 6 x 6 views, D = 3: view 0's pixel p has the code of p; view 1 holds the same codes shifted right by `shift`.
+  const index_t h = 6, w = 6, px = h * w, D = 3;
+  auto codes = [&](int shift) {
+    std::vector<double> d(static_cast<std::size_t>(2 * px * D));
+    for (index_t v = 0; v < 2; ++v)
+      for (index_t p = 0; p < px; ++p) {
+        const index_t x = p % w, y = p / w, src = v == 0 ? p : y * w + (x - shift + w) % w;
+        const double a = 2 * 3.14159265358979 * static_cast<double>(src) / static_cast<double>(px);
+        d[static_cast<std::size_t>((v * px + p) * D)] = std::cos(a);
+        d[static_cast<std::size_t>((v * px + p) * D + 1)] = std::sin(a);
+        d[static_cast<std::size_t>((v * px + p) * D + 2)] = 0.1;
+      }
+    return d;
+  };
+  // The truth: pixel (x, y) of view 0 is pixel (x + 1, y) of view 1, for x < 4 (no shift below wraps round).
+  std::vector<loss::PixelMatch> truth;
+  for (index_t p = 0; p < px; ++p)
+    if (p % w < w - 2) truth.push_back({0, p, 1, p + 1});
+  CHECK(loss::match_accuracy(codes(1).data(), truth, 2, h, w, D) == 1.0);
+  CHECK(loss::match_accuracy(codes(2).data(), truth, 2, h, w, D) == 1.0);  // one pixel off still counts
+  // Three pixels off (each code sits 3 columns, modulo 6, from the truth): none counts.
+  CHECK(loss::match_accuracy(codes(4).data(), truth, 2, h, w, D) == 0.0);
+  CHECK(loss::match_accuracy(codes(1).data(), {}, 2, h, w, D) == 0.0);
+}

@@ -10,6 +10,7 @@
 
 #include "flexsplat/model/trainer.hpp"
 #include "flexsplat/train/distributed.hpp"
+#include "temp_dir.hpp"
 
 using namespace flexsplat;
 namespace fs = std::filesystem;
@@ -24,19 +25,6 @@ const char* recipe_text = R"({
   ]
 })";
 
-std::string bytes_of(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
-}
-
-struct RunDirs {
-  fs::path root = fs::temp_directory_path() / ("flexsplat_trainer_" + std::to_string(::getpid()));
-  RunDirs() { fs::create_directories(root); }
-  ~RunDirs() {
-    std::error_code ec;
-    fs::remove_all(root, ec);
-  }
-};
 }  // namespace
 
 TEST_CASE("run_training resumes exactly and reports its steps", "[model][trainer]") {
@@ -44,10 +32,10 @@ TEST_CASE("run_training resumes exactly and reports its steps", "[model][trainer
   const model::TrainRunConfig cfg = model::parse_train_config(recipe);
   const model::TrainData data = model::train_data_from({"procedural"}, cfg);
   train::SoloCommunicator solo;
-  RunDirs dirs;
+  flexsplat_test::TempDir dirs("trainer");
 
   model::TrainerOptions straight;
-  straight.run = dirs.root / "straight";
+  straight.run = dirs.path / "straight";
   std::vector<std::uint64_t> steps;
   std::vector<std::string> notes;
   straight.progress = [&](const model::TrainerProgress& p) {
@@ -65,15 +53,15 @@ TEST_CASE("run_training resumes exactly and reports its steps", "[model][trainer
 
   // Stopped after step 3 (a checkpoint is written at the stop), then resumed to the end.
   model::TrainerOptions parts;
-  parts.run = dirs.root / "parts";
+  parts.run = dirs.path / "parts";
   parts.stop_at = 3;
   CHECK(model::run_training(recipe, data, solo, parts).step == 3);
   parts.stop_at = 0;
   const model::TrainerResult b = model::run_training(recipe, data, solo, parts);
   CHECK(b.first_step == 3);
   CHECK(b.step == 4);
-  CHECK(bytes_of(straight.run / "model.safetensors") == bytes_of(parts.run / "model.safetensors"));
-  CHECK(bytes_of(straight.run / "state.safetensors") == bytes_of(parts.run / "state.safetensors"));
+  CHECK(flexsplat_test::file_bytes(straight.run / "model.safetensors") == flexsplat_test::file_bytes(parts.run / "model.safetensors"));
+  CHECK(flexsplat_test::file_bytes(straight.run / "state.safetensors") == flexsplat_test::file_bytes(parts.run / "state.safetensors"));
   for (const char* f : {"config.json", "log.jsonl", "curves.png"}) CHECK(fs::exists(parts.run / f));
 
   // A folder holding another recipe's run is refused before any compute.

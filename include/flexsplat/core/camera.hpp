@@ -72,6 +72,9 @@ inline Camera look_at(glm::dvec3 eye, glm::dvec3 target, int width, int height, 
   return cam;
 }
 
+// The row-major world-to-camera [I | 0]: the first view's camera in the model's frame.
+inline constexpr double identity_w2c[12] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0};
+
 // Row-major K [3, 3] and world-to-camera [R | t] [3, 4]; either pointer may be null.
 template <class T>
 void camera_arrays(const Camera& c, T* K, T* w2c) {

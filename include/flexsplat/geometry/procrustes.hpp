@@ -11,6 +11,7 @@
 
 #include <Eigen/Dense>
 
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/geometry/unproject.hpp"
@@ -69,7 +70,8 @@ bool rigid_fit(const T* src, const T* dst, const T* w, index_t n, double* R, dou
 template <class T>
 std::vector<double> camera_frame_points(const T* depth, const T* intrinsics, index_t f, index_t height, index_t width) {
   const index_t px = height * width;
-  const T identity[12] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0};
+  T identity[12];
+  for (int i = 0; i < 12; ++i) identity[i] = static_cast<T>(identity_w2c[i]);
   std::vector<T> points(static_cast<std::size_t>(3 * px));
   unproject_depth_forward<T>(points.data(), depth + f * px, identity, intrinsics + 9 * f, 1, height, width);
   return std::vector<double>(points.begin(), points.end());
@@ -269,7 +271,7 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
   std::vector<double> cam(static_cast<std::size_t>(12 * frames), 0.0);
   std::vector<char> placed(static_cast<std::size_t>(frames), 0);
   std::vector<index_t> by(static_cast<std::size_t>(frames), 0);
-  cam[0] = cam[5] = cam[10] = 1;
+  std::copy_n(identity_w2c, 12, cam.begin());
   placed[0] = 1;
   for (;;) {
     index_t best = cfg.min_inliers - 1, from = -1, to = -1;
@@ -298,7 +300,7 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
     if (solved) solved[f] = ok;
     if (matches_out) matches_out[f] = by[static_cast<std::size_t>(f)];
     for (int i = 0; i < 12; ++i)
-      extrinsics[12 * f + i] = static_cast<T>(ok ? cam[static_cast<std::size_t>(12 * f + i)] : (i == 0 || i == 5 || i == 10));
+      extrinsics[12 * f + i] = static_cast<T>(ok ? cam[static_cast<std::size_t>(12 * f + i)] : identity_w2c[i]);
   }
 }
 

@@ -95,6 +95,31 @@ void for_each_run(const std::vector<T>& unit, std::span<const PixelMatch> matche
 }
 }  // namespace match_detail
 
+// The fraction of correspondences whose most similar descriptor (cosine, as the loss's logits) among all pixels of
+// view_b lies within one pixel, both axes, of pixel_b; the first of equal maxima. desc [V, h * w, D].
+template <class T>
+double match_accuracy(const T* desc, std::span<const PixelMatch> matches, index_t views, index_t h, index_t w, index_t D) {
+  require(desc && views >= 1 && h >= 1 && w >= 1 && D >= 1, "match accuracy: null or empty descriptors");
+  if (matches.empty()) return 0;
+  const index_t px = h * w;
+  std::vector<T> unit;
+  std::vector<double> norm;
+  match_detail::normalize(desc, views * px, D, unit, norm);
+  double hits = 0;
+  match_detail::for_each_run(unit, matches, views, px, D, 1.0,
+                             [&](std::size_t i0, index_t n, const std::vector<T>&, const std::vector<T>& e,
+                                 const std::vector<double>&, const std::vector<double>&, const std::vector<double>&) {
+                               for (index_t r = 0; r < n; ++r) {
+                                 // e is exp(logit - max): exactly 1 at the maximum.
+                                 const T* row = e.data() + r * px;
+                                 const index_t best = std::find(row, row + px, T(1)) - row;
+                                 const index_t want = matches[i0 + static_cast<std::size_t>(r)].pixel_b;
+                                 hits += std::abs(best % w - want % w) <= 1 && std::abs(best / w - want / w) <= 1;
+                               }
+                             });
+  return hits / static_cast<double>(matches.size());
+}
+
 // desc [V, px, D]; prob [V, px] in (0, 1); alpha [V, px] in [0, 1].
 template <class T>
 MatchLossParts match_loss_forward(const T* desc, const T* prob, const T* alpha, std::span<const PixelMatch> matches,

@@ -7,10 +7,12 @@
 #include <cmath>
 #include <vector>
 
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/geometry/procrustes.hpp"
 #include "flexsplat/loss/image.hpp"
+#include "flexsplat/loss/match.hpp"
 #include "flexsplat/loss/ssim.hpp"
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/model/frames.hpp"
@@ -53,34 +55,6 @@ inline void score_rotations(const double* pred, const double* gt, index_t views,
       pairs += 1, in15 += e <= 15, in30 += e <= 30;
     }
   rra15 = in15 / pairs, rra30 = in30 / pairs;
-}
-// The fraction of correspondences whose nearest unit descriptor among all pixels of view b lies within one pixel
-// (both axes) of pixel_b. descriptors [V, h, w, D].
-template <class T>
-double match_accuracy(const T* descriptors, const std::vector<loss::PixelMatch>& matches, index_t views, index_t h,
-                      index_t w, index_t D) {
-  if (matches.empty()) return 0;
-  const index_t px = h * w;
-  std::vector<double> inv_norm(static_cast<std::size_t>(views * px));
-  for (index_t i = 0; i < views * px; ++i) {
-    double n2 = 0;
-    for (index_t k = 0; k < D; ++k) n2 += static_cast<double>(descriptors[i * D + k]) * static_cast<double>(descriptors[i * D + k]);
-    inv_norm[static_cast<std::size_t>(i)] = 1 / (std::sqrt(n2) + 1e-12);
-  }
-  double hits = 0;
-  for (const loss::PixelMatch& m : matches) {
-    const T* a = descriptors + (m.view_a * px + m.pixel_a) * D;
-    index_t best = -1;
-    double top = -1e300;
-    for (index_t q = 0; q < px; ++q) {
-      const T* b = descriptors + (m.view_b * px + q) * D;
-      double dot = 0;
-      for (index_t k = 0; k < D; ++k) dot += static_cast<double>(a[k]) * static_cast<double>(b[k]);
-      if (const double c = dot * inv_norm[static_cast<std::size_t>(m.view_b * px + q)]; c > top) top = c, best = q;
-    }
-    hits += std::abs(best % w - m.pixel_b % w) <= 1 && std::abs(best / w - m.pixel_b / w) <= 1;
-  }
-  return hits / static_cast<double>(matches.size());
 }
 }  // namespace detail
 
@@ -135,7 +109,7 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
     for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(p.geometry.extrinsics[i]);
     for (index_t v = 1; v < V; ++v)
       if (p.camera_matches[static_cast<std::size_t>(v)] == 0)
-        for (int i = 0; i < 12; ++i) pred[static_cast<std::size_t>(12 * v + i)] = (i == 0 || i == 5 || i == 10) ? 1.0 : 0.0;
+        std::copy_n(identity_w2c, 12, pred.begin() + 12 * v);
     detail::score_rotations(pred.data(), gt.data(), V, s.matches_rotation_deg, s.matches_rra15, s.matches_rra30);
     const auto& o = ws.predict.geometry.outputs;
     const index_t D = w.config().geometry.match_dim;
@@ -145,7 +119,7 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
     for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
     double unused15, unused30;
     detail::score_rotations(pred.data(), gt.data(), V, s.matches_gt_depth_rotation_deg, unused15, unused30);
-    s.match_accuracy = detail::match_accuracy(o.descriptors.data(), e.matches, V, e.h, e.w, D);
+    s.match_accuracy = loss::match_accuracy(o.descriptors.data(), std::span<const loss::PixelMatch>(e.matches), V, e.h, e.w, D);
   }
   double err = 0;
   index_t n = 0;
