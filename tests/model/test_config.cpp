@@ -3,6 +3,7 @@
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/geometry/weights.hpp"
 #include "flexsplat/model/config.hpp"
+#include "flexsplat/raster/render.hpp"
 
 using namespace flexsplat;
 
