@@ -100,6 +100,7 @@
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/model/frames.hpp"
 #include "flexsplat/model/weights.hpp"
+#include "flexsplat/model/geometry_result.hpp"
 #include "flexsplat/model/objective.hpp"
 #include "flexsplat/model/geometry_stage.hpp"
 #include "flexsplat/model/train.hpp"

@@ -7,7 +7,7 @@
 
 #include "flexsplat/geometry/vggt.hpp"
 #include "flexsplat/model/cameras.hpp"
-#include "flexsplat/model/objective.hpp"
+#include "flexsplat/model/geometry_result.hpp"
 #include "flexsplat/model/weights.hpp"
 
 namespace flexsplat {

@@ -23,8 +23,8 @@
 #include "flexsplat/geometry/pose_encoding.hpp"
 #include "flexsplat/geometry/procrustes.hpp"
 #include "flexsplat/image/resample.hpp"
+#include "flexsplat/model/geometry_result.hpp"
 #include "flexsplat/model/geometry_stage.hpp"
-#include "flexsplat/model/objective.hpp"
 #include "flexsplat/model/weights.hpp"
 
 namespace flexsplat {
