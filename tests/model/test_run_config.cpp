@@ -55,3 +55,19 @@ TEST_CASE("train config: match_samples sets the correspondences of a training sc
   CHECK(model::matches_per_pair(1, c.match_samples) == 0);
   CHECK_THROWS_WITH(model::parse_train_config({{"model", "tiny"}, {"match_samples", 0u}}), Catch::Contains("match_samples"));
 }
+
+TEST_CASE("train config: a count is read from a signed or an unsigned JSON integer, never from a negative one",
+          "[train][config]") {
+  nlohmann::json j = {{"model", "tiny"}, {"stages", {{{"name", "geometry"}, {"appearance", false}, {"camera_weight", 1.0}}}}};
+  j["seed"] = 12;  // signed in nlohmann's storage, as every integer literal from C++ is
+  CHECK(j["seed"].is_number_unsigned() == false);
+  CHECK(model::parse_train_config(j).seed == 12u);
+  j["seed"] = 13u;
+  CHECK(model::parse_train_config(j).seed == 13u);
+  j["seed"] = nlohmann::json::parse("14");  // a parsed file's integer
+  CHECK(model::parse_train_config(j).seed == 14u);
+  j["seed"] = -1;
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("'seed' is -1, expected an integer in [0, "));
+  j["seed"] = 1.5;
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("'seed' is 1.5"));
+}

@@ -66,7 +66,7 @@ TEST_CASE("run_training resumes exactly and reports its steps", "[model][trainer
 
   // A folder holding another recipe's run is refused before any compute.
   nlohmann::json other = recipe;
-  other["seed"] = 12u;  // a parsed positive number is unsigned
+  other["seed"] = 12;
   CHECK_THROWS_WITH(model::run_training(other, data, solo, parts), Catch::Contains("holds a run with a different config"));
   CHECK_THROWS_WITH(model::train_data_from({}, cfg), Catch::Contains("no training data"));
 }

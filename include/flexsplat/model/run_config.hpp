@@ -120,7 +120,9 @@ public:
   std::uint64_t integer(const std::string& key, std::uint64_t fallback, std::uint64_t lo, std::uint64_t hi) {
     const nlohmann::json* v = find(key);
     if (!v) return fallback;
-    require(v->is_number_unsigned() && v->get<std::uint64_t>() >= lo && v->get<std::uint64_t>() <= hi, "train config: '",
+    // A JSON built in C++ holds 12 as a signed integer, a parsed file as unsigned: both are the same count.
+    const bool count = v->is_number_unsigned() || (v->is_number_integer() && v->get<std::int64_t>() >= 0);
+    require(count && v->get<std::uint64_t>() >= lo && v->get<std::uint64_t>() <= hi, "train config: '",
             path(key), "' is ", v->dump(), ", expected an integer in [", lo, ", ", hi, "]");
     return v->get<std::uint64_t>();
   }
