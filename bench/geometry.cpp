@@ -84,10 +84,10 @@ int main(int argc, char** argv) {
               simd::compiled_arch_name(), simd::describe(simd::cpu_features()).c_str());
 
   auto t0 = Clock::now();
-  ParamSource<float> src;
+  io::ParamSource<float> src;
   const auto specs = vggt_parameter_specs(cfg);
   add_random_parameters(src, specs, 1234);
-  const double params = double(flat_size(specs));
+  const double params = double(io::flat_size(specs));
   const auto weights = load_vggt_weights(src, cfg);
   const double weight_gb = params * 4 / 1e9;
   std::printf("random weights: %.0f M parameters (%.2f GB fp32) in %.1f s, RSS %.2f GB\n", params / 1e6, weight_gb,
@@ -118,7 +118,8 @@ int main(int argc, char** argv) {
       GemmWeightCache packed;
       std::optional<UseGemmWeightCache> use_packed;
       if (kept[b]) {
-        for (const auto& s : specs) packed.freeze(src.get(s.name, s.shape), static_cast<std::size_t>(spec_numel(s)));
+        for (const auto& s : specs)
+          packed.freeze(src.get(s.name, s.shape), static_cast<std::size_t>(io::spec_numel(s)));
         use_packed.emplace(packed);
       }
       Run first, fastest;

@@ -33,7 +33,7 @@ double peak_rss_mib() {
 }
 
 // Random normal weights scaled by 1/sqrt(fan_in); norms and LayerScale near their trained magnitudes.
-void add_random(ParamSource<float>& src, const std::vector<TensorSpec>& specs, unsigned seed) {
+void add_random(io::ParamSource<float>& src, const std::vector<io::TensorSpec>& specs, unsigned seed) {
   std::mt19937 rng(seed);
   std::normal_distribution<float> normal;
   for (const auto& s : specs) {
@@ -64,8 +64,8 @@ int main(int argc, char** argv) {
 
   const CameraHeadConfig cam_cfg;  // VGGT-1B
   const DptHeadConfig dpt_cfg;
-  ParamSource<float> src;
-  std::vector<TensorSpec> specs;
+  io::ParamSource<float> src;
+  std::vector<io::TensorSpec> specs;
   append_camera_head_specs(specs, cam_cfg);
   append_dpt_head_specs(specs, dpt_cfg);
   auto t0 = std::chrono::steady_clock::now();

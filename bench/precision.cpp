@@ -172,7 +172,7 @@ void model_table(const std::string& model_path, const std::string& object_dir, i
 void vggt_table(index_t size, int rounds) {
   geometry::VggtConfig cfg;  // VGGT-1B
   cfg.pose_decode.policy = geometry::DegeneratePosePolicy::clamp;
-  geometry::ParamSource<float> src;
+  io::ParamSource<float> src;
   geometry::add_random_parameters(src, geometry::vggt_parameter_specs(cfg), 1234);
   const auto weights = geometry::load_vggt_weights(src, cfg);
   const index_t frames = 4;

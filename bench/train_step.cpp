@@ -217,7 +217,7 @@ int main(int argc, char** argv) {
     if (size > 0) c.image_h = c.image_w = size;
     if (gaussians > 0) c.gaussians = gaussians;
     double full_params = 0;
-    for (const auto& spec : geometry::vggt_parameter_specs(c.geometry)) full_params += double(geometry::spec_numel(spec));
+    for (const auto& spec : geometry::vggt_parameter_specs(c.geometry)) full_params += double(io::spec_numel(spec));
     if (depth > 0) {
       auto& a = c.geometry.aggregator;
       a.depth = a.dino.depth = depth;

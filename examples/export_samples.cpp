@@ -11,7 +11,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "flexsplat/export/cameras_json.hpp"
+#include "flexsplat/io/cameras_json.hpp"
 #include "flexsplat/export/gltf.hpp"
 
 using namespace flexsplat;
@@ -82,7 +82,7 @@ int main(int argc, char** argv) {
     medium.color_space = "lin_rec709_display";
     std::printf("quantized16.glb: %zu bytes\n", gltf::write_glb(set, dir / "quantized16.glb", medium).bytes);
     gltf::WriteOptions with_cameras;
-    if (argc == 3) with_cameras.cameras = gaussians::load_cameras_json(argv[2]);
+    if (argc == 3) with_cameras.cameras = io::load_cameras_json(argv[2]);
     else {
       const double K[9] = {60, 0, 32, 0, 60, 24, 0, 0, 1}, w2c[12] = {1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 3};
       with_cameras.cameras = {camera_from_arrays(K, w2c, 64, 48, "synthetic")};

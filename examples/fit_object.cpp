@@ -16,7 +16,7 @@
 
 #include "flexsplat/core/gaussians.hpp"
 #include "flexsplat/decoder/init.hpp"
-#include "flexsplat/export/cameras_json.hpp"
+#include "flexsplat/io/cameras_json.hpp"
 #include "flexsplat/export/file.hpp"
 #include "flexsplat/export/render_set.hpp"
 #include "flexsplat/image/image_io.hpp"
@@ -107,7 +107,7 @@ int main(int argc, char** argv) {
             "fit_object: --gaussians, --iters, --seconds and --half-extent must be positive, --ssim-weight in [0, 1]");
 
     // Views composited on white; every fourth is held out.
-    const auto cameras = gaussians::load_cameras_json(dir + "/cameras.json");
+    const auto cameras = io::load_cameras_json(dir + "/cameras.json");
     std::vector<raster::View<float>> cams;
     std::vector<Tensor<float, 3>> images;
     std::vector<int> train, test;

@@ -6,7 +6,7 @@
 #include <random>
 #include <string>
 
-#include "flexsplat/export/cameras_json.hpp"
+#include "flexsplat/io/cameras_json.hpp"
 #include "flexsplat/export/gltf.hpp"
 #include "flexsplat/export/render_set.hpp"
 #include "flexsplat/image/image_io.hpp"
@@ -42,7 +42,7 @@ int main(int argc, char** argv) {
       for (int c = 0; c < 3; ++c) set.sh(i, 0, c) = float((colour[c] - 0.5) / sh_c0);
     }
     gltf::WriteOptions write_options;
-    write_options.cameras = gaussians::load_camera_spec(argv[2]);
+    write_options.cameras = io::load_camera_spec(argv[2]);
     const Camera& camera = write_options.cameras.at(0);
     gltf::write_glb(set, dir / "scene.glb", write_options);
     raster::RenderOptions options;

@@ -1,7 +1,7 @@
 // convert: Gaussian sets between .ply (INRIA 3DGS) and .glb (KHR_gaussian_splatting), optionally quantised.
 #include <cstdio>
 
-#include "flexsplat/export/cameras_json.hpp"
+#include "flexsplat/io/cameras_json.hpp"
 #include "flexsplat/export/file.hpp"
 #include "registry.hpp"
 
@@ -40,7 +40,7 @@ int convert(Args args) {
   take_option(args, "--cameras", camera_spec);
   require(args.size() == 2, "convert needs IN and OUT (got ", args.size(), " positional arguments)");
   const auto set = gaussians::read_gaussians(args[0], &options.cameras);
-  if (!camera_spec.empty()) options.cameras = gaussians::load_camera_spec(camera_spec);
+  if (!camera_spec.empty()) options.cameras = io::load_camera_spec(camera_spec);
   // A .ply holds no cameras: a .glb's own cameras are dropped there, explicitly requested ones are an error.
   const bool to_ply = gaussians::format_of(args[1]) == gaussians::FileFormat::Ply;
   if (no_cameras || (to_ply && camera_spec.empty())) options.cameras.clear();

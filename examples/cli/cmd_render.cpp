@@ -2,7 +2,7 @@
 #include <cstdio>
 #include <sstream>
 
-#include "flexsplat/export/cameras_json.hpp"
+#include "flexsplat/io/cameras_json.hpp"
 #include "flexsplat/export/file.hpp"
 #include "flexsplat/export/render_set.hpp"
 #include "flexsplat/image/image_io.hpp"
@@ -36,7 +36,7 @@ int render(Args args) {
   options.background = parse_background(background);
   std::vector<Camera> cameras;
   const auto set = gaussians::read_gaussians(args[0], &cameras);
-  if (!camera_spec.empty()) cameras = gaussians::load_camera_spec(camera_spec);
+  if (!camera_spec.empty()) cameras = io::load_camera_spec(camera_spec);
   require(!cameras.empty(), "render: no camera (pass --camera cameras.json[:index]; '", args[0], "' has none)");
   if (!index_text.empty()) {
     const auto index = static_cast<std::size_t>(

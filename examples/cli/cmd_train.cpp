@@ -1,9 +1,7 @@
 // train: FlexSplat training runs from a JSON configuration (model::run_training), resumable exactly, data parallel
 // over MPI when built with it.
 #include <cstdio>
-#include <fstream>
 #include <limits>
-#include <sstream>
 #include <string>
 #include <vector>
 
@@ -36,18 +34,7 @@ int train_command(Args args) {
   require(!data_args.empty(), "train needs --data procedural or --data DIR...");
 
   // Everything is checked before any compute.
-  nlohmann::json recipe;
-  {
-    std::ifstream f(config_path, std::ios::binary);
-    require(f.good(), "train: cannot read '", config_path, "'");
-    std::ostringstream text;
-    text << f.rdbuf();
-    try {
-      recipe = nlohmann::json::parse(text.str());
-    } catch (const nlohmann::json::exception& e) {
-      fail("train config '", config_path, "' is not valid JSON: ", e.what());
-    }
-  }
+  const nlohmann::json recipe = model::read_train_recipe(config_path);
   const model::TrainRunConfig cfg = model::parse_train_config(recipe);
   model::TrainerOptions o;
   o.run = out;

@@ -2,7 +2,7 @@
 #include "flexsplat/geometry/vggt.hpp"
 #include "instance.hpp"
 #define FLEXSPLAT_INSTANCES_GEOMETRY_T(X, T)                                                                           \
-  X(flexsplat::geometry::check_parameters, T) X(flexsplat::geometry::load_vggt_weights, T)                             \
+  X(flexsplat::io::check_parameters, T) X(flexsplat::geometry::load_vggt_weights, T)                             \
   X(flexsplat::geometry::load_aggregator_trunk_weights, T) X(flexsplat::geometry::load_camera_head_weights, T)         \
   X(flexsplat::geometry::dino_forward, T) X(flexsplat::geometry::dino_backward, T)                                     \
   X(flexsplat::geometry::aggregator_trunk_forward, T) X(flexsplat::geometry::aggregator_trunk_forward_train, T)        \

@@ -96,12 +96,12 @@ inline flexsplat::GaussianSetGrad<double> unflatten_grad(const double* p, flexsp
 // names start with `part` ("unet.", "fusion.", "decoder."; empty: the whole model).
 inline std::vector<std::pair<std::string, std::size_t>> appearance_tensors(const flexsplat::decoder::ModelConfig& c,
                                                                            const std::string& part = {}) {
-  std::vector<flexsplat::geometry::TensorSpec> specs;
+  std::vector<flexsplat::io::TensorSpec> specs;
   flexsplat::decoder::append_model_specs(specs, c);
   std::vector<std::pair<std::string, std::size_t>> out;
   for (const auto& s : specs)
     if (s.name.compare(0, part.size(), part) == 0)
-      out.emplace_back(s.name, static_cast<std::size_t>(flexsplat::geometry::spec_numel(s)));
+      out.emplace_back(s.name, static_cast<std::size_t>(flexsplat::io::spec_numel(s)));
   return out;
 }
 

@@ -12,7 +12,7 @@
 #include <nlohmann/json.hpp>
 
 #include "flexsplat/data/dataset.hpp"
-#include "flexsplat/export/cameras_json.hpp"
+#include "flexsplat/io/cameras_json.hpp"
 #include "flexsplat/export/gltf.hpp"
 #include "flexsplat/export/ply.hpp"
 #include "flexsplat/image/image_io.hpp"
@@ -163,7 +163,7 @@ int main(int argc, char** argv) {
   // glb: float attributes with cameras; quantised attributes at SH degree 1 without the colour fallback.
   {
     gltf::WriteOptions with_cameras;
-    auto cams = gaussians::load_cameras_json("examples/data/spot/cameras.json");
+    auto cams = io::load_cameras_json("examples/data/spot/cameras.json");
     cams.resize(2);
     with_cameras.cameras = cams;
     auto bytes = gltf::encode_glb(small_set(3, 0), with_cameras);

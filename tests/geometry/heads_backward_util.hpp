@@ -7,18 +7,18 @@
 #include <string>
 #include <vector>
 
-#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/io/param_source.hpp"
 #include "flexsplat/testing/gradcheck.hpp"
 
 namespace heads_backward_test {
 
 struct FlatParams {
-  std::vector<flexsplat::geometry::TensorSpec> specs;
+  std::vector<flexsplat::io::TensorSpec> specs;
   std::map<std::string, std::size_t> index;  // name -> position in specs
   std::vector<std::size_t> offsets;
   std::vector<double> values, grads;
 
-  FlatParams(std::vector<flexsplat::geometry::TensorSpec> s, unsigned seed) : specs(std::move(s)) {
+  FlatParams(std::vector<flexsplat::io::TensorSpec> s, unsigned seed) : specs(std::move(s)) {
     std::mt19937 rng(seed);
     std::normal_distribution<double> normal;
     std::size_t at = 0;

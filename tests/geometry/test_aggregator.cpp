@@ -10,7 +10,7 @@ using namespace flexsplat::geometry;
 TEST_CASE("aggregator trunk reproduces the bundle's aggregator outputs from its DINO patch tokens", "[geometry][aggregator]") {
   const auto file = safetensors::File::open(vggt_bundle_path());
   const auto cfg = aggregator_config_from_json(file.metadata("config"));
-  ParamSource<float> src(file, "param.");
+  io::ParamSource<float> src(file, "param.");
   const auto weights = load_aggregator_trunk_weights(src, cfg);
   CHECK(src.converted_bytes() == 0);  // F32 bundle: every parameter is a zero-copy view
   AggregatorWorkspace<float> ws;
@@ -39,7 +39,7 @@ TEST_CASE("aggregator trunk reproduces the bundle's aggregator outputs from its 
 TEST_CASE("aggregator keeps only the requested outputs and rejects bad requests", "[geometry][aggregator]") {
   const auto file = safetensors::File::open(vggt_bundle_path());
   const auto cfg = aggregator_config_from_json(file.metadata("config"));
-  ParamSource<float> src(file, "param.");
+  io::ParamSource<float> src(file, "param.");
   const auto weights = load_aggregator_trunk_weights(src, cfg);
   const auto tokens = file.get<float, 3>("case2.dino.x_norm_patchtokens");
   AggregatorWorkspace<float> ws;

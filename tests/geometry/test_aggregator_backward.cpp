@@ -32,23 +32,23 @@ AggregatorConfig tiny_aggregator(index_t aa_block_size) {
 template <class T>
 struct FlatAggregator {
   AggregatorConfig c;
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   std::vector<T> params, grads;
-  ParamSource<T> src;
+  io::ParamSource<T> src;
   AggregatorWeights<T> w;
   AggregatorGrads<T> g;
   FlatAggregator(const AggregatorConfig& config, unsigned seed) : c(config) {
     append_aggregator_trunk_specs(specs, c);
-    auto v = random_doubles(static_cast<std::size_t>(flat_size(specs)), seed, 0.4);
+    auto v = random_doubles(static_cast<std::size_t>(io::flat_size(specs)), seed, 0.4);
     index_t at = 0;
     for (auto& s : specs) {
       if (s.name.find("norm") != std::string::npos && s.name.find("weight") != std::string::npos)
-        for (index_t i = 0; i < spec_numel(s); ++i) v[at + i] += 1.0;
-      at += spec_numel(s);
+        for (index_t i = 0; i < io::spec_numel(s); ++i) v[at + i] += 1.0;
+      at += io::spec_numel(s);
     }
     params.assign(v.begin(), v.end());
     grads.assign(params.size(), T(0));
-    add_flat_views(src, specs, params.data());
+    io::add_flat_views(src, specs, params.data());
     w = load_aggregator_trunk_weights(src, c);
     g = aggregator_grads(w, params.data(), grads.data());
   }
@@ -56,9 +56,9 @@ struct FlatAggregator {
     std::vector<testing::GradParam> out;
     index_t at = 0;
     for (auto& s : specs) {
-      const auto n = static_cast<std::size_t>(spec_numel(s));
+      const auto n = static_cast<std::size_t>(io::spec_numel(s));
       out.push_back({s.name, std::span<T>(params.data() + at, n), std::span<T>(grads.data() + at, n)});
-      at += spec_numel(s);
+      at += io::spec_numel(s);
     }
     return out;
   }

@@ -106,8 +106,8 @@ std::vector<double> naive_block(std::vector<double> x, index_t batch, index_t to
 }
 
 template <class T>
-void fill_source(ParamSource<T>& src, NaiveParams& naive, const BlockConfig& c, unsigned seed) {
-  std::vector<TensorSpec> specs;
+void fill_source(io::ParamSource<T>& src, NaiveParams& naive, const BlockConfig& c, unsigned seed) {
+  std::vector<io::TensorSpec> specs;
   append_block_specs(specs, "blk.", c);
   for (auto& s : specs) {
     index_t n = 1;
@@ -131,8 +131,8 @@ TEST_CASE("block forward matches a naive float64 transformer block (qk-norm, RoP
   const bool use_rope = GENERATE(false, true);
   // 150 tokens spans two key blocks and three query blocks of the tiled attention.
   const index_t batch = 2, tokens = 150;
-  ParamSource<double> src;
-  ParamSource<float> srcf;
+  io::ParamSource<double> src;
+  io::ParamSource<float> srcf;
   NaiveParams naive, unused;
   fill_source(src, naive, c, 100);
   fill_source(srcf, unused, c, 100);
@@ -171,7 +171,7 @@ TEST_CASE("block weights: a mis-shaped or missing tensor is named", "[geometry][
   BlockConfig c;
   c.dim = 8;
   c.num_heads = 2;
-  ParamSource<float> src;
+  io::ParamSource<float> src;
   NaiveParams naive;
   fill_source(src, naive, c, 1);
   CHECK_THROWS_WITH(load_block_weights(src, "other.", c), Catch::Contains("other.norm1.weight"));
@@ -188,7 +188,7 @@ TEST_CASE("block forward refuses a short workspace", "[geometry][block]") {
   BlockConfig c;
   c.dim = 8;
   c.num_heads = 2;
-  ParamSource<float> src;
+  io::ParamSource<float> src;
   NaiveParams naive;
   fill_source(src, naive, c, 1);
   std::vector<float> x(3 * 8), ws(10);

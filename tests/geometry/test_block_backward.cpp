@@ -15,22 +15,22 @@ namespace block_backward_test {
 // One block's parameters in a flat block (random, norm weights around 1, LayerScale gammas O(1) so every path counts).
 struct FlatBlock {
   BlockConfig c;
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   std::vector<double> params, grads;
-  ParamSource<double> src;
+  io::ParamSource<double> src;
   BlockWeights<double> w;
   BlockGrads<double> g;
   FlatBlock(const BlockConfig& config, unsigned seed) : c(config) {
     append_block_specs(specs, "blk.", c);
-    params = random_doubles(static_cast<std::size_t>(flat_size(specs)), seed, 0.4);
+    params = random_doubles(static_cast<std::size_t>(io::flat_size(specs)), seed, 0.4);
     index_t at = 0;
     for (auto& s : specs) {
       if (s.name.find("norm") != std::string::npos && s.name.find("weight") != std::string::npos)
-        for (index_t i = 0; i < spec_numel(s); ++i) params[at + i] += 1.0;
-      at += spec_numel(s);
+        for (index_t i = 0; i < io::spec_numel(s); ++i) params[at + i] += 1.0;
+      at += io::spec_numel(s);
     }
     grads.assign(params.size(), 0.0);
-    add_flat_views(src, specs, params.data());
+    io::add_flat_views(src, specs, params.data());
     w = load_block_weights(src, "blk.", c);
     g = block_grads(w, params.data(), grads.data());
   }
@@ -38,9 +38,9 @@ struct FlatBlock {
     std::vector<testing::GradParam> out;
     index_t at = 0;
     for (auto& s : specs) {
-      const auto n = static_cast<std::size_t>(spec_numel(s));
+      const auto n = static_cast<std::size_t>(io::spec_numel(s));
       out.push_back({s.name, std::span<double>(params.data() + at, n), std::span<double>(grads.data() + at, n)});
-      at += spec_numel(s);
+      at += io::spec_numel(s);
     }
     return out;
   }
@@ -195,13 +195,13 @@ TEST_CASE("block: training forward equals inference forward, recompute gives bit
   c.dim = 32;
   c.num_heads = 4;
   c.qk_norm = true;
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_block_specs(specs, "b.", c);
-  std::vector<float> params(static_cast<std::size_t>(flat_size(specs)));
+  std::vector<float> params(static_cast<std::size_t>(io::flat_size(specs)));
   auto rnd = random_doubles(params.size(), 30, 0.2);
   std::copy(rnd.begin(), rnd.end(), params.begin());
-  ParamSource<float> src;
-  add_flat_views(src, specs, params.data());
+  io::ParamSource<float> src;
+  io::add_flat_views(src, specs, params.data());
   const auto w = load_block_weights(src, "b.", c);
   const index_t batch = 3, tokens = 70, rows = batch * tokens;  // two query blocks of the tiled attention
   const auto pos = grid_positions(batch, tokens, 5, 8);

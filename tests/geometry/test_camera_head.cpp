@@ -15,7 +15,7 @@ template <class T>
 void run_camera_bundle_cases() {
   const auto json = heads_test::bundle_config();
   const CameraHeadConfig cfg = camera_head_config_from_vggt_json(json);
-  ParamSource<T> src(heads_test::bundle(), "param.");
+  io::ParamSource<T> src(heads_test::bundle(), "param.");
   const auto w = load_camera_head_weights(src, cfg);
   const index_t depth = json.at("depth").get<index_t>();
   const auto cases = heads_test::bundle_cases();
@@ -49,7 +49,7 @@ TEST_CASE("camera head reproduces every refinement iteration of the bundle (doub
 
 TEST_CASE("camera head parameter names match the VGGT-1B state_dict layout", "[camera_head]") {
   const auto expected = heads_test::vggt1b_layout_shapes("camera_head.");
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_camera_head_specs(specs, CameraHeadConfig{});
   const auto ours = heads_test::spec_shapes(specs);
   CHECK(ours.size() == specs.size());
@@ -74,7 +74,7 @@ TEST_CASE("camera head loading lists every missing, mis-shaped and unexpected te
   writer.add_raw("param.camera_head.trunk.2.norm1.weight", safetensors::Dtype::F32, {1}, &one, 4);
   const auto path = std::filesystem::temp_directory_path() / ("flexsplat_cam_bad_" + std::to_string(::getpid()) + ".safetensors");
   writer.write(path);
-  ParamSource<float> src(safetensors::File::open(path), "param.");
+  io::ParamSource<float> src(safetensors::File::open(path), "param.");
   try {
     load_camera_head_weights(src, cfg);
     FAIL("loading should have failed");
@@ -92,7 +92,7 @@ TEST_CASE("camera head loading lists every missing, mis-shaped and unexpected te
 TEST_CASE("camera head rejects bad inputs", "[camera_head]") {
   const auto json = heads_test::bundle_config();
   const CameraHeadConfig cfg = camera_head_config_from_vggt_json(json);
-  ParamSource<float> src(heads_test::bundle(), "param.");
+  io::ParamSource<float> src(heads_test::bundle(), "param.");
   const auto w = load_camera_head_weights(src, cfg);
   const auto tokens = heads_test::read<float>("case2.aggregator.out.2");
   std::vector<float> enc(cfg.iterations * 9);

@@ -35,7 +35,7 @@ std::vector<double> camera_normal_values(std::size_t n, unsigned seed) {
 
 // Weights bound as views into a flat block (as the training store does), so gradients rebase into flat.grads.
 template <class T>
-CameraHeadWeights<T> bind_views(ParamSource<T>& src, const std::vector<TensorSpec>& specs, const T* base,
+CameraHeadWeights<T> bind_views(io::ParamSource<T>& src, const std::vector<io::TensorSpec>& specs, const T* base,
                                 const std::vector<std::size_t>& offsets, const CameraHeadConfig& c) {
   for (std::size_t i = 0; i < specs.size(); ++i) src.add_view(specs[i].name, specs[i].shape, base + offsets[i]);
   return load_camera_head_weights(src, c, "");
@@ -50,10 +50,10 @@ TEST_CASE("camera head backward matches finite differences with the fed-back enc
     CameraHeadConfig cfg = camera_tiny_config();
     cfg.fl_act = fl;
     cfg.trans_act = PoseActivation::inv_log;
-    std::vector<TensorSpec> specs;
+    std::vector<io::TensorSpec> specs;
     append_camera_head_specs(specs, cfg, "");
     heads_backward_test::FlatParams flat(specs, 51);
-    ParamSource<double> src;
+    io::ParamSource<double> src;
     const auto w = bind_views(src, specs, flat.values.data(), flat.offsets, cfg);
     const index_t S = 3, tokens = 4, C = cfg.dim, I = cfg.iterations;
     auto input = camera_normal_values(S * tokens * C, 52);
@@ -101,10 +101,10 @@ TEST_CASE("camera head backward stops the gradient at the fed-back encoding", "[
   // The analytic gradient of the last iteration's output equals the difference quotient with the fed-back encodings
   // held fixed, and differs from the undetached one (so the check above could not pass without the detach).
   const CameraHeadConfig cfg = camera_tiny_config();
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_camera_head_specs(specs, cfg, "");
   heads_backward_test::FlatParams flat(specs, 61);
-  ParamSource<double> src;
+  io::ParamSource<double> src;
   const auto w = bind_views(src, specs, flat.values.data(), flat.offsets, cfg);
   const index_t S = 2, tokens = 2, C = cfg.dim, I = cfg.iterations;
   auto input = camera_normal_values(S * tokens * C, 62);
@@ -142,11 +142,11 @@ TEST_CASE("camera head training forward equals the inference forward bit for bit
   cfg.dim = 32;
   cfg.num_heads = 4;
   cfg.iterations = 4;
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_camera_head_specs(specs, cfg, "");
   heads_backward_test::FlatParams flat(specs, 71);
   const std::vector<float> values(flat.values.begin(), flat.values.end());
-  ParamSource<float> src;
+  io::ParamSource<float> src;
   const auto w = bind_views(src, specs, values.data(), flat.offsets, cfg);
   const index_t S = 4, tokens = 3;
   const auto in_d = camera_normal_values(S * tokens * cfg.dim, 72);
@@ -188,10 +188,10 @@ TEST_CASE("camera head training forward equals the inference forward bit for bit
 
 TEST_CASE("camera head backward rejects an empty or mismatched cache", "[camera_head][backward]") {
   const CameraHeadConfig cfg = camera_tiny_config();
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_camera_head_specs(specs, cfg, "");
   heads_backward_test::FlatParams flat(specs, 81);
-  ParamSource<double> src;
+  io::ParamSource<double> src;
   const auto w = bind_views(src, specs, flat.values.data(), flat.offsets, cfg);
   CameraHeadCache<double> cache;
   std::vector<double> d_enc(cfg.iterations * 2 * 9, 1.0);

@@ -10,7 +10,7 @@ using namespace flexsplat::geometry;
 TEST_CASE("DINO patch embedder reproduces the bundle's x_norm_patchtokens (pos-embed down- and up-scaled)", "[geometry][dino]") {
   const auto file = safetensors::File::open(vggt_bundle_path());
   const auto cfg = aggregator_config_from_json(file.metadata("config"));
-  ParamSource<float> src(file, "param.");
+  io::ParamSource<float> src(file, "param.");
   const auto weights = load_dino_weights(src, "aggregator.patch_embed.", cfg.dino);
   DinoWorkspace<float> ws;
   int cases = 0;
@@ -34,7 +34,7 @@ TEST_CASE("DINO patch embedder reproduces the bundle's x_norm_patchtokens (pos-e
 TEST_CASE("DINO position embedding is unchanged on the native square grid", "[geometry][dino]") {
   const auto file = safetensors::File::open(vggt_bundle_path());
   const auto cfg = aggregator_config_from_json(file.metadata("config"));
-  ParamSource<float> src(file, "param.");
+  io::ParamSource<float> src(file, "param.");
   const auto weights = load_dino_weights(src, "aggregator.patch_embed.", cfg.dino);
   const index_t M = cfg.dino.pos_grid(), C = cfg.embed_dim;
   const auto pos = dino_position_embedding(cfg.dino, weights, M * cfg.patch_size, M * cfg.patch_size);
@@ -45,7 +45,7 @@ TEST_CASE("DINO position embedding is unchanged on the native square grid", "[ge
 TEST_CASE("DINO rejects images that are not whole patches", "[geometry][dino]") {
   const auto file = safetensors::File::open(vggt_bundle_path());
   const auto cfg = aggregator_config_from_json(file.metadata("config"));
-  ParamSource<float> src(file, "param.");
+  io::ParamSource<float> src(file, "param.");
   const auto weights = load_dino_weights(src, "aggregator.patch_embed.", cfg.dino);
   DinoWorkspace<float> ws;
   std::vector<float> img(3 * 30 * 28), out(100 * cfg.embed_dim);

@@ -27,22 +27,22 @@ DinoConfig tiny_dino() {
 // Every DINO parameter in one flat block; norm weights around 1.
 struct FlatDino {
   DinoConfig c;
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   std::vector<double> params, grads;
-  ParamSource<double> src;
+  io::ParamSource<double> src;
   DinoWeights<double> w;
   DinoGrads<double> g;
   FlatDino(const DinoConfig& config, unsigned seed) : c(config) {
     append_dino_specs(specs, "dino.", c);
-    params = random_doubles(static_cast<std::size_t>(flat_size(specs)), seed, 0.4);
+    params = random_doubles(static_cast<std::size_t>(io::flat_size(specs)), seed, 0.4);
     index_t at = 0;
     for (auto& s : specs) {
       if (s.name.find("norm") != std::string::npos && s.name.find("weight") != std::string::npos)
-        for (index_t i = 0; i < spec_numel(s); ++i) params[at + i] += 1.0;
-      at += spec_numel(s);
+        for (index_t i = 0; i < io::spec_numel(s); ++i) params[at + i] += 1.0;
+      at += io::spec_numel(s);
     }
     grads.assign(params.size(), 0.0);
-    add_flat_views(src, specs, params.data());
+    io::add_flat_views(src, specs, params.data());
     w = load_dino_weights(src, "dino.", c);
     g = dino_grads(w, params.data(), grads.data());
   }
@@ -50,10 +50,10 @@ struct FlatDino {
     std::vector<testing::GradParam> out;
     index_t at = 0;
     for (auto& s : specs) {
-      const auto n = static_cast<std::size_t>(spec_numel(s));
+      const auto n = static_cast<std::size_t>(io::spec_numel(s));
       out.push_back({s.name, std::span<double>(params.data() + at, n), std::span<double>(grads.data() + at, n),
                      s.name.find("mask_token") != std::string::npos ? "stored, never read (nothing is masked)" : ""});
-      at += spec_numel(s);
+      at += io::spec_numel(s);
     }
     return out;
   }
@@ -111,12 +111,12 @@ TEST_CASE("DINO backward matches central differences (patch conv, tokens, resize
 
 TEST_CASE("DINO: training forward equals inference, recompute gives bit-identical gradients", "[geometry][dino][backward]") {
   const DinoConfig c = tiny_dino();
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_dino_specs(specs, "d.", c);
-  auto rnd = random_doubles(static_cast<std::size_t>(flat_size(specs)), 7, 0.3);
+  auto rnd = random_doubles(static_cast<std::size_t>(io::flat_size(specs)), 7, 0.3);
   const std::vector<float> params(rnd.begin(), rnd.end());
-  ParamSource<float> src;
-  add_flat_views(src, specs, params.data());
+  io::ParamSource<float> src;
+  io::add_flat_views(src, specs, params.data());
   const auto w = load_dino_weights(src, "d.", c);
   const index_t S = 2, H = 4, W = 8, P = 8;
   auto id = random_doubles(static_cast<std::size_t>(S * 3 * H * W), 8);

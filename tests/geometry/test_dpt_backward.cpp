@@ -70,9 +70,20 @@ struct DptRig {
   }
 };
 
+// Elements the cache's activations hold (grad_ws aside): what dpt_head_cache_elements counts.
+template <class T>
+index_t cache_held(const DptHeadCache<T>& c) {
+  std::size_t held = c.ln_mean.size() + c.ln_rstd.size() + c.fused.size() + c.up.size() + c.image.size() +
+                     c.image_act.size() + c.hidden.size() + c.logits.size();
+  for (int i = 0; i < 4; ++i)
+    held += c.proj[i].size() + c.level[i].size() + c.unit1_r[i].size() + c.unit1_u[i].size() + c.unit2_r[i].size() +
+            c.unit2_u[i].size() + c.block_out[i].size();
+  return static_cast<index_t>(held);
+}
+
 void check_dpt_gradients(const DptHeadConfig& cfg, index_t S, index_t H, index_t W, index_t patch_start,
                          index_t layers_n, std::size_t max_checks) {
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_dpt_head_specs(specs, cfg, "");
   // Weight seed 12: with 11 one ReLU input of refinenet1 sits within the 1e-6 step of its kink (central differences
   // across it disagree with the one-sided derivative; a 1e-9 step agrees), which is the checker's limit, not a bug.
@@ -83,10 +94,14 @@ void check_dpt_gradients(const DptHeadConfig& cfg, index_t S, index_t H, index_t
   // The gradient checker perturbs flat.values: the rig must read them, so bind it to flat's block directly.
   rig.w = bind_dpt_head_weights<double>(cfg, [&](const std::string& n, const std::vector<index_t>& s) { return flat.get(n, s); });
   std::vector<double> d_tok(rig.tok.size());
+  // The image the head reads when cfg.image_channels > 0 (at the output grid: whole patches).
+  std::vector<double> image = dpt_normal_values(S * cfg.image_channels * rig.full, 13), d_image(image.size());
+  const double* pixels = cfg.image_channels > 0 ? image.data() : nullptr;
   DptHeadCache<double> cache;
   const auto grads = dpt_head_grads(rig.w, flat.values.data(), flat.grads.data());
   auto params = flat.grad_params();
   params.push_back({"tokens", std::span<double>(rig.tok), std::span<double>(d_tok)});
+  if (pixels) params.push_back({"image", std::span<double>(image), std::span<double>(d_image)});
   testing::GradCheckOptions opt;
   opt.max_checks_per_param = max_checks;
   const auto result = testing::check_gradients(
@@ -94,7 +109,7 @@ void check_dpt_gradients(const DptHeadConfig& cfg, index_t S, index_t H, index_t
       [&](std::span<double> out) {
         const auto layers = rig.layers();
         dpt_head_forward_train<double>(rig.outputs(out.data()), cache, cfg, rig.w, layers, S, rig.tokens, patch_start,
-                                       H, W, rig.ws);
+                                       H, W, rig.ws, pixels);
       },
       [&](std::span<const double> d) {
         const auto layers = rig.layers();
@@ -102,7 +117,7 @@ void check_dpt_gradients(const DptHeadConfig& cfg, index_t S, index_t H, index_t
         for (index_t i = 0; i < layers_n; ++i) d_layers.push_back(d_tok.data() + i * S * rig.tokens * cfg.dim_in);
         const auto o = rig.outputs(const_cast<double*>(d.data()));
         dpt_head_backward<double>(d_layers, grads, {o.preds, o.conf, o.features, o.fused_features}, cache, cfg, rig.w,
-                                  layers);
+                                  layers, pixels ? d_image.data() : nullptr);
       },
       opt);
   INFO(result.summary());
@@ -151,9 +166,43 @@ TEST_CASE("DPT head backward matches finite differences with inv_log and sigmoid
   check_dpt_gradients(cfg, 1, 7, 3, 1, 3, 6);  // 3 x 1 grid, image not a multiple of the patch
 }
 
+TEST_CASE("DPT head backward matches finite differences when the image joins, raw or through its convolutions",
+          "[dpt_head][backward]") {
+  DptHeadConfig cfg = dpt_tiny_config();
+  cfg.output_dim = 4;
+  cfg.activation = DptActivation::linear;
+  cfg.conf_activation = DptConfActivation::sigmoid;
+  cfg.patch_size = 2;
+  cfg.image_channels = 3;
+  cfg.image_convs = GENERATE(0, 1, 3);
+  cfg.image_width = 5;
+  INFO("image_convs " << cfg.image_convs);
+  std::vector<io::TensorSpec> specs;
+  append_dpt_head_specs(specs, cfg, "");
+  index_t image_conv_tensors = 0;
+  for (const auto& s : specs) image_conv_tensors += s.name.rfind("scratch.image_conv.", 0) == 0;
+  CHECK(image_conv_tensors == 2 * cfg.image_convs);
+  // Training forward = inference forward bit for bit, and the cache holds what dpt_head_cache_elements counts.
+  heads_backward_test::FlatParams flat(specs, 14);
+  const index_t S = 2, H = 6, W = 4, start = 1, layers_n = 3;  // 3 x 2 grid of 2-pixel patches
+  DptRig<double> rig(cfg, flat, dpt_normal_values(layers_n * S * (start + 6) * cfg.dim_in, 15), S, H, W, start,
+                     layers_n);
+  const auto image = dpt_normal_values(S * 3 * rig.full, 16);
+  const auto layers = rig.layers();
+  std::vector<double> a(rig.out_size(), 1.0), b(rig.out_size(), 2.0);
+  dpt_head_forward<double>(rig.outputs(a.data()), cfg, rig.w, layers, S, rig.tokens, start, H, W, rig.ws, image.data());
+  DptHeadCache<double> cache;
+  dpt_head_forward_train<double>(rig.outputs(b.data()), cache, cfg, rig.w, layers, S, rig.tokens, start, H, W, rig.ws,
+                                 image.data());
+  CHECK(a == b);
+  CHECK(cache_held(cache) == dpt_head_cache_elements(cfg, rig.ph, rig.pw, S));
+  CHECK(cache.image_act.size() == static_cast<std::size_t>(S * cfg.image_convs * cfg.image_width * rig.full));
+  check_dpt_gradients(cfg, 2, 4, 6, 1, 3, 6);
+}
+
 TEST_CASE("DPT head backward: no gradient for special tokens or unused layers", "[dpt_head][backward]") {
   const DptHeadConfig cfg = dpt_tiny_config();
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_dpt_head_specs(specs, cfg, "");
   heads_backward_test::FlatParams flat(specs, 21);
   const index_t S = 2, H = 8, W = 12, start = 3, layers_n = 4;
@@ -184,7 +233,7 @@ TEST_CASE("DPT head training forward equals the inference forward bit for bit", 
   DptHeadConfig cfg = dpt_tiny_config();
   cfg.features = 16;
   cfg.out_channels = {8, 8, 16, 8};
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_dpt_head_specs(specs, cfg, "");
   heads_backward_test::FlatParams flat(specs, 31);
   const index_t S = 3, H = 21, W = 17, start = 5, layers_n = 3;  // 5 x 4 grid
@@ -199,17 +248,12 @@ TEST_CASE("DPT head training forward equals the inference forward bit for bit", 
   const index_t Fh = cfg.head_features();
   const auto o = rig.outputs(b.data());
   CHECK(std::equal(cache.up.begin(), cache.up.end(), o.features, o.features + S * Fh * rig.full));
-  std::size_t held = cache.ln_mean.size() + cache.ln_rstd.size() + cache.fused.size() + cache.up.size() +
-                     cache.hidden.size() + cache.logits.size();
-  for (int i = 0; i < 4; ++i)
-    held += cache.proj[i].size() + cache.level[i].size() + cache.unit1_r[i].size() + cache.unit1_u[i].size() +
-            cache.unit2_r[i].size() + cache.unit2_u[i].size() + cache.block_out[i].size();
-  CHECK(static_cast<index_t>(held) == dpt_head_cache_elements(cfg, rig.ph, rig.pw, S));
+  CHECK(cache_held(cache) == dpt_head_cache_elements(cfg, rig.ph, rig.pw, S));
 }
 
 TEST_CASE("DPT head backward rejects an empty or mismatched cache", "[dpt_head][backward]") {
   const DptHeadConfig cfg = dpt_tiny_config();
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_dpt_head_specs(specs, cfg, "");
   heads_backward_test::FlatParams flat(specs, 41);
   DptRig<double> rig(cfg, flat, dpt_normal_values(3 * (2 + 6) * cfg.dim_in, 42), 1, 8, 12, 2, 3);

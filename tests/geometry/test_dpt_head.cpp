@@ -39,7 +39,7 @@ template <class T>
 void run_dpt_bundle_cases() {
   const auto json = heads_test::bundle_config();
   const DptHeadConfig cfg = dpt_head_config_from_vggt_json(json);
-  ParamSource<T> src(heads_test::bundle(), "param.");
+  io::ParamSource<T> src(heads_test::bundle(), "param.");
   const auto weights = load_dpt_head_weights(src, cfg);
   if constexpr (std::is_same_v<T, float>) CHECK(src.converted_bytes() == 0);
   const index_t depth = json.at("depth").get<index_t>();
@@ -75,7 +75,7 @@ TEST_CASE("DPT head reproduces the bundle's depth and confidence (double)", "[dp
 TEST_CASE("DPT head exposes the map that output_conv2 turns into depth", "[dpt_head]") {
   const auto json = heads_test::bundle_config();
   const DptHeadConfig cfg = dpt_head_config_from_vggt_json(json);
-  ParamSource<double> src(heads_test::bundle(), "param.");
+  io::ParamSource<double> src(heads_test::bundle(), "param.");
   const auto w = load_dpt_head_weights(src, cfg);
   const CaseInputs in = load_case(0, json.at("depth").get<index_t>());
   const auto layers_t = cast_layers<double>(in);
@@ -116,7 +116,7 @@ TEST_CASE("DPT head exposes the map that output_conv2 turns into depth", "[dpt_h
 
 TEST_CASE("DPT head parameter names match the VGGT-1B state_dict layout", "[dpt_head]") {
   const auto expected = heads_test::vggt1b_layout_shapes("depth_head.");
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_dpt_head_specs(specs, DptHeadConfig{});
   const auto ours = heads_test::spec_shapes(specs);
   CHECK(ours.size() == specs.size());
@@ -141,7 +141,7 @@ TEST_CASE("DPT head loading lists every missing, mis-shaped and unexpected tenso
   writer.add_raw("param.depth_head.scratch.extra.weight", safetensors::Dtype::F32, {1}, &one, 4);
   const auto path = std::filesystem::temp_directory_path() / ("flexsplat_dpt_bad_" + std::to_string(::getpid()) + ".safetensors");
   writer.write(path);
-  ParamSource<float> src(safetensors::File::open(path), "param.");
+  io::ParamSource<float> src(safetensors::File::open(path), "param.");
   try {
     load_dpt_head_weights(src, cfg);
     FAIL("loading should have failed");
@@ -159,7 +159,7 @@ TEST_CASE("DPT head loading lists every missing, mis-shaped and unexpected tenso
 TEST_CASE("DPT head rejects inconsistent inputs with clear errors", "[dpt_head]") {
   const auto json = heads_test::bundle_config();
   const DptHeadConfig cfg = dpt_head_config_from_vggt_json(json);
-  ParamSource<float> src(heads_test::bundle(), "param.");
+  io::ParamSource<float> src(heads_test::bundle(), "param.");
   const auto w = load_dpt_head_weights(src, cfg);
   const CaseInputs in = load_case(2, json.at("depth").get<index_t>());
   std::vector<const float*> layers;

@@ -14,7 +14,7 @@ TEST_CASE("flops: the camera head count equals its linear layers' shapes plus tr
     CameraHeadConfig c;  // VGGT-1B
     c.trunk_depth = 2;
     c.iterations = 3;
-    std::vector<TensorSpec> specs;
+    std::vector<io::TensorSpec> specs;
     append_camera_head_specs(specs, c);
     double linear = 0;
     for (const auto& s : specs)

@@ -13,7 +13,7 @@ using namespace flexsplat::geometry;
 namespace {
 
 template <class T>
-void add_random(ParamSource<T>& src, const std::vector<TensorSpec>& specs, unsigned seed) {
+void add_random(io::ParamSource<T>& src, const std::vector<io::TensorSpec>& specs, unsigned seed) {
   std::mt19937 rng(seed);
   std::normal_distribution<double> normal;
   for (const auto& s : specs) {
@@ -36,9 +36,9 @@ std::vector<double> random_tokens(std::size_t n, unsigned seed) {
 
 template <class T>
 std::vector<double> run_camera(const CameraHeadConfig& cfg, const std::vector<double>& tokens, index_t S, index_t n_tok) {
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_camera_head_specs(specs, cfg);
-  ParamSource<T> src;
+  io::ParamSource<T> src;
   add_random(src, specs, 99);
   const auto w = load_camera_head_weights(src, cfg);
   const std::vector<T> in(tokens.begin(), tokens.end());
@@ -50,9 +50,9 @@ std::vector<double> run_camera(const CameraHeadConfig& cfg, const std::vector<do
 template <class T>
 std::vector<double> run_dpt(const DptHeadConfig& cfg, const std::vector<double>& tokens, index_t layers_n, index_t S,
                             index_t H, index_t W, index_t patch_start) {
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_dpt_head_specs(specs, cfg);
-  ParamSource<T> src;
+  io::ParamSource<T> src;
   add_random(src, specs, 77);
   const auto w = load_dpt_head_weights(src, cfg);
   const std::vector<T> in(tokens.begin(), tokens.end());

@@ -31,7 +31,7 @@ TEST_CASE("a 1% change of one LayerScale is caught by the comparison", "[geometr
   const auto expected = file.get<float, 5>("case2.depth");
   ReferenceReport report;
   const auto depth_row = [&](float factor) {
-    ParamSource<float> src(file, "param.");
+    io::ParamSource<float> src(file, "param.");
     std::vector<float> changed(original.data(), original.data() + original.size());
     for (auto& v : changed) v *= factor;
     src.add(name, {original.shape(0)}, changed);
@@ -55,7 +55,7 @@ TEST_CASE("a 1% change of one LayerScale is caught by the comparison", "[geometr
 TEST_CASE("vggt_forward rejects images that are not whole patches or not finite", "[geometry][vggt]") {
   const auto file = safetensors::File::open(vggt_bundle_path());
   const VggtConfig cfg = vggt_config_from_json(file.metadata("config"));
-  ParamSource<float> src(file, "param.");
+  io::ParamSource<float> src(file, "param.");
   const auto weights = load_vggt_weights(src, cfg);
   VggtWorkspace<float> ws;
   std::vector<float> images(3 * 28 * 30, 0.5f);

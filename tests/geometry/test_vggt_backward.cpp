@@ -51,26 +51,26 @@ VggtConfig tiny_vggt() {
 template <class T>
 struct FlatVggt {
   VggtConfig c;
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   std::vector<T> params, grads;
-  ParamSource<T> src;
+  io::ParamSource<T> src;
   VggtWeights<T> w;
   VggtGrads<T> g;
   FlatVggt(const VggtConfig& config, unsigned seed) : c(config) {
     specs = vggt_parameter_specs(c);
-    std::vector<double> v(static_cast<std::size_t>(flat_size(specs)));
+    std::vector<double> v(static_cast<std::size_t>(io::flat_size(specs)));
     const auto noise = random_doubles(v.size(), seed, 0.1);
     index_t at = 0;
     for (auto& s : specs) {
       random_parameter_values(v.data() + at, s, seed + static_cast<std::uint64_t>(at), 0.5);
       const bool pose_out = s.name.rfind("camera_head.pose_branch.fc2.", 0) == 0;
-      for (index_t i = 0; i < spec_numel(s); ++i) v[at + i] = (pose_out ? 0.1 : 1.0) * (v[at + i] + noise[at + i]);
+      for (index_t i = 0; i < io::spec_numel(s); ++i) v[at + i] = (pose_out ? 0.1 : 1.0) * (v[at + i] + noise[at + i]);
       if (s.name == "camera_head.pose_branch.fc2.bias") v[at + 6] += 0.5, v[at + 7] += 0.6, v[at + 8] += 0.6;
-      at += spec_numel(s);
+      at += io::spec_numel(s);
     }
     params.assign(v.begin(), v.end());
     grads.assign(params.size(), T(0));
-    add_flat_views(src, specs, params.data());
+    io::add_flat_views(src, specs, params.data());
     w = load_vggt_weights(src, c);
     g = vggt_grads(w, params.data(), grads.data());
   }
@@ -78,9 +78,9 @@ struct FlatVggt {
     std::vector<testing::GradParam> out;
     index_t at = 0;
     for (auto& s : specs) {
-      const auto n = static_cast<std::size_t>(spec_numel(s));
+      const auto n = static_cast<std::size_t>(io::spec_numel(s));
       out.push_back({s.name, std::span<T>(params.data() + at, n), std::span<T>(grads.data() + at, n)});
-      at += spec_numel(s);
+      at += io::spec_numel(s);
     }
     return out;
   }
@@ -165,13 +165,17 @@ TEST_CASE("VGGT end to end: images -> cameras, depth, confidence, world points, 
 }
 
 TEST_CASE("VGGT point and match heads: outputs as in inference, backward matches central differences for both heads, "
-          "the trunk and the images (also through the match head's image input)",
+          "the trunk and the images (also through the match head's image input and its convolutions)",
           "[geometry][vggt][backward]") {
   VggtConfig c = tiny_vggt();
   c.point_head = true;
   c.match_dim = 3;
-  c.match_image = GENERATE(false, true);  // true: the match head's output_conv2 also reads the image's pixels
-  INFO("match_image " << c.match_image);
+  // 1: the match head's output_conv2 also reads the image's pixels; 2: through two image convolutions first.
+  const int image_mode = GENERATE(0, 1, 2);
+  c.match_image = image_mode > 0;
+  c.match_image_convs = image_mode == 2 ? 2 : 0;
+  c.match_image_width = 4;
+  INFO("match_image " << c.match_image << ", match_image_convs " << c.match_image_convs);
   FlatVggt<double> m(c, 5);
   // Output logits near 0.1, where inv_log (sign(x)(exp|x| - 1)) is tame, as a trained head's are: at the random scale
   // they reach the exponential's steep end and central differences of step 1e-6 lose their last digits.
@@ -344,11 +348,11 @@ TEST_CASE("VGGT training forward equals inference, recompute gives bit-identical
   bool trunk_nonzero = false, heads_zero = true;
   for (auto& s : m.specs) {
     const bool head = s.name.rfind("camera_head.", 0) == 0 || s.name.rfind("depth_head.", 0) == 0;
-    for (index_t i = 0; i < spec_numel(s); ++i) {
+    for (index_t i = 0; i < io::spec_numel(s); ++i) {
       if (head && g[at + i] != 0.0f) heads_zero = false;
       if (!head && g[at + i] != 0.0f) trunk_nonzero = true;
     }
-    at += spec_numel(s);
+    at += io::spec_numel(s);
   }
   CHECK(trunk_nonzero);
   CHECK(heads_zero);

@@ -59,7 +59,7 @@ TEST_CASE("the VGGT-1B checkpoint layout maps completely, zero-copy, from a spar
   const RemoveOnExit file{write_sparse_vggt1b("F32", 4)};
   CHECK(std::filesystem::file_size(file.path) > std::uintmax_t(5'000'000'000));
   const VggtConfig cfg;  // VGGT-1B defaults
-  auto source = ParamSource<float>(safetensors::File::open(file.path));
+  auto source = io::ParamSource<float>(safetensors::File::open(file.path));
 
   // The spec table is exactly the checkpoint minus the point and track heads.
   std::set<std::string> layout_names, spec_names;
@@ -103,7 +103,7 @@ TEST_CASE("one error lists every missing, mis-shaped and unexpected tensor, igno
   const RemoveOnExit file{std::filesystem::temp_directory_path() /
                           ("flexsplat_vggt_broken_" + std::to_string(::getpid()) + ".safetensors")};
   writer.write(file.path);
-  ParamSource<float> src(safetensors::File::open(file.path));
+  io::ParamSource<float> src(safetensors::File::open(file.path));
   std::string message;
   try {
     load_vggt_weights(src, cfg);
@@ -137,7 +137,7 @@ TEST_CASE("BF16 and F16 checkpoints are converted once to float", "[geometry][we
   const RemoveOnExit file{std::filesystem::temp_directory_path() /
                           ("flexsplat_vggt_half_" + std::to_string(::getpid()) + ".safetensors")};
   writer.write(file.path);
-  ParamSource<float> src(safetensors::File::open(file.path), "param.");
+  io::ParamSource<float> src(safetensors::File::open(file.path), "param.");
   const auto weights = load_vggt_weights(src, cfg);
   CHECK(src.converted_bytes() == floats * sizeof(float));
   // A second lookup returns the same converted buffer instead of converting again.

@@ -1,5 +1,7 @@
 #include <catch2/catch.hpp>
 
+#include <map>
+
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/geometry/weights.hpp"
 #include "flexsplat/model/config.hpp"
@@ -48,6 +50,26 @@ TEST_CASE("the point head is a config switch: its tensors appear under VGGT's na
   j = model::to_json(c);
   j["geometry"]["match_dim"] = 300;
   CHECK_THROWS_WITH(model::flexsplat_config_from_json(j.dump()), Catch::Contains("'match_dim' = 300"));
+  // Its image convolutions: two of 8 channels, then 8 + features/2 channels into output_conv2.0; kept by the JSON.
+  c.geometry.match_image = true;
+  c.geometry.match_image_convs = 2;
+  c.geometry.match_image_width = 8;
+  std::map<std::string, std::vector<index_t>> shapes;
+  for (const auto& s : geometry::vggt_parameter_specs(c.geometry)) shapes[s.name] = s.shape;
+  CHECK(shapes["match_head.scratch.image_conv.0.weight"] == std::vector<index_t>{8, 3, 3, 3});
+  CHECK(shapes["match_head.scratch.image_conv.1.weight"] == std::vector<index_t>{8, 8, 3, 3});
+  CHECK(shapes.count("match_head.scratch.image_conv.2.weight") == 0);
+  CHECK(shapes["match_head.scratch.output_conv2.0.weight"][1] == 8 + c.geometry.depth.head_features());
+  const auto convs = model::flexsplat_config_from_json(model::to_json(c).dump()).geometry;
+  CHECK(convs.match_image_convs == 2);
+  CHECK(convs.match_image_width == 8);
+  j = model::to_json(c);
+  j["geometry"]["match_image_convs"] = 5;
+  CHECK_THROWS_WITH(model::flexsplat_config_from_json(j.dump()), Catch::Contains("'match_image_convs' = 5"));
+  j = model::to_json(c);
+  j["geometry"]["match_image"] = false;
+  CHECK_THROWS_WITH(model::flexsplat_config_from_json(j.dump()),
+                    Catch::Contains("match_image_convs 2 needs match_image"));
 }
 
 TEST_CASE("FlexSplat config errors name the offending setting", "[model][config]") {

@@ -15,7 +15,7 @@ using train_test::TempPath;
 namespace {
 train::ParamStore<float> small_store(bool training = true) {
   train::ParamStore<float> store;
-  std::vector<geometry::TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   decoder::append_model_specs(specs, train_test::tiny_model_config());
   store.add_segment("head", {{"head.weight", {4, 3}}, {"head.bias", {4}}});
   store.add_segment("model", specs);
@@ -127,7 +127,7 @@ TEST_CASE("checkpoint: a VGGT-layout file (F16 and BF16, extra heads) initialise
 
   train::ParamStore<float> store;
   store.add_segment("geometry", specs);
-  std::vector<geometry::TensorSpec> model_specs;
+  std::vector<io::TensorSpec> model_specs;
   decoder::append_model_specs(model_specs, train_test::tiny_model_config());
   store.add_segment("model", model_specs);
   store.allocate();

@@ -16,7 +16,7 @@ TEST_CASE("decoder names cover ModelParamLayout exactly, in order and at its off
   for (index_t levels : {1, 2}) {
     auto cfg = tiny_model_config();
     cfg.unet.levels = levels;
-    std::vector<geometry::TensorSpec> specs;
+    std::vector<io::TensorSpec> specs;
     decoder::append_model_specs(specs, cfg);
     std::vector<index_t> offsets;
     index_t at = 0;
@@ -129,7 +129,7 @@ TEST_CASE("geometry binds into the store without copies and runs as from the mma
   const auto file = safetensors::File::open(train_test::vggt_bundle_path());
   train::ParamStore<float> store;
   store.add_segment("geometry", geometry::vggt_parameter_specs(cfg));
-  std::vector<geometry::TensorSpec> model_specs;
+  std::vector<io::TensorSpec> model_specs;
   decoder::append_model_specs(model_specs, tiny_model_config());
   store.add_segment("model", model_specs);
   store.allocate(false);
@@ -137,7 +137,7 @@ TEST_CASE("geometry binds into the store without copies and runs as from the mma
     if (t.name.rfind("unet.", 0) != 0 && t.name.rfind("fusion.", 0) != 0 && t.name.rfind("decoder.", 0) != 0)
       file.convert(file.info("param." + t.name), store.params() + t.offset);
 
-  geometry::ParamSource<float> views;
+  io::ParamSource<float> views;
   store.bind_views(views, "geometry");
   const auto w = geometry::load_vggt_weights(views, cfg);
   CHECK(w.camera.trunk[0].qkv_weight == store.param("camera_head.trunk.0.attn.qkv.weight").data());

@@ -33,6 +33,7 @@
 #include "flexsplat/data/random.hpp"
 #include "flexsplat/image/image_io.hpp"
 #include "flexsplat/image/resample.hpp"
+#include "flexsplat/io/cameras_json.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -40,8 +41,6 @@ namespace data {
 
 // Depth PNG quantum of the shared renders: 0.1 mm per step, so 16 bits reach 6.5535 units.
 inline constexpr double kDepthPngScale = 1e-4;
-// A stored w2c rotation counts as a rotation when R^T R and det R are within this of I and 1 (float storage).
-inline constexpr double kRotationTolerance = 1e-4;
 
 // ---------------------------------------------------------------------------------------------------------------
 // Generator
@@ -297,24 +296,6 @@ template <class... Parts>
   fail("'", file.string(), "': ", std::forward<Parts>(parts)...);
 }
 
-inline void read_matrix(const nlohmann::json& frame, const char* key, int rows, int cols, double* out,
-                        const std::filesystem::path& file, std::size_t index) {
-  if (!frame.contains(key) || !frame[key].is_array() || frame[key].size() != static_cast<std::size_t>(rows))
-    dataset_error(file, "frame ", index, " '", key, "' is not a ", rows, "x", cols, " matrix");
-  for (int r = 0; r < rows; ++r) {
-    const nlohmann::json& row = frame[key][static_cast<std::size_t>(r)];
-    if (!row.is_array() || row.size() != static_cast<std::size_t>(cols))
-      dataset_error(file, "frame ", index, " '", key, "' row ", r, " does not have ", cols, " entries");
-    for (int c = 0; c < cols; ++c) {
-      const nlohmann::json& v = row[static_cast<std::size_t>(c)];
-      if (!v.is_number()) dataset_error(file, "frame ", index, " '", key, "'[", r, "][", c, "] is not a number");
-      const double x = v.get<double>();
-      if (!std::isfinite(x)) dataset_error(file, "frame ", index, " '", key, "'[", r, "][", c, "] is not finite");
-      out[r * cols + c] = x;
-    }
-  }
-}
-
 // True if p is a regular file, false if it or a parent is missing; any other failure (a name longer than the file
 // system allows, no permission, a symlink loop) is an error naming p, not a std::filesystem exception.
 inline bool is_file(const std::filesystem::path& p) {
@@ -343,88 +324,36 @@ inline ObjectRecord load_object(const std::filesystem::path& dir) {
   namespace fs = std::filesystem;
   const fs::path file = dir / "cameras.json";
   if (!detail::is_file(file)) detail::dataset_error(file, "missing (not an object folder)");
-  std::ifstream in(file, std::ios::binary);
-  if (!in) detail::dataset_error(file, "cannot open");
-  const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  nlohmann::json doc;
-  try {
-    doc = nlohmann::json::parse(text);
-  } catch (const nlohmann::json::parse_error& e) {
-    // Python's json module writes NaN / Infinity, which JSON cannot hold: say so instead of a bare syntax error.
-    const std::size_t at = e.byte > 0 ? std::min<std::size_t>(e.byte - 1, text.size()) : 0;
-    const std::size_t start = text.find_last_of(",[:{ \n", at);
-    const std::string token = text.substr(start == std::string::npos ? 0 : start + 1, 9);
-    if (token.rfind("NaN", 0) == 0 || token.rfind("Infinity", 0) == 0 || token.rfind("-Infinity", 0) == 0)
-      detail::dataset_error(file, "contains a non-finite number ('", token.substr(0, token.find_first_of(",]} \n")),
-                            "' near byte ", e.byte, "); every K and w2c entry must be finite");
-    detail::dataset_error(file, "not valid JSON (", e.what(), ")");
-  } catch (const nlohmann::json::exception& e) {
-    if (e.id == 406) detail::dataset_error(file, "contains a non-finite number (", e.what(), ")");
-    detail::dataset_error(file, "not valid JSON (", e.what(), ")");
-  }
-  if (!doc.is_object()) detail::dataset_error(file, "not a JSON object");
+  const nlohmann::json doc = io::read_cameras_json(file);
+  const std::vector<Camera> cameras = io::parse_cameras_json(doc, file.string());
   ObjectRecord rec;
   rec.dir = dir;
   rec.name = dir.filename().string();
   if (rec.name.empty()) rec.name = dir.parent_path().filename().string();
-  auto positive_int = [&](const char* key) {
-    if (!doc.contains(key) || !doc[key].is_number_integer() || doc[key].get<long long>() < 1 ||
-        doc[key].get<long long>() > 65535)
-      detail::dataset_error(file, "'", key, "' must be an integer in [1, 65535]");
-    return doc[key].get<int>();
-  };
-  rec.width = positive_int("width");
-  rec.height = positive_int("height");
+  rec.width = doc["width"].get<int>();  // parse_cameras_json checked both
+  rec.height = doc["height"].get<int>();
   if (!doc.contains("depth_png_scale_m") || !doc["depth_png_scale_m"].is_number())
     detail::dataset_error(file, "has no numeric 'depth_png_scale_m'");
   rec.depth_scale = doc["depth_png_scale_m"].get<double>();
   if (!(std::isfinite(rec.depth_scale) && rec.depth_scale > 0 && rec.depth_scale <= 1))
     detail::dataset_error(file, "'depth_png_scale_m' = ", rec.depth_scale, " must be finite and in (0, 1]");
-  if (!doc.contains("frames") || !doc["frames"].is_array() || doc["frames"].empty())
-    detail::dataset_error(file, "has no non-empty 'frames' array");
   const nlohmann::json& frames = doc["frames"];
   for (std::size_t i = 0; i < frames.size(); ++i) {
     const nlohmann::json& frame = frames[i];
-    if (!frame.is_object()) detail::dataset_error(file, "frame ", i, " is not an object");
     FrameRecord fr;
     fr.image = detail::frame_file(frame, "file", dir, file, i);
     fr.depth = detail::frame_file(frame, "depth", dir, file, i);
-    double k[9], w2c[12];
-    detail::read_matrix(frame, "K", 3, 3, k, file, i);
-    detail::read_matrix(frame, "w2c", 3, 4, w2c, file, i);
-    Camera& cam = fr.camera;
-    cam.width = rec.width;
-    cam.height = rec.height;
-    for (int r = 0; r < 3; ++r) {
-      for (int c = 0; c < 3; ++c) {
-        cam.K[c][r] = k[r * 3 + c];
-        cam.R[c][r] = w2c[r * 4 + c];
-      }
-      cam.t[r] = w2c[r * 4 + 3];
-    }
-    if (!(k[0] > 0 && k[4] > 0 && k[3] == 0 && k[6] == 0 && k[7] == 0 && k[8] == 1))
-      detail::dataset_error(file, "frame ", i, " 'K' must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0");
-    const glm::dmat3 rtr = glm::transpose(cam.R) * cam.R;
-    double err = std::abs(glm::determinant(cam.R) - 1);
-    for (int c = 0; c < 3; ++c)
-      for (int r = 0; r < 3; ++r) err = std::max(err, std::abs(rtr[c][r] - (c == r ? 1.0 : 0.0)));
-    if (!(err <= kRotationTolerance))
-      detail::dataset_error(file, "frame ", i, " 'w2c' rotation part is not a rotation (|R^T R - I|, |det R - 1| up to ",
-                            err, ")");
-    if (frame.contains("elevation_deg") && frame["elevation_deg"].is_number())
-      cam.elevation_deg = frame["elevation_deg"].get<double>();
-    if (frame.contains("azimuth_deg") && frame["azimuth_deg"].is_number())
-      cam.azimuth_deg = frame["azimuth_deg"].get<double>();
+    fr.camera = cameras[i];
     for (const fs::path* p : {&fr.image, &fr.depth})
       if (!detail::is_file(*p)) detail::dataset_error(*p, "missing (frame ", i, " of '", file.string(), "')");
     const image::ImageInfo im = image::probe(fr.image);
-    if (im.width != rec.width || im.height != rec.height || im.channels < 3)
+    if (im.width != fr.camera.width || im.height != fr.camera.height || im.channels < 3)
       detail::dataset_error(fr.image, "is ", im.width, "x", im.height, " with ", im.channels, " channels; '",
-                            file.string(), "' says ", rec.width, "x", rec.height, " RGB(A)");
+                            file.string(), "' says ", fr.camera.width, "x", fr.camera.height, " RGB(A)");
     const image::ImageInfo dp = image::probe(fr.depth);
-    if (dp.width != rec.width || dp.height != rec.height || dp.channels != 1 || dp.bit_depth != 16)
+    if (dp.width != fr.camera.width || dp.height != fr.camera.height || dp.channels != 1 || dp.bit_depth != 16)
       detail::dataset_error(fr.depth, "is ", dp.width, "x", dp.height, ", ", dp.bit_depth, "-bit with ", dp.channels,
-                            " channels; '", file.string(), "' says ", rec.width, "x", rec.height,
+                            " channels; '", file.string(), "' says ", fr.camera.width, "x", fr.camera.height,
                             " 16-bit single-channel depth");
     rec.frames.push_back(std::move(fr));
   }

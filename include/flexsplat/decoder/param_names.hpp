@@ -7,14 +7,14 @@
 #include <vector>
 
 #include "flexsplat/decoder/model.hpp"
-#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/io/param_source.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
 namespace decoder {
 
 // prefix is prepended to every name (e.g. "model." ); the names below it are "unet.*", "fusion.*", "decoder.*".
-inline void append_model_specs(std::vector<geometry::TensorSpec>& out, const ModelConfig& c,
+inline void append_model_specs(std::vector<io::TensorSpec>& out, const ModelConfig& c,
                                const std::string& prefix = {}) {
   validate_model_config(c);
   auto add = [&](const std::string& name, std::vector<index_t> shape) { out.push_back({prefix + name, std::move(shape)}); };

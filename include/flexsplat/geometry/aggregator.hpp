@@ -17,7 +17,7 @@
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/geometry/block.hpp"
 #include "flexsplat/geometry/config.hpp"
-#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/io/param_source.hpp"
 #include "flexsplat/geometry/rope.hpp"
 
 namespace flexsplat {
@@ -32,7 +32,7 @@ struct AggregatorWeights {
 };
 
 // Parameters of the aggregator outside the DINOv2 embedder ("aggregator." prefix included).
-inline void append_aggregator_trunk_specs(std::vector<TensorSpec>& out, const AggregatorConfig& c) {
+inline void append_aggregator_trunk_specs(std::vector<io::TensorSpec>& out, const AggregatorConfig& c) {
   const index_t C = c.embed_dim;
   out.push_back({"aggregator.camera_token", {1, c.frame_tokens, 1, C}});
   out.push_back({"aggregator.register_token", {1, c.frame_tokens, c.num_register_tokens, C}});
@@ -43,7 +43,7 @@ inline void append_aggregator_trunk_specs(std::vector<TensorSpec>& out, const Ag
 }
 
 template <class T>
-AggregatorWeights<T> load_aggregator_trunk_weights(ParamSource<T>& src, const AggregatorConfig& c) {
+AggregatorWeights<T> load_aggregator_trunk_weights(io::ParamSource<T>& src, const AggregatorConfig& c) {
   c.validate();
   const index_t C = c.embed_dim;
   AggregatorWeights<T> w;
@@ -100,8 +100,8 @@ struct AggregatorGrads {
 template <class T>
 AggregatorGrads<T> aggregator_grads(const AggregatorWeights<T>& w, const T* params_base, T* grads_base) {
   AggregatorGrads<T> g;
-  g.camera_token = rebase_pointer(w.camera_token, params_base, grads_base);
-  g.register_token = rebase_pointer(w.register_token, params_base, grads_base);
+  g.camera_token = io::rebase_pointer(w.camera_token, params_base, grads_base);
+  g.register_token = io::rebase_pointer(w.register_token, params_base, grads_base);
   for (const auto& b : w.frame_blocks) g.frame_blocks.push_back(block_grads(b, params_base, grads_base));
   for (const auto& b : w.global_blocks) g.global_blocks.push_back(block_grads(b, params_base, grads_base));
   return g;

@@ -16,7 +16,7 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/simd_dispatch.hpp"
-#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/io/param_source.hpp"
 #include "flexsplat/geometry/rope.hpp"
 #include "flexsplat/nn/activations.hpp"
 #include "flexsplat/nn/attention.hpp"
@@ -65,7 +65,7 @@ struct BlockWeights {
 };
 
 // Parameter names (after `prefix`, e.g. "aggregator.frame_blocks.3.") and shapes, as in PyTorch's state_dict.
-inline void append_block_specs(std::vector<TensorSpec>& out, const std::string& prefix, const BlockConfig& c) {
+inline void append_block_specs(std::vector<io::TensorSpec>& out, const std::string& prefix, const BlockConfig& c) {
   const index_t C = c.dim, H = c.mlp_hidden(), hd = c.head_dim();
   out.push_back({prefix + "norm1.weight", {C}});
   out.push_back({prefix + "norm1.bias", {C}});
@@ -90,7 +90,7 @@ inline void append_block_specs(std::vector<TensorSpec>& out, const std::string& 
 }
 
 template <class T>
-BlockWeights<T> load_block_weights(ParamSource<T>& src, const std::string& prefix, const BlockConfig& c) {
+BlockWeights<T> load_block_weights(io::ParamSource<T>& src, const std::string& prefix, const BlockConfig& c) {
   c.validate(prefix + "block");
   const index_t C = c.dim, H = c.mlp_hidden(), hd = c.head_dim();
   BlockWeights<T> w;
@@ -144,7 +144,7 @@ struct BlockGrads {
 // Gradients of weights that live in one flat parameter block, in a gradient block with the same offsets.
 template <class T>
 BlockGrads<T> block_grads(const BlockWeights<T>& w, const T* params_base, T* grads_base) {
-  auto g = [&](const T* p) { return rebase_pointer(p, params_base, grads_base); };
+  auto g = [&](const T* p) { return io::rebase_pointer(p, params_base, grads_base); };
   return {g(w.norm1_weight), g(w.norm1_bias), g(w.qkv_weight),   g(w.qkv_bias),     g(w.q_norm_weight),
           g(w.q_norm_bias),  g(w.k_norm_weight), g(w.k_norm_bias), g(w.proj_weight), g(w.proj_bias),
           g(w.ls1),          g(w.norm2_weight), g(w.norm2_bias),  g(w.fc1_weight),   g(w.fc1_bias),

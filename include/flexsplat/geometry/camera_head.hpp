@@ -17,8 +17,8 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/geometry/block.hpp"
-#include "flexsplat/geometry/param_check.hpp"
-#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/io/param_check.hpp"
+#include "flexsplat/io/param_source.hpp"
 #include "flexsplat/geometry/pose_encoding.hpp"
 #include "flexsplat/nn/activations.hpp"
 #include "flexsplat/nn/layernorm.hpp"
@@ -84,7 +84,7 @@ struct CameraHeadWeights {
 };
 
 // Parameter names and shapes as in VGGT's state_dict, each prefixed with `prefix`.
-inline void append_camera_head_specs(std::vector<TensorSpec>& out, const CameraHeadConfig& c,
+inline void append_camera_head_specs(std::vector<io::TensorSpec>& out, const CameraHeadConfig& c,
                                      const std::string& prefix = "camera_head.") {
   const index_t C = c.dim, Hb = c.branch_hidden(), E = pose_encoding_dim;
   out.push_back({prefix + "token_norm.weight", {C}});
@@ -105,12 +105,12 @@ inline void append_camera_head_specs(std::vector<TensorSpec>& out, const CameraH
 
 // Checks every parameter first (one error lists all missing, mis-shaped and unexpected `prefix` tensors), then binds.
 template <class T>
-CameraHeadWeights<T> load_camera_head_weights(ParamSource<T>& src, const CameraHeadConfig& c,
+CameraHeadWeights<T> load_camera_head_weights(io::ParamSource<T>& src, const CameraHeadConfig& c,
                                               const std::string& prefix = "camera_head.") {
   c.validate();
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_camera_head_specs(specs, c, prefix);
-  check_parameters(src, specs, {prefix}, "camera head");
+  io::check_parameters(src, specs, {prefix}, "camera head");
   const index_t C = c.dim, Hb = c.branch_hidden(), E = pose_encoding_dim;
   CameraHeadWeights<T> w;
   w.token_norm_weight = src.get(prefix + "token_norm.weight", {C});
@@ -177,7 +177,7 @@ struct CameraHeadGrads {
 // parameter block `params_base`.
 template <class T>
 CameraHeadGrads<T> camera_head_grads(const CameraHeadWeights<T>& w, const T* params_base, T* grads_base) {
-  auto r = [&](const T* p) { return rebase_pointer(p, params_base, grads_base); };
+  auto r = [&](const T* p) { return io::rebase_pointer(p, params_base, grads_base); };
   CameraHeadGrads<T> g;
   g.token_norm_weight = r(w.token_norm_weight);
   g.token_norm_bias = r(w.token_norm_bias);

@@ -187,6 +187,9 @@ struct VggtConfig {
   index_t match_dim = 0;
   // The match head also sees the image's pixels at full resolution (DptHeadConfig::image_channels 3).
   bool match_image = false;
+  // > 0: the pixels pass that many 3x3 convolutions of match_image_width channels first (DptHeadConfig::image_convs).
+  index_t match_image_convs = 0;
+  index_t match_image_width = 16;
 
   // The point head is the depth head's architecture with 3 + 1 outputs and VGGT's inv_log activation.
   DptHeadConfig point() const {
@@ -203,6 +206,8 @@ struct VggtConfig {
     p.activation = DptActivation::linear;
     p.conf_activation = DptConfActivation::sigmoid;
     p.image_channels = match_image ? 3 : 0;
+    p.image_convs = match_image_convs;
+    p.image_width = match_image_width;
     return p;
   }
 
@@ -220,6 +225,9 @@ struct VggtConfig {
             depth.output_dim);
     require(match_dim >= 0 && match_dim <= 256, "VGGT config: match_dim ", match_dim, " must be in [0, 256]");
     require(!match_image || match_dim > 0, "VGGT config: match_image needs the match head (match_dim > 0)");
+    require(match_image_convs == 0 || match_image, "VGGT config: match_image_convs ", match_image_convs,
+            " needs match_image");
+    if (match_dim > 0) match().validate();
     for (index_t i : depth.intermediate_layer_idx)
       require(i < aggregator.depth, "VGGT config: depth head reads aggregator output ", i, ", depth is ",
               aggregator.depth);
@@ -253,6 +261,15 @@ inline VggtConfig vggt_config_from_json(const std::string& text) {
             " is not true or false");
     c.match_image = j.at("match_image").get<bool>();
   }
+  auto get_count = [&](const char* key, index_t lo, index_t hi, index_t& dst) {
+    if (!j.contains(key)) return;
+    const auto& v = j.at(key);
+    require(v.is_number_integer() && v.get<std::int64_t>() >= lo && v.get<std::int64_t>() <= hi, "VGGT config: '",
+            key, "' = ", v.dump(), " is not an integer in [", lo, ", ", hi, "]");
+    dst = v.get<index_t>();
+  };
+  get_count("match_image_convs", 0, 4, c.match_image_convs);
+  get_count("match_image_width", 1, 256, c.match_image_width);
   c.validate();
   return c;
 }

@@ -14,7 +14,7 @@
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/geometry/block.hpp"
 #include "flexsplat/geometry/config.hpp"
-#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/io/param_source.hpp"
 #include "flexsplat/image/resample.hpp"
 #include "flexsplat/nn/layernorm.hpp"
 
@@ -34,7 +34,7 @@ struct DinoWeights {
 };
 
 // Parameter names under `prefix` ("aggregator.patch_embed." in VGGT); mask_token is stored but unused at inference.
-inline void append_dino_specs(std::vector<TensorSpec>& out, const std::string& prefix, const DinoConfig& c) {
+inline void append_dino_specs(std::vector<io::TensorSpec>& out, const std::string& prefix, const DinoConfig& c) {
   const index_t C = c.embed_dim, M = c.pos_grid();
   out.push_back({prefix + "cls_token", {1, 1, C}});
   out.push_back({prefix + "pos_embed", {1, 1 + M * M, C}});
@@ -48,7 +48,7 @@ inline void append_dino_specs(std::vector<TensorSpec>& out, const std::string& p
 }
 
 template <class T>
-DinoWeights<T> load_dino_weights(ParamSource<T>& src, const std::string& prefix, const DinoConfig& c) {
+DinoWeights<T> load_dino_weights(io::ParamSource<T>& src, const std::string& prefix, const DinoConfig& c) {
   c.validate();
   const index_t C = c.embed_dim, M = c.pos_grid();
   DinoWeights<T> w;
@@ -136,7 +136,7 @@ struct DinoGrads {
 // Gradients of weights bound into one flat parameter block, in a gradient block with the same offsets.
 template <class T>
 DinoGrads<T> dino_grads(const DinoWeights<T>& w, const T* params_base, T* grads_base) {
-  auto g = [&](const T* p) { return rebase_pointer(p, params_base, grads_base); };
+  auto g = [&](const T* p) { return io::rebase_pointer(p, params_base, grads_base); };
   DinoGrads<T> d{g(w.cls_token), g(w.pos_embed), g(w.register_tokens), g(w.patch_weight), g(w.patch_bias),
                  g(w.norm_weight), g(w.norm_bias), {}};
   for (const auto& b : w.blocks) d.blocks.push_back(block_grads(b, params_base, grads_base));

@@ -19,8 +19,8 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/parallel.hpp"
-#include "flexsplat/geometry/param_check.hpp"
-#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/io/param_check.hpp"
+#include "flexsplat/io/param_source.hpp"
 #include "flexsplat/nn/activations.hpp"
 #include "flexsplat/nn/conv.hpp"
 #include "flexsplat/nn/interpolate.hpp"
@@ -49,9 +49,14 @@ struct DptHeadConfig {
   // > 0: the input image's channels join the full-resolution map entering output_conv2 (FlexSplat's match head: a
   // small model's patch tokens cannot place a descriptor within its patch, the pixels can). 0: VGGT's head.
   index_t image_channels = 0;
+  // > 0: that many 3x3 convolutions + ReLU of image_width channels turn the pixels into local features before they join
+  // (a descriptor has to tell a pixel by the texture around it, not by its colour alone). 0: the raw pixels join.
+  index_t image_convs = 0;
+  index_t image_width = 16;
 
   index_t head_features() const { return features / 2; }  // channels after output_conv1
-  index_t conv2_in() const { return head_features() + image_channels; }  // output_conv2.0's input channels
+  index_t image_out() const { return image_convs > 0 ? image_width : image_channels; }  // image channels that join
+  index_t conv2_in() const { return head_features() + image_out(); }  // output_conv2.0's input channels
   static constexpr index_t head_hidden = 32;                // output_conv2's hidden channels
   void validate() const {
     require(dim_in > 0 && patch_size > 0 && features >= 2 && output_dim >= 2, "DPT head config: dim_in ", dim_in,
@@ -60,6 +65,11 @@ struct DptHeadConfig {
     for (index_t oc : out_channels) require(oc > 0, "DPT head config: out_channels entry ", oc, " must be positive");
     require(image_channels >= 0 && image_channels <= 4, "DPT head config: image_channels ", image_channels,
             " must be in [0, 4]");
+    require(image_convs >= 0 && image_convs <= 4 && (image_convs == 0 || image_channels > 0),
+            "DPT head config: image_convs ", image_convs, " must be in [0, 4] and needs image_channels > 0 (got ",
+            image_channels, ")");
+    require(image_width >= 1 && image_width <= 256, "DPT head config: image_width ", image_width,
+            " must be in [1, 256]");
     for (index_t i : intermediate_layer_idx)
       require(i >= 0, "DPT head config: intermediate_layer_idx entry ", i, " must be non-negative");
     if (pos_embed) {
@@ -115,10 +125,11 @@ struct DptHeadWeights {
   std::array<const T*, 4> layer_rn{};    // bias-free 3x3 convs
   std::array<FusionBlockWeights<T>, 4> refinenet;  // [0] = refinenet1 (finest) .. [3] = refinenet4
   ConvWeights<T> output_conv1, output_conv2_0, output_conv2_2;
+  std::array<ConvWeights<T>, 4> image_conv;  // the first image_convs are bound
 };
 
 // Parameter names and shapes as in VGGT's state_dict, each prefixed with `prefix`.
-inline void append_dpt_head_specs(std::vector<TensorSpec>& out, const DptHeadConfig& c,
+inline void append_dpt_head_specs(std::vector<io::TensorSpec>& out, const DptHeadConfig& c,
                                   const std::string& prefix = "depth_head.") {
   const index_t F = c.features;
   const auto& oc = c.out_channels;
@@ -141,6 +152,8 @@ inline void append_dpt_head_specs(std::vector<TensorSpec>& out, const DptHeadCon
       for (int k = 1; k <= 2; ++k) conv(p + "resConfUnit" + std::to_string(u) + ".conv" + std::to_string(k), {F, F, 3, 3});
   }
   conv("scratch.output_conv1", {c.head_features(), F, 3, 3});
+  for (index_t j = 0; j < c.image_convs; ++j)
+    conv("scratch.image_conv." + std::to_string(j), {c.image_width, j == 0 ? c.image_channels : c.image_width, 3, 3});
   conv("scratch.output_conv2.0", {DptHeadConfig::head_hidden, c.conv2_in(), 3, 3});
   conv("scratch.output_conv2.2", {c.output_dim, DptHeadConfig::head_hidden, 1, 1});
 }
@@ -176,6 +189,9 @@ DptHeadWeights<T> bind_dpt_head_weights(const DptHeadConfig& c, Get&& get) {
     conv(fb.unit2.conv2, p + "resConfUnit2.conv2.", {F, F, 3, 3});
   }
   conv(w.output_conv1, "scratch.output_conv1.", {c.head_features(), F, 3, 3});
+  for (index_t j = 0; j < c.image_convs; ++j)
+    conv(w.image_conv[j], "scratch.image_conv." + std::to_string(j) + ".",
+         {c.image_width, j == 0 ? c.image_channels : c.image_width, 3, 3});
   conv(w.output_conv2_0, "scratch.output_conv2.0.", {DptHeadConfig::head_hidden, c.conv2_in(), 3, 3});
   conv(w.output_conv2_2, "scratch.output_conv2.2.", {c.output_dim, DptHeadConfig::head_hidden, 1, 1});
   return w;
@@ -183,12 +199,12 @@ DptHeadWeights<T> bind_dpt_head_weights(const DptHeadConfig& c, Get&& get) {
 
 // Checks every parameter first (one error lists all missing, mis-shaped and unexpected `prefix` tensors), then binds.
 template <class T>
-DptHeadWeights<T> load_dpt_head_weights(ParamSource<T>& src, const DptHeadConfig& c,
+DptHeadWeights<T> load_dpt_head_weights(io::ParamSource<T>& src, const DptHeadConfig& c,
                                         const std::string& prefix = "depth_head.") {
   c.validate();
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   append_dpt_head_specs(specs, c, prefix);
-  check_parameters(src, specs, {prefix}, "DPT head");
+  io::check_parameters(src, specs, {prefix}, "DPT head");
   return bind_dpt_head_weights<T>(c, [&](const std::string& name, const std::vector<index_t>& shape) {
     return src.get(prefix + name, shape);
   });
@@ -232,7 +248,7 @@ inline index_t dpt_band_scratch(index_t cin, index_t k, index_t h, index_t w) {
 // Offsets (in elements) of one frame's buffers inside the workspace.
 struct DptWorkspaceLayout {
   index_t normed = 0, proj = 0, level[4]{}, rn[4]{}, a = 0, b = 0, c = 0, d = 0, fused = 0, head_in = 0, up = 0,
-          hidden = 0, out = 0, pos_table = 0, scratch = 0, total = 0;
+          image_a = 0, image_b = 0, hidden = 0, out = 0, pos_table = 0, scratch = 0, total = 0;
   index_t scratch_size = 0;
 };
 
@@ -259,6 +275,9 @@ inline DptWorkspaceLayout dpt_workspace_layout(const DptHeadConfig& cfg, const D
   L.head_in = take(Fh * g.fused_h * g.fused_w);
   const index_t full = g.out_h * g.out_w;
   L.up = take(cfg.conv2_in() * full);
+  const index_t image_map = cfg.image_convs > 0 ? cfg.image_width * full : 0;
+  L.image_a = take(image_map);
+  L.image_b = take(image_map);
   L.hidden = take(DptHeadConfig::head_hidden * full);
   L.out = take(cfg.output_dim * full);
   L.pos_table = take(std::max({max_oc, Fh}) / 2 * (std::max(g.out_h, g.h[0]) + std::max(g.out_w, g.w[0])));
@@ -270,6 +289,8 @@ inline DptWorkspaceLayout dpt_workspace_layout(const DptHeadConfig& cfg, const D
   for (int i = 0; i < 4; ++i) s = std::max(s, dpt_band_scratch(F, 3, g.h[i], g.w[i]));
   s = std::max(s, dpt_band_scratch(F, 3, g.fused_h, g.fused_w));
   s = std::max(s, dpt_band_scratch(cfg.conv2_in(), 3, g.out_h, g.out_w));
+  if (cfg.image_convs > 0)
+    s = std::max(s, dpt_band_scratch(std::max(cfg.image_channels, cfg.image_width), 3, g.out_h, g.out_w));
   L.scratch = take(s);
   L.scratch_size = s;
   L.total = cursor;
@@ -471,12 +492,13 @@ struct DptHeadGrads {
   std::array<T*, 4> layer_rn{};
   std::array<FusionBlockGrads<T>, 4> refinenet;
   ConvGrads<T> output_conv1, output_conv2_0, output_conv2_2;
+  std::array<ConvGrads<T>, 4> image_conv;
 };
 
 namespace detail {
 template <class T>
 ConvGrads<T> rebase_conv_grads(const ConvWeights<T>& c, const T* params_base, T* grads_base) {
-  return {rebase_pointer(c.weight, params_base, grads_base), rebase_pointer(c.bias, params_base, grads_base)};
+  return {io::rebase_pointer(c.weight, params_base, grads_base), io::rebase_pointer(c.bias, params_base, grads_base)};
 }
 }  // namespace detail
 
@@ -486,12 +508,13 @@ template <class T>
 DptHeadGrads<T> dpt_head_grads(const DptHeadWeights<T>& w, const T* params_base, T* grads_base) {
   auto conv = [&](const ConvWeights<T>& c) { return detail::rebase_conv_grads(c, params_base, grads_base); };
   DptHeadGrads<T> g;
-  g.norm_weight = rebase_pointer(w.norm_weight, params_base, grads_base);
-  g.norm_bias = rebase_pointer(w.norm_bias, params_base, grads_base);
+  g.norm_weight = io::rebase_pointer(w.norm_weight, params_base, grads_base);
+  g.norm_bias = io::rebase_pointer(w.norm_bias, params_base, grads_base);
   for (int i = 0; i < 4; ++i) {
     g.projects[i] = conv(w.projects[i]);
     g.resize[i] = conv(w.resize[i]);
-    g.layer_rn[i] = rebase_pointer(w.layer_rn[i], params_base, grads_base);
+    g.layer_rn[i] = io::rebase_pointer(w.layer_rn[i], params_base, grads_base);
+    g.image_conv[i] = conv(w.image_conv[i]);
     const auto& fb = w.refinenet[i];
     auto& gb = g.refinenet[i];
     gb.unit1 = {conv(fb.unit1.conv1), conv(fb.unit1.conv2)};
@@ -515,7 +538,9 @@ struct DptHeadCache {
   std::array<std::vector<T>, 4> unit1_r, unit1_u, unit2_r, unit2_u;  // [frames, F, h_i, w_i]: relu(x), relu(conv1(relu(x)))
   std::array<std::vector<T>, 4> block_out;  // [frames, F, h_i, w_i]: unit2's output, out_conv's input
   std::vector<T> fused;                     // [frames, F, 8 ph, 8 pw]: output_conv1's input
-  std::vector<T> up;                        // [frames, F/2 + image_channels, OH, OW]: output_conv2.0's input
+  std::vector<T> up;                        // [frames, conv2_in, OH, OW]: output_conv2.0's input
+  std::vector<T> image;                     // [frames, image_channels, OH, OW] when image_convs > 0
+  std::vector<T> image_act;                 // [frames, image_convs, image_width, OH, OW]: each image conv after ReLU
   std::vector<T> hidden;                    // [frames, 32, OH, OW] after its ReLU
   std::vector<T> logits;                    // [frames, output_dim, OH, OW] before the activations
   std::vector<T> grad_ws;                   // dpt_head_backward's buffers
@@ -530,6 +555,7 @@ inline index_t dpt_head_cache_elements(const DptHeadConfig& cfg, index_t patch_h
   index_t n = 8 * P + (oc[0] + oc[1] + oc[3]) * P;
   for (int i = 0; i < 4; ++i) n += oc[i] * g.level_size(i) + (i == 3 ? 3 : 5) * F * g.level_size(i);
   n += F * g.fused_h * g.fused_w + (cfg.conv2_in() + DptHeadConfig::head_hidden + cfg.output_dim) * full;
+  if (cfg.image_convs > 0) n += (cfg.image_channels + cfg.image_convs * cfg.image_width) * full;
   return frames * n;
 }
 
@@ -582,6 +608,8 @@ void dpt_head_run(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, const 
     }
     fit(k->fused, fused_n);
     fit(k->up, cfg.conv2_in() * full);
+    fit(k->image, cfg.image_convs > 0 ? cfg.image_channels * full : 0);
+    fit(k->image_act, cfg.image_convs * cfg.image_width * full);
     fit(k->hidden, Hh * full);
     fit(k->logits, cfg.output_dim * full);
   }
@@ -670,8 +698,19 @@ void dpt_head_run(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, const 
     if (cfg.pos_embed)
       add_uv_pos_embed(up, Fh, g.out_h, g.out_w, aspect, cfg.pos_embed_ratio, cfg.pos_embed_omega, ws + L.pos_table);
     if (out.features) std::copy(up, up + Fh * full, out.features + f * Fh * full);
-    const index_t Ci = cfg.image_channels, Cin = cfg.conv2_in();
-    if (Ci > 0) std::copy(image + f * Ci * full, image + (f + 1) * Ci * full, up + Fh * full);
+    const index_t Ci = cfg.image_channels, Cin = cfg.conv2_in(), Iw = cfg.image_width, In = cfg.image_convs;
+    const T* pixels = image + f * Ci * full;
+    if (Ci > 0 && In == 0) std::copy(pixels, pixels + Ci * full, up + Fh * full);
+    if (In > 0 && k) save(k->image, f, pixels, Ci * full);
+    for (index_t j = 0; j < In; ++j) {
+      // The last image conv writes straight into the map entering output_conv2.
+      T* y = j + 1 == In ? up + Fh * full : ws + (j % 2 == 0 ? L.image_a : L.image_b);
+      const T* x = j == 0 ? pixels : ws + (j % 2 == 1 ? L.image_a : L.image_b);
+      conv2d_same(y, x, wt.image_conv[j].weight, wt.image_conv[j].bias, j == 0 ? Ci : Iw, Iw, g.out_h, g.out_w, 3,
+                  scratch);
+      relu_copy(y, y, Iw * full);
+      if (k) std::copy(y, y + Iw * full, k->image_act.data() + (f * In + j) * Iw * full);
+    }
     if (k) save(k->up, f, up, Cin * full);
     T* hidden = ws + L.hidden;
     conv2d_same(hidden, up, wt.output_conv2_0.weight, wt.output_conv2_0.bias, Cin, Hh, g.out_h, g.out_w, 3, scratch);
@@ -726,8 +765,10 @@ void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grad
   require(k.frames >= 1 && !k.up.empty(), "DPT head backward: the cache is empty (run dpt_head_forward_train first)");
   const DptGeometry g(k.image_h / cfg.patch_size, k.image_w / cfg.patch_size, cfg.patch_size);
   const index_t P = g.patch_h * g.patch_w, F = cfg.features, Fh = cfg.head_features(), D = cfg.dim_in;
-  const index_t Ci = cfg.image_channels, Cin = cfg.conv2_in();
-  require(static_cast<index_t>(k.up.size()) == k.frames * Cin * g.out_h * g.out_w,
+  const index_t Ci = cfg.image_channels, Cin = cfg.conv2_in(), Co = cfg.image_out(), Iw = cfg.image_width,
+                In = cfg.image_convs;
+  require(static_cast<index_t>(k.up.size()) == k.frames * Cin * g.out_h * g.out_w &&
+              static_cast<index_t>(k.image_act.size()) == k.frames * In * Iw * g.out_h * g.out_w,
           "DPT head backward: the cache was filled for another configuration");
   for (index_t idx : cfg.intermediate_layer_idx)
     require(idx < static_cast<index_t>(layers.size()) && layers[idx] != nullptr, "DPT head backward: intermediate layer ",
@@ -755,7 +796,8 @@ void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grad
   index_t o_rn[4];
   for (int i = 0; i < 4; ++i) o_rn[i] = take(F * g.level_size(i));
   const index_t o_level = take(max_level), o_proj = take(max_oc * P), o_normed = take(P * D), o_dnormed = take(P * D),
-                o_scratch = take(L.scratch_size);
+                o_scratch = take(L.scratch_size), o_image_a = take(In > 0 ? Iw * full : 0),
+                o_image_b = take(In > 0 ? Iw * full : 0), o_d_image = take(In > 0 ? Ci * full : 0);
   if (static_cast<index_t>(k.grad_ws.size()) < cursor) k.grad_ws.resize(static_cast<std::size_t>(cursor));
   T* ws = k.grad_ws.data();
   std::span<T> scratch(ws + o_scratch, static_cast<std::size_t>(L.scratch_size));
@@ -802,11 +844,24 @@ void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grad
     T* d_up = ws + o_up;
     if (d_out.features) std::copy(d_out.features + f * Fh * full, d_out.features + (f + 1) * Fh * full, d_up);
     else zero(d_up, Fh * full);
-    zero(d_up + Fh * full, Ci * full);
+    zero(d_up + Fh * full, Co * full);
     detail::conv2d_same_backward(d_up, grads.output_conv2_0.weight, grads.output_conv2_0.bias, d_hidden,
                                  k.up.data() + f * Cin * full, wt.output_conv2_0.weight, Cin, Hh, g.out_h, g.out_w, 3,
                                  scratch);
-    if (d_image && Ci > 0) detail::add_into(d_image + f * Ci * full, d_up + Fh * full, Ci * full);
+    if (d_image && Ci > 0 && In == 0) detail::add_into(d_image + f * Ci * full, d_up + Fh * full, Ci * full);
+    // The image convs, last to first; d_y is the gradient of conv j's ReLU'd output.
+    T* d_y = d_up + Fh * full;
+    for (index_t j = In - 1; j >= 0; --j) {
+      detail::relu_mask(d_y, k.image_act.data() + (f * In + j) * Iw * full, Iw * full);
+      const index_t cin = j == 0 ? Ci : Iw;
+      const T* x = j == 0 ? k.image.data() + f * Ci * full : k.image_act.data() + (f * In + j - 1) * Iw * full;
+      T* d_x = j == 0 ? (d_image ? ws + o_d_image : nullptr) : ws + (j % 2 == 1 ? o_image_a : o_image_b);
+      if (d_x) zero(d_x, cin * full);
+      detail::conv2d_same_backward(d_x, grads.image_conv[j].weight, grads.image_conv[j].bias, d_y, x,
+                                   wt.image_conv[j].weight, cin, Iw, g.out_h, g.out_w, 3, scratch);
+      if (j == 0 && d_image) detail::add_into(d_image + f * Ci * full, d_x, Ci * full);
+      d_y = d_x;
+    }
     // The uv embedding is a constant add; the upsampling and output_conv1 are linear.
     T* d_head_in = ws + o_head_in;
     if (d_out.fused_features)

@@ -34,7 +34,10 @@ inline double dpt_flops(const DptHeadConfig& c, index_t ph, index_t pw) {
   }
   f += 2 * double(g.fused_h * g.fused_w) * F * Fh * 9;
   const double full = double(g.out_h * g.out_w);
-  f += 2 * full * Fh * DptHeadConfig::head_hidden * 9 + 2 * full * DptHeadConfig::head_hidden * double(c.output_dim);
+  f += 2 * full * double(c.conv2_in()) * DptHeadConfig::head_hidden * 9 +
+       2 * full * DptHeadConfig::head_hidden * double(c.output_dim);
+  for (index_t j = 0; j < c.image_convs; ++j)
+    f += 2 * full * double(j == 0 ? c.image_channels : c.image_width) * double(c.image_width) * 9;
   return f;
 }
 

@@ -9,7 +9,7 @@
 #include <vector>
 
 #include "flexsplat/core/parallel.hpp"
-#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/io/param_source.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -29,7 +29,7 @@ inline std::uint64_t splitmix64(std::uint64_t x) {
 }  // namespace detail
 
 // Constant-initialised tensors (norm weights, biases, LayerScale gammas) draw no random stream.
-inline bool draws_random_values(const TensorSpec& spec) {
+inline bool draws_random_values(const io::TensorSpec& spec) {
   const bool is_norm = spec.name.find("norm") != std::string::npos;
   return !(is_norm && detail::ends_with(spec.name, ".weight")) && !detail::ends_with(spec.name, ".bias") &&
          !detail::ends_with(spec.name, ".gamma");
@@ -37,7 +37,7 @@ inline bool draws_random_values(const TensorSpec& spec) {
 
 // Fills `values` (spec's element count) with spec's deterministic initial values; `stream` seeds a random tensor.
 template <class T>
-void random_parameter_values(T* values, const TensorSpec& spec, std::uint64_t stream, double layer_scale = 0.01) {
+void random_parameter_values(T* values, const io::TensorSpec& spec, std::uint64_t stream, double layer_scale = 0.01) {
   index_t n = 1;
   for (index_t e : spec.shape) n *= e;
   if (!draws_random_values(spec)) {
@@ -57,7 +57,7 @@ void random_parameter_values(T* values, const TensorSpec& spec, std::uint64_t st
 }
 
 template <class T>
-void add_random_parameters(ParamSource<T>& src, const std::vector<TensorSpec>& specs, std::uint64_t seed,
+void add_random_parameters(io::ParamSource<T>& src, const std::vector<io::TensorSpec>& specs, std::uint64_t seed,
                            double layer_scale = 0.01) {
   std::uint64_t stream = seed;
   for (const auto& spec : specs) {

@@ -24,7 +24,7 @@ template <class T>
 void check_vggt_reference_as(const safetensors::File& file, ReferenceReport& report) {
   require(file.has_metadata("config"), "vggt bundle '", file.path(), "' has no config metadata");
   const VggtConfig cfg = vggt_config_from_json(file.metadata("config"));
-  ParamSource<T> src(file, "param.");
+  io::ParamSource<T> src(file, "param.");
   const VggtWeights<T> weights = load_vggt_weights(src, cfg);
   VggtWorkspace<T> ws;
   VggtOptions options;

@@ -11,8 +11,8 @@
 #include "flexsplat/geometry/config.hpp"
 #include "flexsplat/geometry/dino.hpp"
 #include "flexsplat/geometry/dpt_head.hpp"
-#include "flexsplat/geometry/param_check.hpp"
-#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/io/param_check.hpp"
+#include "flexsplat/io/param_source.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -24,11 +24,11 @@ inline constexpr const char* vggt_point_prefix = "point_head.";
 inline constexpr const char* vggt_match_prefix = "match_head.";
 
 // Every tensor the configured model reads, in state_dict order (aggregator, camera head, depth head).
-inline std::vector<TensorSpec> vggt_parameter_specs(const VggtConfig& c) {
-  std::vector<TensorSpec> specs;
+inline std::vector<io::TensorSpec> vggt_parameter_specs(const VggtConfig& c) {
+  std::vector<io::TensorSpec> specs;
   const std::size_t before_dino = 2;
   append_aggregator_trunk_specs(specs, c.aggregator);
-  std::vector<TensorSpec> dino;
+  std::vector<io::TensorSpec> dino;
   append_dino_specs(dino, vggt_dino_prefix, c.aggregator.dino);
   specs.insert(specs.begin() + before_dino, dino.begin(), dino.end());
   append_camera_head_specs(specs, c.camera, "camera_head.");
@@ -40,11 +40,11 @@ inline std::vector<TensorSpec> vggt_parameter_specs(const VggtConfig& c) {
 
 // Throws one flexsplat::Error listing every missing, mis-shaped and unexpected tensor of the configured modules.
 template <class T>
-void check_vggt_parameters(const ParamSource<T>& src, const VggtConfig& c) {
+void check_vggt_parameters(const io::ParamSource<T>& src, const VggtConfig& c) {
   std::vector<std::string> modules{"aggregator.", "camera_head.", "depth_head."};
   if (c.point_head) modules.push_back(vggt_point_prefix);
   if (c.match_dim > 0) modules.push_back(vggt_match_prefix);
-  check_parameters(src, vggt_parameter_specs(c), modules, "VGGT");
+  io::check_parameters(src, vggt_parameter_specs(c), modules, "VGGT");
 }
 
 template <class T>
@@ -58,7 +58,7 @@ struct VggtWeights {
 };
 
 template <class T>
-VggtWeights<T> load_vggt_weights(ParamSource<T>& src, const VggtConfig& c) {
+VggtWeights<T> load_vggt_weights(io::ParamSource<T>& src, const VggtConfig& c) {
   c.validate();
   check_vggt_parameters(src, c);
   VggtWeights<T> w;
@@ -75,13 +75,13 @@ VggtWeights<T> load_vggt_weights(ParamSource<T>& src, const VggtConfig& c) {
 // are used in place, F16/BF16 converted once. Keeps the mapping alive as long as the weights.
 template <class T>
 struct VggtCheckpoint {
-  ParamSource<T> source;
+  io::ParamSource<T> source;
   VggtWeights<T> weights;
 
   static std::unique_ptr<VggtCheckpoint> open(const std::filesystem::path& path, const VggtConfig& c,
                                               const std::string& prefix = {}) {
     auto ck = std::make_unique<VggtCheckpoint>();
-    ck->source = ParamSource<T>(safetensors::File::open(path), prefix);
+    ck->source = io::ParamSource<T>(safetensors::File::open(path), prefix);
     ck->weights = load_vggt_weights(ck->source, c);
     return ck;
   }

@@ -84,6 +84,10 @@ inline nlohmann::json to_json(const geometry::VggtConfig& c) {
   if (c.point_head) j["point_head"] = true;  // absent in files made before the key existed
   if (c.match_dim > 0) j["match_dim"] = c.match_dim;
   if (c.match_image) j["match_image"] = true;
+  if (c.match_image_convs > 0) {
+    j["match_image_convs"] = c.match_image_convs;
+    j["match_image_width"] = c.match_image_width;
+  }
   return j;
 }
 

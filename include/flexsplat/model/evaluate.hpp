@@ -117,9 +117,8 @@ inline double eval_object_size(const data::ObjectRecord& rec, const std::vector<
       for (index_t x = 0; x < depth.shape(1); ++x) {
         const double z = depth(y, x);
         if (!(z > 0)) continue;
-        const glm::dvec3 cam((static_cast<double>(x) + 0.5 - c.K[2][0]) / c.K[0][0] * z,
-                             (static_cast<double>(y) + 0.5 - c.K[2][1]) / c.K[1][1] * z, z);
-        const glm::dvec3 p = c.to_world(cam);
+        const glm::dvec3 p =
+            c.to_world(c.unproject({static_cast<double>(x) + 0.5, static_cast<double>(y) + 0.5}, z));
         lo = glm::min(lo, p), hi = glm::max(hi, p);
       }
   }

@@ -48,7 +48,6 @@ struct TrainExample {
   std::array<T, 3> background{1, 1, 1};
 };
 
-
 // Ground-truth correspondences a training example keeps: about `samples` per scene (the run config's match_samples)
 // spread over its ordered view pairs, at least 8 per pair (64 per pair for 4 views at the default 768; the match
 // loss's cost grows with their number).

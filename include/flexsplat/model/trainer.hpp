@@ -56,6 +56,16 @@ inline std::string read_text(const std::filesystem::path& p) {
 }
 }  // namespace trainer_detail
 
+// A recipe file's JSON (run_training and parse_train_config take it); errors name the file.
+inline nlohmann::json read_train_recipe(const std::filesystem::path& path) {
+  const std::string text = trainer_detail::read_text(path);
+  try {
+    return nlohmann::json::parse(text);
+  } catch (const nlohmann::json::exception& e) {
+    fail("train config '", path.string(), "' is not valid JSON: ", e.what());
+  }
+}
+
 // The training scenes of `sources`: {"procedural"} (scenes generated at the model's size) or object folders, each
 // with enough views for the recipe's inputs and targets.
 inline TrainData train_data_from(const std::vector<std::string>& sources, const TrainRunConfig& cfg) {

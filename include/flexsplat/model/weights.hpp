@@ -26,8 +26,8 @@ inline constexpr const char* geometry_segment = "geometry";
 inline constexpr const char* appearance_segment = "appearance";
 
 // Every tensor of a model, in store order: geometry (VGGT names), then appearance ("appearance." + decoder names).
-inline std::vector<geometry::TensorSpec> appearance_parameter_specs(const FlexSplatConfig& c) {
-  std::vector<geometry::TensorSpec> specs;
+inline std::vector<io::TensorSpec> appearance_parameter_specs(const FlexSplatConfig& c) {
+  std::vector<io::TensorSpec> specs;
   decoder::append_model_specs(specs, c.appearance, "appearance.");
   return specs;
 }
@@ -61,7 +61,7 @@ public:
     std::uint64_t stream = seed;
     for (std::size_t i = seg.first; i < seg.first + seg.count; ++i) {
       const auto& t = store_.tensors()[i];
-      const geometry::TensorSpec spec{t.name, t.shape};
+      const io::TensorSpec spec{t.name, t.shape};
       const bool random = geometry::draws_random_values(spec);
       geometry::random_parameter_values(store_.params() + t.offset, spec, random ? stream++ : stream,
                                         config_.geometry.aggregator.init_values);
@@ -110,7 +110,7 @@ private:
   FlexSplatWeights() = default;
   FlexSplatConfig config_;
   train::ParamStore<T> store_;
-  geometry::ParamSource<T> source_;
+  io::ParamSource<T> source_;
   geometry::VggtWeights<T> geometry_;
 };
 
@@ -129,7 +129,7 @@ std::unique_ptr<FlexSplatWeights<T>> load_flexsplat(const std::filesystem::path&
                          c.appearance.unet.levels;
   require(layers <= static_cast<index_t>(file.tensors().size()), "model file '", path.string(), "' holds ",
           file.tensors().size(), " tensors; its configuration has ", layers, " layers");
-  std::vector<geometry::TensorSpec> specs = geometry::vggt_parameter_specs(c.geometry);
+  std::vector<io::TensorSpec> specs = geometry::vggt_parameter_specs(c.geometry);
   for (auto& s : appearance_parameter_specs(c)) specs.push_back(std::move(s));
   std::size_t absent = 0;
   std::string first;

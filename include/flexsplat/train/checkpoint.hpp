@@ -23,8 +23,8 @@
 
 #include "flexsplat/core/atomic_file.hpp"
 #include "flexsplat/core/error.hpp"
-#include "flexsplat/geometry/param_check.hpp"
-#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/io/param_check.hpp"
+#include "flexsplat/io/param_source.hpp"
 #include "flexsplat/io/safetensors.hpp"
 #include "flexsplat/train/params.hpp"
 
@@ -215,7 +215,7 @@ template <class T>
 void load_vggt_geometry(const std::filesystem::path& path, ParamStore<T>& store, const std::string& segment = "geometry",
                         const std::string& file_prefix = {}) {
   const Segment& seg = store.segment(segment);
-  std::vector<TensorSpec> specs;
+  std::vector<io::TensorSpec> specs;
   std::set<std::string> modules;
   for (std::size_t i = seg.first; i < seg.first + seg.count; ++i) {
     const auto& t = store.tensors()[i];
@@ -223,8 +223,8 @@ void load_vggt_geometry(const std::filesystem::path& path, ParamStore<T>& store,
     const std::size_t dot = t.name.find('.');
     modules.insert(dot == std::string::npos ? t.name + "." : t.name.substr(0, dot + 1));
   }
-  geometry::ParamSource<T> src(safetensors::File::open(path), file_prefix);
-  geometry::check_parameters(src, specs, std::vector<std::string>(modules.begin(), modules.end()),
+  io::ParamSource<T> src(safetensors::File::open(path), file_prefix);
+  io::check_parameters(src, specs, std::vector<std::string>(modules.begin(), modules.end()),
                              "geometry segment '" + segment + "'");
   for (std::size_t i = seg.first; i < seg.first + seg.count; ++i) {
     const auto& t = store.tensors()[i];

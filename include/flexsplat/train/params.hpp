@@ -13,14 +13,14 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
-#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/io/param_source.hpp"
 #include "flexsplat/io/safetensors.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
 namespace train {
 
-using geometry::TensorSpec;
+using io::TensorSpec;
 
 // Weight-decay rule: only matrices and convolution kernels decay. Off for every tensor of rank < 2 (biases,
 // LayerNorm weights, LayerScale gammas, per-channel vectors) and for learned tokens and embedding tables, named by
@@ -62,7 +62,7 @@ public:
 
   // Registers `specs` contiguously as segment `segment`, starting at the next 64-byte boundary; returns its offset.
   // Only before allocate(). Names must be unique across the store.
-  index_t add_segment(const std::string& segment, const std::vector<TensorSpec>& specs) {
+  index_t add_segment(const std::string& segment, const std::vector<io::TensorSpec>& specs) {
     require(!allocated(), "parameter store: segment '", segment, "' registered after allocate()");
     for (const auto& s : segments_) require(s.name != segment, "parameter store: duplicate segment '", segment, "'");
     index_t at = (size_ + alignment_elements - 1) / alignment_elements * alignment_elements;
@@ -159,7 +159,7 @@ public:
   // Registers every tensor of segment `segment` (all segments if empty) as an external view in `src`, so
   // geometry::load_*_weights bind pointers straight into the params block. The store must not be reallocated while
   // the weights are used.
-  void bind_views(geometry::ParamSource<T>& src, const std::string& segment_name = {}) const {
+  void bind_views(io::ParamSource<T>& src, const std::string& segment_name = {}) const {
     for (const auto& s : segments_) {
       if (!segment_name.empty() && s.name != segment_name) continue;
       for (std::size_t i = s.first; i < s.first + s.count; ++i)

@@ -6,11 +6,11 @@
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
-#include "flexsplat/geometry/param_source.hpp"
+#include "flexsplat/io/param_source.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
-namespace geometry {
+namespace io {
 
 // owned_prefixes: name prefixes (before the source's file prefix, e.g. "camera_head.") whose every file tensor must
 // be among `specs`; empty to skip the unexpected-tensor check.
@@ -55,6 +55,6 @@ void check_parameters(const ParamSource<T>& src, const std::vector<TensorSpec>& 
   fail(message);
 }
 
-}  // namespace geometry
+}  // namespace io
 }  // namespace v0
 }  // namespace flexsplat

@@ -16,7 +16,7 @@
 
 namespace flexsplat {
 inline namespace v0 {
-namespace geometry {
+namespace io {
 
 // One expected parameter: its name (without file prefix) and shape.
 struct TensorSpec {
@@ -147,6 +147,6 @@ void add_flat_views(ParamSource<T>& src, const std::vector<TensorSpec>& specs, c
   }
 }
 
-}  // namespace geometry
+}  // namespace io
 }  // namespace v0
 }  // namespace flexsplat
