@@ -1,5 +1,6 @@
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <vector>
 
@@ -104,4 +105,40 @@ TEST_CASE("match_accuracy counts correspondences whose nearest descriptor is wit
   // Three pixels off (each code sits 3 columns, modulo 6, from the truth): none counts.
   CHECK(loss::match_accuracy(codes(4).data(), truth, 2, h, w, D) == 0.0);
   CHECK(loss::match_accuracy(codes(1).data(), {}, 2, h, w, D) == 0.0);
+}
+
+TEST_CASE("match loss: the vector exp path gives the scalar path's loss and gradients", "[loss][match][simd]") {
+  // 56 x 56 views and 16-channel descriptors, the pose recipe's shapes; runs of matches in every ordered pair.
+  const index_t V = 3, px = 56 * 56, D = 16;
+  const auto d64 = uniform(V * px * D, 11, -1, 1), p64 = uniform(V * px, 12, 0.05, 0.95), a64 = uniform(V * px, 13, 0, 1);
+  const std::vector<float> desc(d64.begin(), d64.end()), prob(p64.begin(), p64.end()), alpha(a64.begin(), a64.end());
+  std::vector<loss::PixelMatch> m;
+  for (index_t a = 0; a < V; ++a)
+    for (index_t b = 0; b < V; ++b)
+      if (a != b)
+        for (index_t i = 0; i < 40; ++i) m.push_back({a, (97 * i + 13 * a) % px, b, (61 * i + 7 * b) % px});
+  loss::MatchLossConfig c;
+  c.temperature = 0.1;
+  auto run = [&](simd::Lanes lanes, std::vector<float>& dd, std::vector<float>& dp) {
+    dd.assign(desc.size(), 0.f), dp.assign(prob.size(), 0.f);
+    const auto parts = loss::match_loss_forward(desc.data(), prob.data(), alpha.data(),
+                                                std::span<const loss::PixelMatch>(m), V, px, D, c, lanes);
+    loss::match_loss_backward(dd.data(), dp.data(), 1.0, desc.data(), prob.data(), alpha.data(),
+                              std::span<const loss::PixelMatch>(m), V, px, D, c, lanes);
+    return parts.total;
+  };
+  std::vector<float> dd0, dp0, dd1, dp1;
+  const double scalar = run(simd::Lanes::scalar, dd0, dp0);
+  const simd::Lanes best = simd::best_lanes<float>();
+  INFO("lanes " << simd::lanes_name(best));
+  const double vector = run(best, dd1, dp1);
+  CHECK(vector == Approx(scalar).epsilon(1e-6));
+  double worst = 0, largest = 0;
+  for (std::size_t i = 0; i < dd0.size(); ++i) {
+    worst = std::max(worst, std::abs(static_cast<double>(dd1[i]) - static_cast<double>(dd0[i])));
+    largest = std::max(largest, std::abs(static_cast<double>(dd0[i])));
+  }
+  REQUIRE(largest > 0);
+  CHECK(worst <= 1e-5 * largest);
+  CHECK(dp0 == dp1);  // the mask term has no exp
 }

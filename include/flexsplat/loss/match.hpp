@@ -9,10 +9,13 @@
 #include <cmath>
 #include <limits>
 #include <span>
+#include <type_traits>
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gemm.hpp"
+#include "flexsplat/core/simd.hpp"
+#include "flexsplat/core/simd_dispatch.hpp"
 #include "flexsplat/core/tensor.hpp"
 
 namespace flexsplat {
@@ -56,12 +59,28 @@ inline void check(const PixelMatch& m, index_t views, index_t px) {
           m.pixel_b, ") is outside ", views, " views of ", px, " pixels");
 }
 
+// row[k] = exp(row[k] - t) for k < n (V's lanes, then scalar); returns their sum, added in double in k order on
+// every path (the paths differ only by exp's rounding).
+template <class V, class T>
+double exp_shifted_sum(T* row, index_t n, T t) {
+  constexpr index_t width = static_cast<index_t>(simd::lane_count<V>::value);
+  index_t k = 0;
+  if constexpr (width > 1) {
+    const V tv(t);
+    for (; k + width <= n; k += width) simd::lane_store(row + k, simd::lane_exp(simd::lane_load<V>(row + k) - tv));
+  }
+  for (; k < n; ++k) row[k] = std::exp(row[k] - t);
+  double acc = 0;
+  for (index_t i = 0; i < n; ++i) acc += static_cast<double>(row[i]);
+  return acc;
+}
+
 // Calls f(first, count, q, e, top, sum, picked) for each run of consecutive matches sharing (view_a, view_b): q
 // [count, D] their view-a unit descriptors; e [count, px] exp(s - top) of their logits s against every pixel of view b
 // (one GEMM per run); per row the maximum logit top, sum of e, and the logit at the true pixel, picked.
 template <class T, class F>
 void for_each_run(const std::vector<T>& unit, std::span<const PixelMatch> matches, index_t views, index_t px, index_t D,
-                  double temperature, F&& f) {
+                  double temperature, simd::Lanes lanes, F&& f) {
   std::vector<T> q, e;
   std::vector<double> top, sum, picked;
   for (std::size_t i0 = 0; i0 < matches.size();) {
@@ -80,15 +99,17 @@ void for_each_run(const std::vector<T>& unit, std::span<const PixelMatch> matche
     gemm(Trans::no, Trans::yes, n, px, D, static_cast<T>(1 / temperature), q.data(), D, unit.data() + vb * px * D, D,
          T(0), e.data(), px);
     top.resize(static_cast<std::size_t>(n)), sum.resize(static_cast<std::size_t>(n)), picked.resize(static_cast<std::size_t>(n));
-    for (index_t r = 0; r < n; ++r) {
-      T* row = e.data() + r * px;
-      T t = row[0];
-      for (index_t k = 1; k < px; ++k) t = std::max(t, row[k]);
-      picked[static_cast<std::size_t>(r)] = static_cast<double>(row[matches[i0 + static_cast<std::size_t>(r)].pixel_b]);
-      double acc = 0;
-      for (index_t k = 0; k < px; ++k) acc += static_cast<double>(row[k] = std::exp(row[k] - t));
-      top[static_cast<std::size_t>(r)] = static_cast<double>(t), sum[static_cast<std::size_t>(r)] = acc;
-    }
+    simd::with_lanes<T>(lanes, [&](auto* lane_type) {
+      using V = std::remove_pointer_t<decltype(lane_type)>;
+      for (index_t r = 0; r < n; ++r) {
+        T* row = e.data() + r * px;
+        T t = row[0];
+        for (index_t k = 1; k < px; ++k) t = std::max(t, row[k]);
+        picked[static_cast<std::size_t>(r)] = static_cast<double>(row[matches[i0 + static_cast<std::size_t>(r)].pixel_b]);
+        top[static_cast<std::size_t>(r)] = static_cast<double>(t);
+        sum[static_cast<std::size_t>(r)] = exp_shifted_sum<V>(row, px, t);
+      }
+    });
     f(i0, n, q, e, top, sum, picked);
     i0 = i1;
   }
@@ -106,7 +127,8 @@ double match_accuracy(const T* desc, std::span<const PixelMatch> matches, index_
   std::vector<double> norm;
   match_detail::normalize(desc, views * px, D, unit, norm);
   double hits = 0;
-  match_detail::for_each_run(unit, matches, views, px, D, 1.0,
+  // Scalar lanes: std::exp gives exactly 1 at the maximum, which the search below looks for.
+  match_detail::for_each_run(unit, matches, views, px, D, 1.0, simd::Lanes::scalar,
                              [&](std::size_t i0, index_t n, const std::vector<T>&, const std::vector<T>& e,
                                  const std::vector<double>&, const std::vector<double>&, const std::vector<double>&) {
                                for (index_t r = 0; r < n; ++r) {
@@ -120,10 +142,11 @@ double match_accuracy(const T* desc, std::span<const PixelMatch> matches, index_
   return hits / static_cast<double>(matches.size());
 }
 
-// desc [V, px, D]; prob [V, px] in (0, 1); alpha [V, px] in [0, 1].
+// desc [V, px, D]; prob [V, px] in (0, 1); alpha [V, px] in [0, 1]. `lanes`: the exp's path (tests run each).
 template <class T>
 MatchLossParts match_loss_forward(const T* desc, const T* prob, const T* alpha, std::span<const PixelMatch> matches,
-                                  index_t views, index_t px, index_t D, const MatchLossConfig& c) {
+                                  index_t views, index_t px, index_t D, const MatchLossConfig& c,
+                                  simd::Lanes lanes = simd::best_lanes<T>()) {
   require(desc && prob && alpha && views >= 1 && px >= 1 && D >= 1, "match loss: null or empty maps");
   require(c.temperature > 0 && c.foreground_weight >= 0, "match loss: temperature ", c.temperature,
           " must be positive and foreground_weight ", c.foreground_weight, " non-negative");
@@ -132,7 +155,7 @@ MatchLossParts match_loss_forward(const T* desc, const T* prob, const T* alpha, 
   match_detail::normalize(desc, views * px, D, unit, norm);
   for (double r : norm) require(std::isfinite(r), "match loss: a descriptor is not finite");
   MatchLossParts out;
-  match_detail::for_each_run(unit, matches, views, px, D, c.temperature,
+  match_detail::for_each_run(unit, matches, views, px, D, c.temperature, lanes,
                              [&](std::size_t, index_t n, const std::vector<T>&, const std::vector<T>&,
                                  const std::vector<double>& top, const std::vector<double>& sum,
                                  const std::vector<double>& picked) {
@@ -156,14 +179,14 @@ MatchLossParts match_loss_forward(const T* desc, const T* prob, const T* alpha, 
 template <class T>
 void match_loss_backward(T* d_desc, T* d_prob, double d_total, const T* desc, const T* prob, const T* alpha,
                          std::span<const PixelMatch> matches, index_t views, index_t px, index_t D,
-                         const MatchLossConfig& c) {
+                         const MatchLossConfig& c, simd::Lanes lanes = simd::best_lanes<T>()) {
   if (d_desc && !matches.empty()) {
     std::vector<T> unit, d_unit(static_cast<std::size_t>(views * px * D), T(0)), g, dq;
     std::vector<double> norm;
     match_detail::normalize(desc, views * px, D, unit, norm);
     const double scale = d_total / static_cast<double>(matches.size()) / c.temperature;
     match_detail::for_each_run(
-        unit, matches, views, px, D, c.temperature,
+        unit, matches, views, px, D, c.temperature, lanes,
         [&](std::size_t i0, index_t n, const std::vector<T>& q, const std::vector<T>& e, const std::vector<double>&,
             const std::vector<double>& sum, const std::vector<double>&) {
           // g = (softmax - one-hot) x scale; d q = g B_b, d B_b += g^T q.
