@@ -72,6 +72,10 @@ ViewChoice parse_views(const std::string& s) {
 struct Experiment {
   bool native = true;             // score at the folder's image size (false: at the model's)
   double refine_seconds = 0;      // 0: feed-forward only
+  index_t refine_longer = 0;      // the refinement's longer side (0: the photos' own resolution)
+  bool refine_validate = true;    // choose the refinement's step count on a held-out input view
+  bool refine_cameras = true;     // refine the predicted cameras with the Gaussians
+  bool refine_carve = true;       // carve the Gaussians to the input photos' silhouettes first
   double rotation_noise_deg = 0;  // 0: none
   std::uint64_t seed = 0;         // rotation noise and the posed fit's initialisation (per object: model::object_seed)
   bool posed_fit = false;
@@ -81,6 +85,8 @@ struct Experiment {
 // The refinement's own numbers (steps, loss on the input views before and after, Gaussians pruned).
 struct RefineInfo {
   double steps = NAN, loss_initial = NAN, loss_final = NAN, pruned = NAN;
+  double trial_steps = NAN, holdout_initial = NAN, holdout_best = NAN, carved = NAN;
+  index_t h = 0, w = 0;  // the size the input views were fitted at
 };
 
 struct ObjectResult {
@@ -88,6 +94,7 @@ struct ObjectResult {
   Scores model, white, posed_fit, feed_forward;  // feed_forward: the model before refinement (with --refine)
   RefineInfo refine;
   std::vector<std::vector<float>> grid_gt, grid_render, grid_inputs;  // [h, w, 3] each
+  std::vector<std::vector<float>> grid_feed_forward;                  // with --refine: the renders before it
   index_t score_h = 0, score_w = 0;  // the size targets were scored (and grid_gt / grid_render drawn) at
 };
 
@@ -116,6 +123,7 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
     };
   model::Prediction<float> p = model::predict<float>(ws, w, TensorView<const float, 4>(images.view()), x.gaussians, noise);
   double seconds = since(t0);
+  const double predict_seconds = seconds;
   const index_t n_model = p.gaussians.size();
   const int degree = p.gaussians.sh_degree();
   ObjectResult r;
@@ -124,21 +132,32 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
   const index_t sh = x.native ? rec.height : c.image_h, sw = x.native ? rec.width : c.image_w;
   r.score_h = sh, r.score_w = sw;
   std::vector<float> w2c(p.geometry.extrinsics.begin(), p.geometry.extrinsics.end());
+  // The refinement (and the posed fit beside it) fits the input photos at this size.
+  const std::array<index_t, 2> fit_size =
+      x.refine_seconds > 0 ? model::refine_size(rgba, c, x.refine_longer) : std::array<index_t, 2>{c.image_h, c.image_w};
   if (x.refine_seconds > 0) {
     model::EvalOptions before = o;
-    before.white_baseline = false, before.grid_targets = 0;
-    r.feed_forward = row(model::score_prediction(rec, in, targets, w2c.data(), p.gaussians, sh, sw, before, ews),
-                         seconds);
+    before.white_baseline = false;
+    model::EvalResult ff = model::score_prediction(rec, in, targets, w2c.data(), p.gaussians, sh, sw, before, ews);
+    r.feed_forward = row(ff, seconds);
+    r.grid_feed_forward = std::move(ff.grid_render);
     const auto t1 = std::chrono::steady_clock::now();
-    const std::vector<float> targets_hwc = model::views_hwc(images.data(), p.views, p.h, p.w);
+    const model::PhotoTargets<float> photos =
+        model::photo_targets<float>(rgba, c, p.geometry.K.data(), fit_size[0], fit_size[1]);
     model::RefineConfig rc;
     rc.seconds = x.refine_seconds;
+    rc.validate = x.refine_validate;
+    rc.optimize_cameras = x.refine_cameras;
+    rc.lr_scale = model::refine_prediction_lr_scale;
+    rc.carve = x.refine_carve;
+    const model::RefineViews<float> rv{p.views,       photos.h,   photos.w,           photos.images.data(),
+                                       photos.K.data(), w2c.data(), photos.alpha.data()};
     model::RefineWorkspace<float> rws;
-    const model::RefineResult rr = model::refine(
-        p.gaussians, model::RefineViews<float>{p.views, p.h, p.w, targets_hwc.data(), p.geometry.K.data(), w2c.data()},
-        rc, rws);
+    const model::RefineResult rr = model::refine(p.gaussians, rv, rc, rws);
     seconds += since(t1);
-    r.refine = {static_cast<double>(rr.steps), rr.loss_initial, rr.loss_final, static_cast<double>(rr.pruned)};
+    r.refine = {static_cast<double>(rr.steps), rr.loss_initial, rr.loss_final, static_cast<double>(rr.pruned),
+                static_cast<double>(rr.trial_steps), rr.holdout_initial, rr.holdout_best, static_cast<double>(rr.carved),
+                photos.h, photos.w};
   }
   model::EvalResult e = model::score_prediction(rec, in, targets, w2c.data(), p.gaussians, sh, sw, o, ews);
   r.model = row(e, seconds);
@@ -150,8 +169,10 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
     for (index_t v = 0; v < p.views; ++v) r.grid_inputs.emplace_back(hwc.begin() + v * n, hwc.begin() + (v + 1) * n);
   }
   if (x.posed_fit) {
-    // The same input views with their ground-truth cameras, fitted for the time the model took.
-    const model::PosedFit f = model::posed_fit(rec, in, c.image_h, c.image_w, n_model, degree, seconds, seed);
+    // The same input views with their ground-truth cameras, fitted for the model's time: with --refine the
+    // prediction's plus the whole refinement budget (the refinement may stop earlier when its trial says so).
+    const double budget = x.refine_seconds > 0 ? predict_seconds + x.refine_seconds : seconds;
+    const model::PosedFit f = model::posed_fit(rec, in, fit_size[0], fit_size[1], n_model, degree, budget, seed);
     model::EvalOptions po = o;
     po.white_baseline = false, po.grid_targets = 0;
     const model::EvalResult pe = model::score_prediction(rec, in, targets, f.w2c.data(), f.gaussians, sh, sw, po, ews);
@@ -206,7 +227,7 @@ void print_table(const char* title, const std::vector<std::string>& names, const
 }
 
 // Per object three rows: the input views the model saw (h x w, scaled up to the scoring size), its renders of the
-// first targets and their ground truth (at the scoring size).
+// first targets (with --refine two rows: before and after) and their ground truth (at the scoring size).
 void write_grid(const fs::path& path, const std::vector<ObjectResult>& results, index_t h, index_t w) {
   std::size_t cols = 0;
   for (const auto& r : results) cols = std::max({cols, r.grid_gt.size(), r.grid_inputs.size()});
@@ -238,7 +259,8 @@ void write_grid(const fs::path& path, const std::vector<ObjectResult>& results, 
       inputs.push_back(&big);
     }
     row(inputs, r.name + " in", r.score_h, r.score_w);
-    row(pointers(r.grid_render), "render", r.score_h, r.score_w);
+    if (!r.grid_feed_forward.empty()) row(pointers(r.grid_feed_forward), "feed-forward", r.score_h, r.score_w);
+    row(pointers(r.grid_render), r.grid_feed_forward.empty() ? "render" : "refined", r.score_h, r.score_w);
     row(pointers(r.grid_gt), "truth", r.score_h, r.score_w);
   }
   image::write_png(path, image::image_grid(cells, static_cast<int>(cols), static_cast<int>(std::min<index_t>(cell, 512))));
@@ -250,6 +272,11 @@ nlohmann::json refine_json(const RefineInfo& r, const Scores& refined, const Sco
   j["loss_initial"] = value_or_null(r.loss_initial);
   j["loss_final"] = value_or_null(r.loss_final);
   j["pruned"] = value_or_null(r.pruned);
+  j["size"] = {r.h, r.w};
+  j["carved"] = value_or_null(r.carved);
+  j["trial_steps"] = value_or_null(r.trial_steps);
+  j["holdout_loss_initial"] = value_or_null(r.holdout_initial);
+  j["holdout_loss_best"] = value_or_null(r.holdout_best);
   j["psnr_change"] = value_or_null(refined.psnr - before.psnr);
   return j;
 }
@@ -270,6 +297,11 @@ int eval_command(Args args) {
   take_option(args, "--lpips", lpips_path);
   take_option(args, "--max-targets", max_targets_text);
   take_option(args, "--refine", refine_text);
+  std::string refine_size_text, refine_validate = "on", refine_cameras = "on", refine_carve = "on";
+  take_option(args, "--refine-size", refine_size_text);
+  take_option(args, "--refine-validate", refine_validate);
+  take_option(args, "--refine-cameras", refine_cameras);
+  take_option(args, "--refine-carve", refine_carve);
   take_option(args, "--rotation-noise", noise_text);
   take_option(args, "--seed", seed_text);
   take_option(args, "--gaussians", gaussians_text);
@@ -304,6 +336,12 @@ int eval_command(Args args) {
   }
   if (!seed_text.empty()) x.seed = parse_seed(seed_text, "--seed");
   x.native = resolution == "native";
+  x.refine_longer = refine_size_text.empty() || refine_size_text == "native"
+                        ? 0
+                        : parse_integer(refine_size_text, "--refine-size", 1, 16384);
+  x.refine_validate = parse_on_off(refine_validate, "--refine-validate");
+  x.refine_cameras = parse_on_off(refine_cameras, "--refine-cameras");
+  x.refine_carve = parse_on_off(refine_carve, "--refine-carve");
 
   if (!gaussians_text.empty()) x.gaussians = parse_count(gaussians_text, "--gaussians", 0);
   // --self-attention full | local | local:WINDOW (the decoder's self-attention has no parameters of its own).
@@ -364,11 +402,17 @@ int eval_command(Args args) {
   }
   print_table(title.c_str(), names, rows);
   if (refined) {
-    std::printf("refinement\n%-20s %6s %10s %10s %7s %11s\n", "object", "steps", "loss_in", "loss_out", "pruned",
-                "psnr_change");
+    std::printf("refinement (steps: chosen by the held-out trial of trial_steps; held_in, held_best: the held-out view's "
+                "loss)\n%-20s %6s %10s %10s %7s %11s %11s %9s %9s %7s %9s\n",
+                "object", "steps", "loss_in", "loss_out", "pruned", "psnr_change", "trial_steps", "held_in",
+                "held_best", "carved", "size");
     for (const auto& r : results)
-      std::printf("%-20s %6.0f %10.5f %10.5f %7.0f %+11.2f\n", r.name.c_str(), r.refine.steps, r.refine.loss_initial,
-                  r.refine.loss_final, r.refine.pruned, r.model.psnr - r.feed_forward.psnr);
+      std::printf("%-20s %6.0f %10.5f %10.5f %7.0f %+11.2f %11s %9s %9s %7.0f %4lldx%-4lld\n", r.name.c_str(),
+                  r.refine.steps, r.refine.loss_initial, r.refine.loss_final, r.refine.pruned,
+                  r.model.psnr - r.feed_forward.psnr, cell(r.refine.trial_steps, "%.0f").c_str(),
+                  cell(r.refine.holdout_initial, "%.5f").c_str(), cell(r.refine.holdout_best, "%.5f").c_str(),
+                  r.refine.carved, static_cast<long long>(r.refine.w),
+                  static_cast<long long>(r.refine.h));
   }
   if (eo.white_baseline) print_table("baseline white (a white image)", names, white_rows);
   if (x.posed_fit)
@@ -416,7 +460,9 @@ int eval_command(Args args) {
 const RegisterCommand registered_cmd_eval(
     "eval", {"evaluate a model on object folders: predicted cameras aligned to the ground truth, held-out views scored",
              "OBJECT_DIR... [--model M.safetensors] [--views N|i,j,k] [--max-targets N]\n"
-             "  [--baseline white|posed-fit|white,posed-fit] [--refine SECONDS] [--rotation-noise DEG] [--seed N]\n"
+             "  [--baseline white|posed-fit|white,posed-fit] [--refine SECONDS] [--refine-size N|native]\n"
+             "  [--refine-validate on|off] [--refine-cameras on|off] [--refine-carve on|off]\n"
+             "  [--rotation-noise DEG] [--seed N]\n"
              "  [--gaussians N] [--self-attention full|local[:WINDOW]] [--resolution native|model] [--lpips LPIPS.safetensors]\n"
              "  [--json out.json]\n"
              "  [--grid out.png [--grid-targets 4]] [--quiet]\n"
@@ -430,8 +476,12 @@ const RegisterCommand registered_cmd_eval(
              "  --json: {model, resolution, objects: [{name, resolution [h, w], psnr, ssim, lpips, rotation_error_deg,\n"
              "  center_error_rel, seconds}],\n"
              "  mean, baselines}; --grid: per object its inputs, renders and ground truth\n"
-             "  --refine S: optimise the predicted Gaussians and cameras on the input views for S seconds (the\n"
-             "  feed-forward scores and the PSNR change are reported too); --rotation-noise DEG: each predicted\n"
+             "  --refine S: optimise the predicted Gaussians and cameras on the input views for about S seconds at\n"
+             "  the photos' own resolution (--refine-size N: N pixels on the longer side), the step count chosen on\n"
+             "  the last input view held out of a trial fit (--refine-validate off: every step on every view;\n"
+             "  --refine-cameras off: cameras fixed; --refine-carve off: no carving of the Gaussians seen on the\n"
+             "  photos' background); the feed-forward scores and the PSNR change are reported too,\n"
+             "  and --baseline posed-fit then fits at the refinement's size; --rotation-noise DEG: each predicted\n"
              "  input camera turned by DEG degrees about a random axis before the decoder (seeded by --seed and the\n"
              "  object's name); --baseline posed-fit: a per-scene fit from the input views with their ground-truth\n"
              "  cameras for the model's seconds; --gaussians: default the model's budget for the view count;\n"

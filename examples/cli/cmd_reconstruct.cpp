@@ -1,6 +1,7 @@
 // reconstruct: a few uncalibrated photos -> FlexSplat's feed-forward prediction (cameras, depth, Gaussians) -> a
 // .glb (KHR_gaussian_splatting, with the predicted cameras as camera nodes) or .ply, and optionally a turntable.
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -35,8 +36,8 @@ struct Stages {
 };
 
 // `frames` views orbiting the Gaussians' opacity-weighted centre about the first camera's up axis, at the first
-// camera's distance, side by side in one picture (model size, the first camera's predicted K).
-void write_turntable(const fs::path& path, const model::Prediction<float>& p, int frames) {
+// camera's distance, side by side in one picture (each h x w, the first camera's predicted K scaled to that size).
+void write_turntable(const fs::path& path, const model::Prediction<float>& p, int frames, index_t h, index_t w) {
   const auto& s = p.gaussians;
   glm::dvec3 centre(0.0);
   double weight = 0;
@@ -47,10 +48,13 @@ void write_turntable(const fs::path& path, const model::Prediction<float>& p, in
   }
   require(weight > 0, "turntable: every Gaussian is transparent");
   centre /= weight;
-  const Camera first = model::input_cameras(p)[0];
+  Camera first = model::input_cameras(p)[0];
   const glm::dvec3 eye0 = first.centre();
   const glm::dvec3 up = -glm::transpose(first.R)[1];  // rows of R are the camera's axes; OpenCV y points down
-  const index_t h = p.h, w = p.w, gap = 2;
+  const double sx = static_cast<double>(w) / static_cast<double>(p.w), sy = static_cast<double>(h) / static_cast<double>(p.h);
+  first.K[0][0] *= sx, first.K[1][0] *= sx, first.K[2][0] *= sx;  // column-major: fx, skew, cx
+  first.K[1][1] *= sy, first.K[2][1] *= sy;
+  const index_t gap = 2;
   Tensor<float, 3> strip(Shape<3>{h, frames * w + (frames - 1) * gap, 3}, 1.0f);
   raster::RenderOptions ro;
   ro.background = {1, 1, 1};
@@ -71,13 +75,17 @@ void write_turntable(const fs::path& path, const model::Prediction<float>& p, in
 }
 
 int reconstruct_command(Args args) {
-  std::string model_path, output, gaussians_text, turntable, refine_text;
+  std::string model_path, output, gaussians_text, turntable, refine_text, refine_size_text, turntable_size_text;
+  std::string refine_validate = "on";
   take_option(args, "--model", model_path);
   require(take_option(args, "-o", output) || take_option(args, "--output", output),
           "reconstruct needs -o out.glb or -o out.ply");
   take_option(args, "--gaussians", gaussians_text);
   take_option(args, "--turntable", turntable);
   take_option(args, "--refine", refine_text);
+  take_option(args, "--refine-size", refine_size_text);
+  take_option(args, "--refine-validate", refine_validate);
+  take_option(args, "--turntable-size", turntable_size_text);
   const bool verbose = take_flag(args, "--verbose");
   for (const auto& a : args) require(a.empty() || a[0] != '-', "reconstruct: unknown option '", a, "'");
   require(!args.empty(), "reconstruct needs at least one IMAGE (PNG or JPEG)");
@@ -88,6 +96,12 @@ int reconstruct_command(Args args) {
   }
   double refine_seconds = 0;
   if (!refine_text.empty()) refine_seconds = parse_number(refine_text, "--refine", false);
+  auto parse_size = [](const std::string& text, const char* flag) -> index_t {
+    return text.empty() || text == "native" ? 0 : parse_integer(text, flag, 1, 16384);
+  };
+  const index_t refine_longer = parse_size(refine_size_text, "--refine-size");
+  const index_t turntable_longer = parse_size(turntable_size_text, "--turntable-size");
+  const bool validate = parse_on_off(refine_validate, "--refine-validate");
   model_path = model_or_default(model_path);
   require(fs::is_regular_file(model_path), "reconstruct: model file '", model_path, "' does not exist");
 
@@ -113,17 +127,26 @@ int reconstruct_command(Args args) {
   t.last = std::chrono::steady_clock::now();
   if (refine_seconds > 0) {
     // Test-time refinement of the Gaussians and the predicted cameras on the input pictures (camera 0 stays fixed).
-    std::fprintf(stderr, "reconstruct: refining for %g s on the input views\n", refine_seconds);
-    const std::vector<float> targets = model::views_hwc(images.data(), p.views, p.h, p.w);
+    const std::array<index_t, 2> size = model::refine_size(rgba, c, refine_longer);
+    std::fprintf(stderr, "reconstruct: refining for %g s on the input views at %lld x %lld\n", refine_seconds,
+                 static_cast<long long>(size[1]), static_cast<long long>(size[0]));
+    const model::PhotoTargets<float> photos = model::photo_targets<float>(rgba, c, p.geometry.K.data(), size[0], size[1]);
     model::RefineConfig rc;
     rc.seconds = refine_seconds;
+    rc.validate = validate;
+    rc.lr_scale = model::refine_prediction_lr_scale;
     model::RefineWorkspace<float> rws;
     const model::RefineResult rr = model::refine(
-        p.gaussians, model::RefineViews<float>{p.views, p.h, p.w, targets.data(), p.geometry.K.data(),
-                                               p.geometry.extrinsics.data()},
+        p.gaussians, model::RefineViews<float>{p.views, photos.h, photos.w, photos.images.data(), photos.K.data(),
+                                               p.geometry.extrinsics.data(), photos.alpha.data()},
         rc, rws);
-    std::fprintf(stderr, "reconstruct: %lld refinement steps, loss on the inputs %.5f -> %.5f, %lld Gaussians pruned\n",
-                 static_cast<long long>(rr.steps), rr.loss_initial, rr.loss_final, static_cast<long long>(rr.pruned));
+    if (rr.chosen_steps >= 0)
+      std::fprintf(stderr, "reconstruct: held-out trial of %lld steps on all views but the last: its loss %.5f -> "
+                   "%.5f at step %lld\n", static_cast<long long>(rr.trial_steps), rr.holdout_initial,
+                   rr.holdout_best, static_cast<long long>(rr.chosen_steps));
+    std::fprintf(stderr, "reconstruct: %lld refinement steps, loss on the inputs %.5f -> %.5f, %lld Gaussians carved "
+                 "away (seen on a photo's background), %lld pruned\n", static_cast<long long>(rr.steps),
+                 rr.loss_initial, rr.loss_final, static_cast<long long>(rr.carved), static_cast<long long>(rr.pruned));
     t.lap("refine");
   }
 
@@ -138,7 +161,8 @@ int reconstruct_command(Args args) {
   t.lap("export");
   if (!turntable.empty()) {
     std::fprintf(stderr, "reconstruct: rendering turntable %s\n", turntable.c_str());
-    write_turntable(turntable, p, 8);
+    const std::array<index_t, 2> size = model::refine_size(rgba, c, turntable_longer);
+    write_turntable(turntable, p, 8, size[0], size[1]);
     t.lap("turntable");
   }
   std::printf("%s: %lld Gaussians, %zu camera(s), %zu bytes, from %zu image(s)\n", output.c_str(),
@@ -157,14 +181,18 @@ int reconstruct_command(Args args) {
 const RegisterCommand registered_cmd_reconstruct(
     "reconstruct", {"a Gaussian splat (.glb with the predicted cameras, or .ply) from a few uncalibrated images",
                     "IMAGE... -o out.glb|out.ply [--model M.safetensors] [--gaussians N] [--refine SECONDS]\n"
-                    "  [--turntable out.png] [--verbose]\n"
+                    "  [--refine-size N|native] [--refine-validate on|off] [--turntable out.png]\n"
+                    "  [--turntable-size N|native] [--verbose]\n"
                     "  IMAGE: 1 to the model's max_views PNG/JPEG files of any size; RGBA is composited on white and\n"
                     "  each picture's centred window of the model's aspect ratio is resized to the model's size\n"
                     "  --model: default the shipped model (models/flexsplat-small.safetensors in the source tree)\n"
                     "  --gaussians: default the model's budget for the view count; --turntable: 8 views around the\n"
-                    "  object in one picture; --verbose: time of each stage\n"
+                    "  object in one picture, each at the pictures' resolution (--turntable-size N: N pixels on the longer\n"
+                    "  side); --verbose: time of each stage\n"
                     "  --refine S: optimise the Gaussians and the predicted cameras (all but the first) on the input\n"
-                    "  pictures for S seconds before writing (docs/app.md)",
+                    "  pictures for about S seconds before writing, at their own resolution (--refine-size N: N pixels\n"
+                    "  on the longer side); the step count is chosen on the last picture held out of a trial fit\n"
+                    "  (--refine-validate off: every step on every picture) (docs/app.md)",
                     reconstruct_command});
 
 }  // namespace flexsplat::cli::reconstruct_cmd

@@ -105,6 +105,11 @@ inline double parse_number(const std::string& text, const std::string& flag, boo
   return v;
 }
 
+inline bool parse_on_off(const std::string& text, const std::string& flag) {
+  require(text == "on" || text == "off", flag, " '", text, "': expected on or off");
+  return text == "on";
+}
+
 // --model when given, else the shipped model (FLEXSPLAT_DEFAULT_MODEL, set by examples/CMakeLists.txt), which must exist.
 inline std::string model_or_default(const std::string& given) {
   if (!given.empty()) return given;

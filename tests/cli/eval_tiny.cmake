@@ -79,7 +79,10 @@ check_range("rotation_noise_deg" 10 10 rotation_noise_deg)
 check_range("refined psnr" 1 60 objects 0 psnr)
 check_range("feed-forward psnr" 1 60 objects 0 feed_forward psnr)
 check_range("feed-forward rotation error" 0 180 objects 0 feed_forward rotation_error_deg)
-check_range("refine steps" 1 1000000 objects 0 refine steps)
+check_range("refine steps" 0 1000000 objects 0 refine steps)  # 0: the held-out trial kept the prediction
+check_range("refine trial steps" 1 1000000 objects 0 refine trial_steps)
+check_range("refine held-out loss" 0 10 objects 0 refine holdout_loss_best)
+check_range("refine size" 256 256 objects 0 refine size 0)  # the photos' own resolution
 check_range("refine loss" 0 10 objects 0 refine loss_final)
 check_range("psnr change" -60 60 objects 0 refine psnr_change)
 check_range("mean psnr change" -60 60 mean psnr_change)
@@ -108,6 +111,8 @@ expect_eval_refusal("--refine '-1' must be a positive number" --refine -1)
 expect_eval_refusal("--rotation-noise 200 must be at most 180" --rotation-noise 200)
 expect_eval_refusal("--baseline 'posed' is not known" --baseline white,posed)
 expect_eval_refusal("--resolution 'full' is neither 'native'" --resolution full)
+expect_eval_refusal("--refine-validate 'yes': expected on or off" --refine 1 --refine-validate yes)
+expect_eval_refusal("--refine-size '0': expected an integer in \\[1, 16384\\]" --refine 1 --refine-size 0)
 
 set(images ${OBJECT}/images/000.png ${OBJECT}/images/001.png)
 execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/out.glb
@@ -117,6 +122,11 @@ if(NOT code EQUAL 0 OR NOT out MATCHES "out.glb: 48 Gaussians, 2 camera\\(s\\)" 
    OR NOT EXISTS ${WORK_DIR}/turntable.png)
   message(FATAL_ERROR "reconstruct failed (${code}):\n${out}\n${err}")
 endif()
+# The turntable is at the photos' 256 x 256: 8 frames and 7 gaps of 2 pixels (the PNG header's width and height).
+file(READ ${WORK_DIR}/turntable.png ihdr OFFSET 16 LIMIT 8 HEX)
+if(NOT ihdr STREQUAL "0000080e00000100")
+  message(FATAL_ERROR "turntable.png is not 2062 x 256 (IHDR width, height: ${ihdr})")
+endif()
 function(expect_refusal pattern)
   execute_process(COMMAND ${FLEXSPLAT} reconstruct ${ARGN} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/bad.glb
                   RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
@@ -125,9 +135,11 @@ function(expect_refusal pattern)
   endif()
 endfunction()
 execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/refined.ply
-                        --refine 0.2
+                        --refine 0.2 --refine-size 64
                 RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
-if(NOT code EQUAL 0 OR NOT err MATCHES "[0-9]+ refinement steps, loss on the inputs" OR NOT EXISTS ${WORK_DIR}/refined.ply)
+if(NOT code EQUAL 0 OR NOT err MATCHES "refining for 0.2 s on the input views at 64 x 64"
+   OR NOT err MATCHES "held-out trial of [0-9]+ steps" OR NOT err MATCHES "[0-9]+ refinement steps, loss on the inputs"
+   OR NOT EXISTS ${WORK_DIR}/refined.ply)
   message(FATAL_ERROR "reconstruct --refine failed (${code}):\n${out}\n${err}")
 endif()
 expect_refusal("cannot decode" ${CONFIG})

@@ -179,6 +179,51 @@ TEST_CASE("model views of the shared renders equal the data module's full-image 
   CHECK_THROWS_WITH(model::model_input<float>({rgb}, c), Catch::Contains("image 0 of 1") && Catch::Contains("RGBA"));
 }
 
+TEST_CASE("photo targets carry the model's intrinsics to the refinement size through the model's window",
+          "[model][predict]") {
+  auto c = model::flexsplat_tiny_config();  // 28 x 28
+  // A 300 x 200 picture: its centred 200 x 200 window is what the model saw.
+  Tensor<float, 3> rgba(Shape<3>{200, 300, 4});
+  for (index_t y = 0; y < 200; ++y)
+    for (index_t x = 0; x < 300; ++x) {
+      rgba(y, x, 0) = static_cast<float>(x) / 299.0f, rgba(y, x, 1) = static_cast<float>(y) / 199.0f;
+      rgba(y, x, 2) = 0.25f, rgba(y, x, 3) = x < 150 ? 1.0f : 0.5f;
+    }
+  const std::vector<Tensor<float, 3>> photos{rgba, rgba};
+  const std::array<index_t, 2> native = model::refine_size(photos, c);
+  CHECK(native == std::array<index_t, 2>{200, 200});
+  CHECK(model::refine_size(photos, c, 64) == std::array<index_t, 2>{64, 64});
+  // The photo's camera seen by the model, carried back to the window at its own size and at 64 x 64.
+  const double K_photo[9] = {180, 2, 160, 0, 170, 95, 0, 0, 1};
+  double K_model[9];
+  std::copy(K_photo, K_photo + 9, K_model);
+  model::view_mapping(300, 200, 28, 28).intrinsics(K_model);
+  std::vector<float> Km;
+  for (int k = 0; k < 2; ++k) Km.insert(Km.end(), K_model, K_model + 9);
+  const auto at_native = model::photo_targets<float>(photos, c, Km.data(), 200, 200);
+  const double expect_native[9] = {180, 2, 110, 0, 170, 95, 0, 0, 1};  // x shifted by the window's 50 pixels
+  for (int i = 0; i < 9; ++i) CHECK(at_native.K[static_cast<std::size_t>(9 + i)] == Approx(expect_native[i]).margin(1e-4));
+  const auto at_64 = model::photo_targets<float>(photos, c, Km.data(), 64, 64);
+  const double s = 64.0 / 200.0;
+  const double expect_64[9] = {180 * s, 2 * s, 110 * s, 0, 170 * s, 95 * s, 0, 0, 1};
+  for (int i = 0; i < 9; ++i) CHECK(at_64.K[static_cast<std::size_t>(i)] == Approx(expect_64[i]).margin(1e-4));
+  // At the model's size the targets are the model's input, in HWC.
+  const auto at_model = model::photo_targets<float>(photos, c, Km.data(), 28, 28);
+  const auto x = model::model_input<float>(photos, c);
+  REQUIRE(at_model.images.size() == static_cast<std::size_t>(2 * 28 * 28 * 3));
+  for (index_t v = 0; v < 2; ++v)
+    for (index_t y = 0; y < 28; ++y)
+      for (index_t xx = 0; xx < 28; ++xx)
+        for (int ch = 0; ch < 3; ++ch)
+          REQUIRE(at_model.images[static_cast<std::size_t>(((v * 28 + y) * 28 + xx) * 3 + ch)] == x(v, ch, y, xx));
+  // At the window's own size the targets are its pixels composited on white (no resampling).
+  for (index_t y : {0, 77, 199})
+    for (index_t xx : {0, 99, 199}) {
+      const float a = rgba(y, xx + 50, 3);
+      CHECK(at_native.images[static_cast<std::size_t>((y * 200 + xx) * 3)] == Approx(rgba(y, xx + 50, 0) * a + (1 - a)));
+    }
+}
+
 TEST_CASE("the evaluation protocol undoes a known similarity and scores ground-truth Gaussians above white",
           "[model][predict][eval]") {
   const auto objects = data::load_objects({std::filesystem::path(FLEXSPLAT_SHARED_DIR) / "data/objects/spot"});

@@ -9,6 +9,7 @@
 
 #include "flexsplat/model/frames.hpp"
 #include "flexsplat/model/refine.hpp"
+#include "flexsplat/raster/render.hpp"
 
 using namespace flexsplat;
 
@@ -110,6 +111,7 @@ TEST_CASE("refine lowers the photometric loss of a perturbed set, deterministica
   model::RefineConfig c;
   c.steps = 40;
   c.optimize_cameras = false;
+  c.validate = false;
   c.lr_means = 3e-3;
   model::RefineWorkspace<float> ws;
   GaussianSet<float> a = start;
@@ -185,6 +187,7 @@ TEST_CASE("refine with cameras brings a rotated camera back, with fixed cameras 
   c.lr_rotation = 2e-3;
   c.lr_translation = 0;  // a small turn and a sideways shift look alike on 24 x 24 pixels; check the turn alone
   c.prune_every = 0;
+  c.validate = false;  // the held-out view's camera is not refined in the trial, and the Gaussians are fixed
   model::RefineWorkspace<float> ws;
   GaussianSet<float> g = s.truth;
   const std::vector<float> moved = s.w2c;
@@ -214,6 +217,7 @@ TEST_CASE("refine prunes Gaussians whose opacity collapses and keeps their featu
   c.steps = 3;
   c.prune_every = 1;
   c.optimize_cameras = false;
+  c.validate = false;
   model::RefineWorkspace<float> ws;
   const model::RefineResult r = model::refine(g, s.refine_views(), c, ws);
   CHECK(r.pruned >= 2);
@@ -224,6 +228,124 @@ TEST_CASE("refine prunes Gaussians whose opacity collapses and keeps their featu
     CHECK(g.features(i, 0) != 7.0f);
     CHECK(g.features(i, 1) == -g.features(i, 0));
   }
+}
+
+TEST_CASE("refine's held-out trial chooses the step count: the steps that help the held-out view are kept",
+          "[model][refine]") {
+  auto s = refine_scene<float>(3);
+  const GaussianSet<float> start = jittered(s.truth, 9);
+  model::RefineConfig c;
+  c.steps = 40;
+  c.optimize_cameras = false;
+  c.lr_means = 3e-3;
+  c.validate_every = 5;
+  model::RefineWorkspace<float> ws;
+  GaussianSet<float> a = start;
+  const model::RefineResult r = model::refine(a, s.refine_views(), c, ws);
+  CHECK(r.trial_steps == 40);
+  CHECK(r.chosen_steps > 0);
+  CHECK(r.chosen_steps % 5 == 0);
+  CHECK(r.steps == r.chosen_steps);
+  CHECK(r.holdout_best < 0.8 * r.holdout_initial);  // the fit of views 0 and 1 helps view 2: the truth is one set
+  CHECK(r.loss_final < 0.7 * r.loss_initial);
+  // The same inputs give the same bits.
+  GaussianSet<float> b = start;
+  const model::RefineResult r2 = model::refine(b, s.refine_views(), c, ws);
+  CHECK(r2.chosen_steps == r.chosen_steps);
+  CHECK(r2.loss_final == r.loss_final);
+  for (index_t i = 0; i < a.means.size(); ++i) REQUIRE(a.means.data()[i] == b.means.data()[i]);
+  // One view: nothing to hold out, the whole budget fits it.
+  auto one = refine_scene<float>(1);
+  GaussianSet<float> g = jittered(one.truth, 2);
+  const model::RefineResult r1 = model::refine(g, one.refine_views(), c, ws);
+  CHECK(r1.chosen_steps == -1);
+  CHECK(r1.trial_steps == 0);
+  CHECK(r1.steps == 40);
+}
+
+TEST_CASE("refine's held-out trial keeps the input set and cameras when fitting hurts the held-out view",
+          "[model][refine]") {
+  // Views 0 and 1 show a different scene from view 2's (the truth, which the start is): fitting them moves the set
+  // away from what view 2 sees.
+  auto s = refine_scene<float>(3);
+  const auto other = refine_scene<float>(3, 24, 77);
+  std::copy_n(other.images.begin(), 2 * 24 * 24 * 3, s.images.begin());
+  GaussianSet<float> g = s.truth;
+  g.features = Tensor<float, 2>(Shape<2>{g.size(), 1}, 3.0f);
+  const GaussianSet<float> before = g;
+  const std::vector<float> w2c = s.w2c;
+  model::RefineConfig c;
+  c.steps = 20;
+  c.validate_every = 4;
+  model::RefineWorkspace<float> ws;
+  const model::RefineResult r = model::refine(g, s.refine_views(), c, ws);
+  CHECK(r.trial_steps == 20);
+  CHECK(r.chosen_steps == 0);
+  CHECK(r.steps == 0);
+  CHECK(r.holdout_best == r.holdout_initial);
+  CHECK(r.loss_final == r.loss_initial);
+  CHECK(s.w2c == w2c);
+  REQUIRE(g.size() == before.size());
+  for (const auto& [x, y] : {std::pair{&g.means, &before.means}, {&g.scales, &before.scales}, {&g.quats, &before.quats}})
+    for (index_t i = 0; i < x->size(); ++i) REQUIRE(x->data()[i] == y->data()[i]);
+  for (index_t i = 0; i < g.sh.size(); ++i) REQUIRE(g.sh.data()[i] == before.sh.data()[i]);
+  for (index_t i = 0; i < g.size(); ++i) REQUIRE(g.opacities(i) == before.opacities(i));
+  REQUIRE(g.features.shape() == before.features.shape());
+  // Without the trial the same budget fits views 0 and 1, and the set moves.
+  c.validate = false;
+  GaussianSet<float> h = before;
+  const model::RefineResult u = model::refine(h, s.refine_views(), c, ws);
+  CHECK(u.steps == 20);
+  CHECK(u.loss_final < u.loss_initial);
+  double moved = 0;
+  for (index_t i = 0; i < h.means.size(); ++i) moved = std::max(moved, std::abs(double(h.means.data()[i] - before.means.data()[i])));
+  CHECK(moved > 1e-3);
+}
+
+TEST_CASE("carve_to_silhouettes removes the Gaussians seen on background and keeps the object's", "[model][refine]") {
+  auto s = refine_scene<float>(3);
+  // The truth's alpha from every view.
+  std::vector<float> alpha;
+  raster::RenderOptions ro;
+  raster::RenderWorkspace<float> rws;
+  raster::RenderOutputs<float> out;
+  for (index_t v = 0; v < 3; ++v) {
+    raster::render_forward(s.truth, raster::view_from_arrays(s.K.data() + 9 * v, s.w2c.data() + 12 * v, 24, 24), ro, rws, out);
+    alpha.insert(alpha.end(), out.alpha.data(), out.alpha.data() + 24 * 24);
+  }
+  // Two floaters above the object (inside every picture, outside every silhouette) after the truth's 24.
+  GaussianSet<float> g = make_gaussian_set<float>(26, 0);
+  g.features = Tensor<float, 2>(Shape<2>{26, 1});
+  for (index_t i = 0; i < 26; ++i) {
+    const bool floater = i >= 24;
+    for (int k = 0; k < 3; ++k) {
+      g.means(i, k) = floater ? (k == 1 ? (i == 24 ? -1.05f : -1.1f) : 0.0f) : s.truth.means(i, k);  // y down
+      g.scales(i, k) = 0.05f;
+    }
+    g.opacities(i) = 0.5f;
+    g.features(i, 0) = static_cast<float>(i);
+  }
+  const model::RefineViews<float> v = s.refine_views();
+  GaussianSet<float> a = g;
+  CHECK(model::carve_to_silhouettes(a, v, alpha.data(), 0) == 2);
+  REQUIRE(a.size() == 24);
+  for (index_t i = 0; i < 24; ++i) {
+    CHECK(a.features(i, 0) == static_cast<float>(i));
+    CHECK(a.means(i, 1) == s.truth.means(i, 1));
+  }
+  // Widened silhouettes keep the floaters that lie within the margin.
+  GaussianSet<float> b = g;
+  CHECK(model::carve_to_silhouettes(b, v, alpha.data(), 24) == 0);
+  // Photos without alpha say nothing: all kept.
+  const std::vector<float> opaque(alpha.size(), 1.0f);
+  GaussianSet<float> c = g;
+  CHECK(model::carve_to_silhouettes(c, v, opaque.data(), 0) == 0);
+  // Every centre on background: one Gaussian stays.
+  const std::vector<float> empty(alpha.size(), 0.0f);
+  GaussianSet<float> d = g;
+  CHECK(model::carve_to_silhouettes(d, v, empty.data(), 0) == 25);
+  CHECK(d.size() == 1);
+  CHECK_THROWS_WITH(model::carve_to_silhouettes(d, v, alpha.data(), -1), Catch::Contains("margin >= 0"));
 }
 
 TEST_CASE("refine refuses bad inputs with a message", "[model][refine]") {
@@ -253,6 +375,9 @@ TEST_CASE("refine refuses bad inputs with a message", "[model][refine]") {
   CHECK_THROWS_WITH(model::refine(g, none, c, ws), Catch::Contains("0 views"));
   c.ssim_weight = 2;
   CHECK_THROWS_WITH(model::refine(g, s.refine_views(), c, ws), Catch::Contains("ssim_weight 2 outside [0, 1]"));
+  c.ssim_weight = 0.2;
+  c.validate_every = 0;
+  CHECK_THROWS_WITH(model::refine(g, s.refine_views(), c, ws), Catch::Contains("validate_every 0 must be >= 1"));
 }
 
 TEST_CASE("random Gaussians for a posed fit lie in the views' silhouettes", "[model][refine]") {

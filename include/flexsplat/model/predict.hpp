@@ -22,6 +22,7 @@
 #include "flexsplat/decoder/model.hpp"
 #include "flexsplat/geometry/pose_encoding.hpp"
 #include "flexsplat/geometry/procrustes.hpp"
+#include "flexsplat/image/layout.hpp"
 #include "flexsplat/image/resample.hpp"
 #include "flexsplat/model/geometry_result.hpp"
 #include "flexsplat/model/geometry_stage.hpp"
@@ -275,6 +276,61 @@ Tensor<T, 4> model_input(const std::vector<Tensor<float, 3>>& rgba, const FlexSp
     }
   }
   return out;
+}
+
+// The size the photos are refined at: `longer` pixels on the model's longer side with its aspect ratio, or with
+// longer 0 the largest of the photos' windows of that aspect ratio (the pictures' own resolution).
+inline std::array<index_t, 2> refine_size(const std::vector<Tensor<float, 3>>& rgba, const FlexSplatConfig& c,
+                                          index_t longer = 0) {
+  require(!rgba.empty(), "refine size: no images");
+  require(longer >= 0, "refine size: ", longer, " pixels");
+  if (longer > 0) {
+    const double aspect = static_cast<double>(c.image_w) / static_cast<double>(c.image_h);
+    if (c.image_w >= c.image_h)
+      return {std::max<index_t>(1, static_cast<index_t>(std::llround(static_cast<double>(longer) / aspect))), longer};
+    return {longer, std::max<index_t>(1, static_cast<index_t>(std::llround(static_cast<double>(longer) * aspect)))};
+  }
+  std::array<index_t, 2> hw{1, 1};
+  for (const auto& im : rgba) {
+    const ViewMapping m = view_mapping(im.shape(1), im.shape(0), c.image_h, c.image_w);
+    hw[0] = std::max(hw[0], m.height), hw[1] = std::max(hw[1], m.width);
+  }
+  return hw;
+}
+
+// The photos as refinement targets at h x w: each one's window resized as model_view does for the model (the
+// pictures the model saw, at another size), [V, h, w, 3] on white, with its alpha [V, h, w]; and the model's
+// intrinsics K_model [V, 3, 3] (at its image_h x image_w) carried to h x w through the same windows.
+template <class T>
+struct PhotoTargets {
+  index_t views = 0, h = 0, w = 0;
+  std::vector<T> images, alpha, K;
+};
+
+template <class T>
+PhotoTargets<T> photo_targets(const std::vector<Tensor<float, 3>>& rgba, const FlexSplatConfig& c, const T* K_model,
+                              index_t h, index_t w) {
+  require(h >= 1 && w >= 1, "photo targets: size ", w, " x ", h, " is empty");
+  PhotoTargets<T> t;
+  t.views = static_cast<index_t>(rgba.size()), t.h = h, t.w = w;
+  t.images.resize(static_cast<std::size_t>(t.views * h * w * 3));
+  t.alpha.resize(static_cast<std::size_t>(t.views * h * w));
+  std::vector<T> chw(static_cast<std::size_t>(3 * h * w));
+  for (index_t v = 0; v < t.views; ++v) {
+    const auto& im = rgba[static_cast<std::size_t>(v)];
+    const ViewMapping there = model_view<T>(chw.data(), TensorView<const float, 3>(im.view()), h, w,
+                                            {1.0f, 1.0f, 1.0f}, t.alpha.data() + v * h * w);
+    image::chw_to_hwc(t.images.data() + v * h * w * 3, chw.data(), h, w);
+    // The model's K back to the photo's pixels, then to h x w.
+    const ViewMapping model = view_mapping(im.shape(1), im.shape(0), c.image_h, c.image_w);
+    double K[9];
+    for (int i = 0; i < 9; ++i) K[i] = static_cast<double>(K_model[9 * v + i]);
+    K[0] /= model.scale_x, K[1] /= model.scale_x, K[2] = K[2] / model.scale_x + static_cast<double>(model.x0);
+    K[4] /= model.scale_y, K[5] = K[5] / model.scale_y + static_cast<double>(model.y0);
+    there.intrinsics(K);
+    for (int i = 0; i < 9; ++i) t.K.push_back(static_cast<T>(K[i]));
+  }
+  return t;
 }
 
 }  // namespace model

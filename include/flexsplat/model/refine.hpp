@@ -6,9 +6,12 @@
 // lengths scaled by the scene extent, the position rate decaying 100x over the budget). A camera moves by a rigid
 // increment [exp(omega) | tau] left-multiplied onto its world-to-camera and folded in after every step (the gradient
 // is taken at omega = tau = 0); camera 0 stays fixed by default, since it is the model's frame. With prune_every > 0,
-// Gaussians whose opacity falls below refine_prune_opacity are removed every prune_every steps. With a step budget
-// only, the result is deterministic for a fixed thread count. Also here: random_gaussians_in_views, the start of a
-// per-scene fit from posed views (docs/app.md). Usage:
+// Gaussians whose opacity falls below refine_prune_opacity are removed every prune_every steps.
+// A few views are easy to over-fit, so with validate (the default) and >= 2 views the step count is chosen on a view
+// the fit does not see: a trial fits views 0..V-2 for (V-1)/(2V-1) of the budget, scoring the held-out last view every
+// validate_every steps; the result is a fit of all views from the same start for the trial's best step count (0:
+// the input set and cameras unchanged). With a step budget only, the result is deterministic for a fixed thread
+// count. Also here: random_gaussians_in_views, the start of a per-scene fit from posed views (docs/app.md). Usage:
 //   model::RefineConfig rc;  rc.seconds = 5;                       // or rc.steps = 200
 //   model::RefineViews<float> v{V, h, w, images_hwc, K, w2c};       // w2c is updated when cameras are optimised
 //   model::RefineWorkspace<float> ws;
@@ -49,6 +52,10 @@ inline constexpr double refine_opacity_floor = 1e-4;     // opacities are clampe
 inline constexpr double refine_position_decay = 0.01;    // final / initial position learning rate (3DGS)
 inline constexpr double refine_init_opacity = 0.1;       // 3DGS's initial opacity
 inline constexpr double refine_mask_threshold = 0.5;     // a view's pixel is foreground at alpha >= this
+inline constexpr double refine_carve_margin = 0.01;      // carve: silhouettes widened by this x the longer image side
+// Learning rates x this when refining a prediction rather than fitting from scratch: the start is already close
+// (docs/evaluation.md: 0.3 gained most on the held-out views after 5 s at 256 x 256).
+inline constexpr double refine_prediction_lr_scale = 0.3;
 
 struct RefineConfig {
   double seconds = 0;         // wall-time budget; 0: none
@@ -61,10 +68,14 @@ struct RefineConfig {
   double lr_sh_rest_ratio = 1.0 / 20;  // higher SH bands learn at lr_sh x this
   double lr_rotation = 1e-3;           // radians per step (Adam's step size)
   double lr_translation = 1e-3;        // x the scene extent
+  double lr_scale = 1;                 // every learning rate x this (refine_prediction_lr_scale for a prediction)
   int prune_every = 0;                 // > 0: prune every this many steps (off: no measurable gain, docs/app.md)
   double prune_opacity = refine_prune_opacity;
   double extent = 0;                   // 0: mean distance from the camera centres to the opacity-weighted centre
   std::array<double, 3> background{1, 1, 1};
+  bool carve = true;                   // with the views' alpha: carve_to_silhouettes first (checked like a step)
+  bool validate = true;                // >= 2 views: choose the step count on the held-out last view (see above)
+  int validate_every = 10;             // steps between the held-out view's scores in the trial
 };
 
 template <class T>
@@ -73,15 +84,22 @@ struct RefineViews {
   const T* images = nullptr;        // [V, h, w, 3] targets in [0, 1] (composited on the background)
   const T* K = nullptr;             // [V, 3, 3] row-major, pixel centres at +0.5
   T* world_to_camera = nullptr;     // [V, 3, 4] row-major; updated in place when cameras are optimised
+  const T* alpha = nullptr;         // [V, h, w] the targets' alpha, optional (carve)
 };
 
 struct RefineResult {
   std::int64_t steps = 0;
   double seconds = 0;
-  double loss_initial = 0;  // the objective before the first update
+  double loss_initial = 0;  // the objective of the input set on every view
   double loss_final = 0;    // the objective after the last update (one more forward pass)
   double extent = 0;        // the scene extent used
   index_t pruned = 0;       // Gaussians removed
+  // The held-out trial (validate with >= 2 views): its steps, the step count it chose (-1: no trial; 0: the input
+  // was kept) and the held-out view's loss at the start and at the chosen step.
+  std::int64_t trial_steps = 0, chosen_steps = -1;
+  index_t carved = 0;       // Gaussians removed by carve_to_silhouettes
+  double holdout_initial = std::numeric_limits<double>::quiet_NaN();
+  double holdout_best = std::numeric_limits<double>::quiet_NaN();
 };
 
 template <class T>
@@ -120,11 +138,12 @@ void validate(const GaussianSet<T>& set, const RefineViews<T>& v, const RefineCo
           "refine: budget of ", c.seconds, " s and ", c.steps, " steps; give seconds > 0 and/or steps > 0");
   require(c.ssim_weight >= 0 && c.ssim_weight <= 1, "refine: ssim_weight ", c.ssim_weight, " outside [0, 1]");
   for (double lr : {c.lr_means, c.lr_quats, c.lr_scales, c.lr_opacity, c.lr_sh, c.lr_sh_rest_ratio, c.lr_rotation,
-                    c.lr_translation})
+                    c.lr_translation, c.lr_scale})
     require(std::isfinite(lr) && lr >= 0, "refine: learning rate ", lr, " must be finite and >= 0");
   require(c.prune_every >= 0 && c.prune_opacity >= 0 && c.prune_opacity < 1, "refine: prune_every ", c.prune_every,
           " must be >= 0 and prune_opacity ", c.prune_opacity, " in [0, 1)");
   require(std::isfinite(c.extent) && c.extent >= 0, "refine: extent ", c.extent, " must be finite and >= 0");
+  require(c.validate_every >= 1, "refine: validate_every ", c.validate_every, " must be >= 1");
   require(v.views >= 1 && v.h >= 1 && v.w >= 1, "refine: ", v.views, " views of ", v.w, " x ", v.h,
           "; need at least one view of positive size");
   require(v.images && v.K && v.world_to_camera, "refine: null images, K or world_to_camera");
@@ -200,15 +219,16 @@ void build_store(train::ParamStore<T>& store, index_t n, index_t K, index_t view
 
 template <class T>
 void set_learning_rates(train::ParamStore<T>& store, const RefineConfig& c, double extent, double progress) {
-  store.set_lr_scale("means", c.lr_means * extent * std::pow(refine_position_decay, progress));
-  store.set_lr_scale("quats", c.lr_quats);
-  store.set_lr_scale("log_scales", c.lr_scales);
-  store.set_lr_scale("opacity_logits", c.lr_opacity);
-  store.set_lr_scale("sh_dc", c.lr_sh);
-  store.set_lr_scale("sh_rest", c.lr_sh * c.lr_sh_rest_ratio);
+  const double s = c.lr_scale;
+  store.set_lr_scale("means", s * c.lr_means * extent * std::pow(refine_position_decay, progress));
+  store.set_lr_scale("quats", s * c.lr_quats);
+  store.set_lr_scale("log_scales", s * c.lr_scales);
+  store.set_lr_scale("opacity_logits", s * c.lr_opacity);
+  store.set_lr_scale("sh_dc", s * c.lr_sh);
+  store.set_lr_scale("sh_rest", s * c.lr_sh * c.lr_sh_rest_ratio);
   if (store.contains("rotations")) {
-    store.set_lr_scale("rotations", c.lr_rotation);
-    store.set_lr_scale("translations", c.lr_translation * extent);
+    store.set_lr_scale("rotations", s * c.lr_rotation);
+    store.set_lr_scale("translations", s * c.lr_translation * extent);
   }
 }
 
@@ -230,10 +250,13 @@ void activate(RefineWorkspace<T>& ws, index_t n, index_t K) {
   }
 }
 
-// Loss of every view for the current set; with backward, the gradients go into the store (cameras too).
+// Mean loss of the views `which` (null: every view) for the current set; with backward, the gradients go into the
+// store (cameras too).
 template <class T>
-double views_loss(RefineWorkspace<T>& ws, const RefineViews<T>& v, const RefineConfig& c, bool backward) {
-  const index_t n = ws.set.size(), K = ws.set.sh.shape(1), V = v.views;
+double views_loss(RefineWorkspace<T>& ws, const RefineViews<T>& v, const RefineConfig& c, bool backward,
+                  const std::vector<index_t>* which = nullptr) {
+  const index_t n = ws.set.size(), K = ws.set.sh.shape(1);
+  const index_t V = which ? static_cast<index_t>(which->size()) : v.views;
   raster::RenderOptions ro;
   ro.background = c.background;
   const loss::ImageShape shape{1, 3, v.h, v.w, loss::Layout::nhwc};
@@ -246,7 +269,8 @@ double views_loss(RefineWorkspace<T>& ws, const RefineViews<T>& v, const RefineC
     ws.grad.zero();
   }
   double total = 0;
-  for (index_t k = 0; k < V; ++k) {
+  for (index_t j = 0; j < V; ++j) {
+    const index_t k = which ? (*which)[static_cast<std::size_t>(j)] : j;
     T Kf[9], E[12];
     for (int i = 0; i < 9; ++i) Kf[i] = v.K[9 * k + i];
     for (int i = 0; i < 12; ++i) E[i] = static_cast<T>(ws.w2c[static_cast<std::size_t>(12 * k + i)]);
@@ -340,50 +364,58 @@ index_t prune(RefineWorkspace<T>& ws, index_t K, index_t views, double threshold
   return n - m;
 }
 
-}  // namespace refine_detail
-
-// Optimises `set` (in place; pruned Gaussians are removed, features follow their rows and are not optimised) and,
-// with c.optimize_cameras, v.world_to_camera, on the views v. Intrinsics stay fixed.
+// A fresh store holding `set` (opacities clamped to [floor, 1 - floor] before the logit) and zero camera increments.
 template <class T>
-RefineResult refine(GaussianSet<T>& set, const RefineViews<T>& v, const RefineConfig& c, RefineWorkspace<T>& ws) {
-  using clock = std::chrono::steady_clock;
-  const auto start = clock::now();
-  auto elapsed = [&] { return std::chrono::duration<double>(clock::now() - start).count(); };
-  refine_detail::validate(set, v, c);
-  const index_t V = v.views, K = set.sh.shape(1);
-  index_t n = set.size();
-  ws.w2c.assign(v.world_to_camera, v.world_to_camera + 12 * V);
-  const bool cameras = c.optimize_cameras && V > (c.fix_first_camera ? 1 : 0);
-  refine_detail::build_store(ws.store, n, K, V, cameras);
-  {
-    auto& st = ws.store;
-    std::copy_n(set.means.data(), n * 3, st.param("means").data());
-    std::copy_n(set.quats.data(), n * 4, st.param("quats").data());
-    for (index_t i = 0; i < n * 3; ++i) st.param("log_scales")[static_cast<std::size_t>(i)] = std::log(set.scales.data()[i]);
-    for (index_t i = 0; i < n; ++i) {
-      const double o = std::clamp(static_cast<double>(set.opacities(i)), refine_opacity_floor, 1 - refine_opacity_floor);
-      st.param("opacity_logits")[static_cast<std::size_t>(i)] = static_cast<T>(nn::logit(o, 40.0));
-      std::copy_n(set.sh.data() + i * K * 3, 3, st.param("sh_dc").data() + i * 3);
-      std::copy_n(set.sh.data() + (i * K + 1) * 3, (K - 1) * 3, st.param("sh_rest").data() + i * (K - 1) * 3);
-    }
+void load(RefineWorkspace<T>& ws, const GaussianSet<T>& set, bool cameras, index_t views) {
+  const index_t n = set.size(), K = set.sh.shape(1);
+  build_store(ws.store, n, K, views, cameras);
+  auto& st = ws.store;
+  std::copy_n(set.means.data(), n * 3, st.param("means").data());
+  std::copy_n(set.quats.data(), n * 4, st.param("quats").data());
+  for (index_t i = 0; i < n * 3; ++i) st.param("log_scales")[static_cast<std::size_t>(i)] = std::log(set.scales.data()[i]);
+  for (index_t i = 0; i < n; ++i) {
+    const double o = std::clamp(static_cast<double>(set.opacities(i)), refine_opacity_floor, 1 - refine_opacity_floor);
+    st.param("opacity_logits")[static_cast<std::size_t>(i)] = static_cast<T>(nn::logit(o, 40.0));
+    std::copy_n(set.sh.data() + i * K * 3, 3, st.param("sh_dc").data() + i * 3);
+    std::copy_n(set.sh.data() + (i * K + 1) * 3, (K - 1) * 3, st.param("sh_rest").data() + i * (K - 1) * 3);
   }
   ws.origin.resize(static_cast<std::size_t>(n));
   for (index_t i = 0; i < n; ++i) ws.origin[static_cast<std::size_t>(i)] = i;
-  RefineResult r;
-  r.extent = c.extent > 0 ? c.extent : refine_detail::scene_extent(set, ws.w2c, V);
+}
+
+// When an optimisation stops: after `seconds` (0: no limit) or `steps` (0: no limit). The position learning rate
+// decays over `horizon` steps when > 0, else over whichever budget is nearer its end.
+struct Schedule {
+  double seconds = 0;
+  std::int64_t steps = 0, horizon = 0;
+};
+
+// Optimises the loaded store on the views `fit` until the schedule ends; returns the steps taken. After each step
+// after(step, done) runs.
+template <class T, class After>
+std::int64_t optimise(RefineWorkspace<T>& ws, const RefineViews<T>& v, const RefineConfig& c,
+                      const std::vector<index_t>& fit, bool cameras, double extent, const Schedule& s,
+                      index_t* pruned, After&& after) {
+  using clock = std::chrono::steady_clock;
+  const auto start = clock::now();
+  auto elapsed = [&] { return std::chrono::duration<double>(clock::now() - start).count(); };
+  const index_t V = v.views, K = ws.store.info("sh_rest").shape[1] + 1;
   const train::AdamWConfig adam{0.9, 0.999, 1e-15, 0.0};
+  std::int64_t steps = 0;
   while (true) {
-    n = ws.store.info("means").shape[0];
+    const index_t n = ws.store.info("means").shape[0];
     double progress = 0;
-    if (c.steps > 0) progress = static_cast<double>(r.steps) / static_cast<double>(c.steps);
-    if (c.seconds > 0) progress = std::max(progress, elapsed() / c.seconds);
-    refine_detail::activate(ws, n, K);
-    const double loss = refine_detail::views_loss(ws, v, c, true);
-    require(std::isfinite(loss), "refine: the loss became ", loss, " at step ", r.steps + 1);
-    if (r.steps == 0) r.loss_initial = loss;
-    refine_detail::set_learning_rates(ws.store, c, r.extent, std::min(1.0, progress));
-    ++r.steps;
-    train::adamw_step(ws.store, adam, 1.0, static_cast<std::uint64_t>(r.steps));
+    if (s.horizon > 0) progress = static_cast<double>(steps) / static_cast<double>(s.horizon);
+    else {
+      if (s.steps > 0) progress = static_cast<double>(steps) / static_cast<double>(s.steps);
+      if (s.seconds > 0) progress = std::max(progress, elapsed() / s.seconds);
+    }
+    activate(ws, n, K);
+    const double loss = views_loss(ws, v, c, true, &fit);
+    require(std::isfinite(loss), "refine: the loss became ", loss, " at step ", steps + 1);
+    set_learning_rates(ws.store, c, extent, std::min(1.0, progress));
+    ++steps;
+    train::adamw_step(ws.store, adam, 1.0, static_cast<std::uint64_t>(steps));
     auto quats = ws.store.param("quats");
     for (index_t i = 0; i < n; ++i) {  // keep quaternions away from zero length
       T* q = quats.data() + 4 * i;
@@ -394,7 +426,7 @@ RefineResult refine(GaussianSet<T>& set, const RefineViews<T>& v, const RefineCo
       for (index_t k = 0; k < V; ++k) {
         T* o = rot.data() + 3 * k;
         T* t = tr.data() + 3 * k;
-        const Eigen::Matrix3d E = refine_detail::exp_so3(Eigen::Vector3d(o[0], o[1], o[2]));
+        const Eigen::Matrix3d E = exp_so3(Eigen::Vector3d(o[0], o[1], o[2]));
         double* W = ws.w2c.data() + 12 * k;
         Eigen::Matrix<double, 3, 4> M;
         for (int row = 0; row < 3; ++row)
@@ -408,14 +440,151 @@ RefineResult refine(GaussianSet<T>& set, const RefineViews<T>& v, const RefineCo
         std::fill_n(t, 3, T(0));
       }
     }
-    const bool done = (c.steps > 0 && r.steps >= c.steps) || (c.seconds > 0 && elapsed() >= c.seconds);
-    if (c.prune_every > 0 && r.steps % c.prune_every == 0 && !done) {
-      refine_detail::activate(ws, n, K);
-      r.pruned += refine_detail::prune(ws, K, V, c.prune_opacity);
+    const bool done = (s.steps > 0 && steps >= s.steps) || (s.seconds > 0 && elapsed() >= s.seconds);
+    if (c.prune_every > 0 && steps % c.prune_every == 0 && !done) {
+      activate(ws, n, K);
+      *pruned += prune(ws, K, V, c.prune_opacity);
     }
-    if (done) break;
+    after(steps, done);
+    if (done) return steps;
   }
-  n = ws.store.info("means").shape[0];
+}
+
+}  // namespace refine_detail
+
+// Removes the Gaussians whose centre projects onto background in some view: alpha [V, h, w] below
+// refine_mask_threshold everywhere within `margin` pixels (the silhouettes widened, for cameras that are estimates).
+// Centres behind a camera or outside its picture are kept (that view says nothing about them); at least one Gaussian
+// stays. Features follow their rows. Returns the number removed. For photos without alpha (all 1) nothing is removed.
+template <class T>
+index_t carve_to_silhouettes(GaussianSet<T>& set, const RefineViews<T>& v, const T* alpha, index_t margin) {
+  require(alpha && v.K && v.world_to_camera && v.views >= 1 && v.h >= 1 && v.w >= 1 && margin >= 0,
+          "carve: need alpha, K and world_to_camera for at least one view, and a margin >= 0 (got ", margin, ")");
+  check_gaussian_shapes(set, "carve");
+  const index_t V = v.views, h = v.h, w = v.w, n = set.size();
+  // Per view the widened silhouette: a pixel is inside when some pixel within `margin` (a square) is foreground.
+  std::vector<std::uint8_t> inside(static_cast<std::size_t>(V * h * w), 0), rows(static_cast<std::size_t>(h * w));
+  for (index_t k = 0; k < V; ++k) {
+    const T* a = alpha + k * h * w;
+    for (index_t y = 0; y < h; ++y)
+      for (index_t x = 0; x < w; ++x) {
+        bool any = false;
+        for (index_t xx = std::max<index_t>(0, x - margin); xx <= std::min(w - 1, x + margin) && !any; ++xx)
+          any = static_cast<double>(a[y * w + xx]) >= refine_mask_threshold;
+        rows[static_cast<std::size_t>(y * w + x)] = any;
+      }
+    std::uint8_t* in = inside.data() + k * h * w;
+    for (index_t y = 0; y < h; ++y)
+      for (index_t x = 0; x < w; ++x) {
+        bool any = false;
+        for (index_t yy = std::max<index_t>(0, y - margin); yy <= std::min(h - 1, y + margin) && !any; ++yy)
+          any = rows[static_cast<std::size_t>(yy * w + x)] != 0;
+        in[y * w + x] = any;
+      }
+  }
+  std::vector<index_t> keep;
+  for (index_t i = 0; i < n; ++i) {
+    bool out = false;
+    for (index_t k = 0; k < V && !out; ++k) {
+      const T* E = v.world_to_camera + 12 * k;
+      const T* K = v.K + 9 * k;
+      double q[3];
+      for (int r = 0; r < 3; ++r)
+        q[r] = static_cast<double>(E[4 * r]) * set.means(i, 0) + static_cast<double>(E[4 * r + 1]) * set.means(i, 1) +
+               static_cast<double>(E[4 * r + 2]) * set.means(i, 2) + static_cast<double>(E[4 * r + 3]);
+      if (!(q[2] > 0)) continue;
+      const double x = (static_cast<double>(K[0]) * q[0] + static_cast<double>(K[1]) * q[1]) / q[2] + static_cast<double>(K[2]);
+      const double y = static_cast<double>(K[4]) * q[1] / q[2] + static_cast<double>(K[5]);
+      if (!(x >= 0 && y >= 0 && x < static_cast<double>(w) && y < static_cast<double>(h))) continue;
+      out = !inside[static_cast<std::size_t>(k * h * w + static_cast<index_t>(y) * w + static_cast<index_t>(x))];
+    }
+    if (!out) keep.push_back(i);
+  }
+  if (keep.empty()) keep.push_back(0);
+  const index_t m = static_cast<index_t>(keep.size());
+  if (m == n) return 0;
+  GaussianSet<T> c = make_gaussian_set<T>(m, set.sh_degree());
+  const index_t K = set.sh.shape(1), F = set.features.empty() ? 0 : set.features.shape(1);
+  if (F > 0) c.features = Tensor<T, 2>(Shape<2>{m, F});
+  for (index_t j = 0; j < m; ++j) {
+    const index_t i = keep[static_cast<std::size_t>(j)];
+    std::copy_n(&set.means(i, 0), 3, &c.means(j, 0));
+    std::copy_n(&set.quats(i, 0), 4, &c.quats(j, 0));
+    std::copy_n(&set.scales(i, 0), 3, &c.scales(j, 0));
+    c.opacities(j) = set.opacities(i);
+    std::copy_n(set.sh.data() + i * K * 3, K * 3, c.sh.data() + j * K * 3);
+    if (F > 0) std::copy_n(&set.features(i, 0), F, &c.features(j, 0));
+  }
+  set = std::move(c);
+  return n - m;
+}
+
+// Optimises `set` (in place; pruned Gaussians are removed, features follow their rows and are not optimised) and,
+// with c.optimize_cameras, v.world_to_camera, on the views v. Intrinsics stay fixed.
+template <class T>
+RefineResult refine(GaussianSet<T>& set, const RefineViews<T>& v, const RefineConfig& c, RefineWorkspace<T>& ws) {
+  using clock = std::chrono::steady_clock;
+  const auto start = clock::now();
+  auto elapsed = [&] { return std::chrono::duration<double>(clock::now() - start).count(); };
+  refine_detail::validate(set, v, c);
+  const index_t V = v.views, K = set.sh.shape(1);
+  const std::vector<double> w2c0(v.world_to_camera, v.world_to_camera + 12 * V);
+  ws.w2c = w2c0;
+  const bool cameras = c.optimize_cameras && V > (c.fix_first_camera ? 1 : 0);
+  RefineResult r;
+  r.extent = c.extent > 0 ? c.extent : refine_detail::scene_extent(set, ws.w2c, V);
+  std::vector<index_t> all(static_cast<std::size_t>(V));
+  for (index_t k = 0; k < V; ++k) all[static_cast<std::size_t>(k)] = k;
+  refine_detail::load(ws, set, cameras, V);
+  refine_detail::activate(ws, set.size(), K);
+  r.loss_initial = refine_detail::views_loss(ws, v, c, false);
+  refine_detail::Schedule schedule{c.seconds, c.steps, 0};
+  const bool carve = c.carve && v.alpha;
+  const index_t margin = static_cast<index_t>(std::llround(refine_carve_margin * static_cast<double>(std::max(v.h, v.w))));
+  if (c.validate && V >= 2) {
+    // The trial: views 0..V-2 carve and fit, the last one scores; the full fit gets the rest of the budget.
+    const std::vector<index_t> fit(all.begin(), all.end() - 1), held{V - 1};
+    const double share = static_cast<double>(V - 1) / static_cast<double>(2 * V - 1);
+    auto held_loss = [&] {
+      refine_detail::activate(ws, ws.store.info("means").shape[0], K);
+      return refine_detail::views_loss(ws, v, c, false, &held);
+    };
+    refine_detail::load(ws, set, cameras, V);
+    r.holdout_initial = r.holdout_best = held_loss();
+    r.chosen_steps = 0;
+    bool changed = false;  // the best so far is not the input: carved, or fitted
+    GaussianSet<T> start = set;
+    if (carve) {
+      RefineViews<T> seen = v;
+      seen.views = V - 1;
+      if (carve_to_silhouettes(start, seen, v.alpha, margin) > 0) {
+        refine_detail::load(ws, start, cameras, V);
+        const double l = held_loss();
+        if (l < r.holdout_best) r.holdout_best = l, changed = true;
+      }
+    }
+    index_t trial_pruned = 0;
+    r.trial_steps = refine_detail::optimise(
+        ws, v, c, fit, cameras, r.extent, refine_detail::Schedule{c.seconds * share, c.steps, 0},
+        &trial_pruned, [&](std::int64_t step, bool done) {
+          if (step % c.validate_every != 0 && !done) return;
+          const double l = held_loss();
+          if (l < r.holdout_best) r.holdout_best = l, r.chosen_steps = step, changed = true;
+        });
+    ws.w2c = w2c0;
+    if (!changed) {  // neither carving nor any step helped the held-out view: the input stays
+      r.loss_final = r.loss_initial;
+      r.seconds = elapsed();
+      return r;
+    }
+    schedule = refine_detail::Schedule{0, r.chosen_steps, r.trial_steps};
+  }
+  if (carve) r.carved = carve_to_silhouettes(set, v, v.alpha, margin);
+  refine_detail::load(ws, set, cameras, V);
+  if (schedule.steps > 0 || schedule.seconds > 0)
+    r.steps = refine_detail::optimise(ws, v, c, all, cameras, r.extent, schedule, &r.pruned,
+                                      [](std::int64_t, bool) {});
+  const index_t n = ws.store.info("means").shape[0];
   refine_detail::activate(ws, n, K);
   r.loss_final = refine_detail::views_loss(ws, v, c, false);
   // Back to the caller: the optimised set (features follow their rows) and cameras.
