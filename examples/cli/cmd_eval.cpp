@@ -73,7 +73,7 @@ struct Experiment {
   bool native = true;             // score at the folder's image size (false: at the model's)
   double refine_seconds = 0;      // 0: feed-forward only
   index_t refine_longer = 0;      // the refinement's longer side (0: the photos' own resolution)
-  bool refine_validate = true;    // choose the refinement's step count on a held-out input view
+  bool refine_validate = false;   // choose the refinement's step count on a held-out input view
   bool refine_cameras = true;     // refine the predicted cameras with the Gaussians
   bool refine_carve = true;       // carve the Gaussians to the input photos' silhouettes first
   double rotation_noise_deg = 0;  // 0: none
@@ -297,7 +297,7 @@ int eval_command(Args args) {
   take_option(args, "--lpips", lpips_path);
   take_option(args, "--max-targets", max_targets_text);
   take_option(args, "--refine", refine_text);
-  std::string refine_size_text, refine_validate = "on", refine_cameras = "on", refine_carve = "on";
+  std::string refine_size_text, refine_validate = "off", refine_cameras = "on", refine_carve = "on";
   take_option(args, "--refine-size", refine_size_text);
   take_option(args, "--refine-validate", refine_validate);
   take_option(args, "--refine-cameras", refine_cameras);
@@ -476,11 +476,11 @@ const RegisterCommand registered_cmd_eval(
              "  --json: {model, resolution, objects: [{name, resolution [h, w], psnr, ssim, lpips, rotation_error_deg,\n"
              "  center_error_rel, seconds}],\n"
              "  mean, baselines}; --grid: per object its inputs, renders and ground truth\n"
-             "  --refine S: optimise the predicted Gaussians and cameras on the input views for about S seconds at\n"
-             "  the photos' own resolution (--refine-size N: N pixels on the longer side), the step count chosen on\n"
-             "  the last input view held out of a trial fit (--refine-validate off: every step on every view;\n"
-             "  --refine-cameras off: cameras fixed; --refine-carve off: no carving of the Gaussians seen on the\n"
-             "  photos' background); the feed-forward scores and the PSNR change are reported too,\n"
+             "  --refine S: carve away the Gaussians seen on the input photos' background, then optimise the\n"
+             "  Gaussians and predicted cameras on the input views for about S seconds at the photos' own\n"
+             "  resolution (--refine-size N: N pixels on the longer side; --refine-validate on: the step count\n"
+             "  chosen on the last input view held out of a trial fit; --refine-cameras off: cameras fixed;\n"
+             "  --refine-carve off: no carving); the feed-forward scores and the PSNR change are reported too,\n"
              "  and --baseline posed-fit then fits at the refinement's size; --rotation-noise DEG: each predicted\n"
              "  input camera turned by DEG degrees about a random axis before the decoder (seeded by --seed and the\n"
              "  object's name); --baseline posed-fit: a per-scene fit from the input views with their ground-truth\n"

@@ -76,7 +76,7 @@ void write_turntable(const fs::path& path, const model::Prediction<float>& p, in
 
 int reconstruct_command(Args args) {
   std::string model_path, output, gaussians_text, turntable, refine_text, refine_size_text, turntable_size_text;
-  std::string refine_validate = "on";
+  std::string refine_validate = "off";
   take_option(args, "--model", model_path);
   require(take_option(args, "-o", output) || take_option(args, "--output", output),
           "reconstruct needs -o out.glb or -o out.ply");
@@ -189,10 +189,11 @@ const RegisterCommand registered_cmd_reconstruct(
                     "  --gaussians: default the model's budget for the view count; --turntable: 8 views around the\n"
                     "  object in one picture, each at the pictures' resolution (--turntable-size N: N pixels on the longer\n"
                     "  side); --verbose: time of each stage\n"
-                    "  --refine S: optimise the Gaussians and the predicted cameras (all but the first) on the input\n"
-                    "  pictures for about S seconds before writing, at their own resolution (--refine-size N: N pixels\n"
-                    "  on the longer side); the step count is chosen on the last picture held out of a trial fit\n"
-                    "  (--refine-validate off: every step on every picture) (docs/app.md)",
+                    "  --refine S: carve away the Gaussians seen on the pictures' background (RGBA), then optimise the\n"
+                    "  Gaussians and the predicted cameras (all but the first) on the input pictures for about S\n"
+                    "  seconds before writing, at their own resolution (--refine-size N: N pixels on the longer side;\n"
+                    "  --refine-validate on: the step count chosen on the last picture held out of a trial fit)\n"
+                    "  (docs/app.md)",
                     reconstruct_command});
 
 }  // namespace flexsplat::cli::reconstruct_cmd

@@ -70,7 +70,7 @@ endif()
 # --refine, --rotation-noise and --baseline posed-fit: keys and ranges; the same seed gives the same noise.
 foreach(run a b)
   run(${FLEXSPLAT} eval ${OBJECT} --model ${WORK_DIR}/run/model.safetensors --max-targets 2 --quiet --refine 0.2
-      --rotation-noise 10 --seed 4 --baseline white,posed-fit --json ${WORK_DIR}/eval_${run}.json)
+      --refine-validate on --rotation-noise 10 --seed 4 --baseline white,posed-fit --json ${WORK_DIR}/eval_${run}.json)
 endforeach()
 file(READ ${WORK_DIR}/eval_a.json doc)
 file(READ ${WORK_DIR}/eval_b.json doc_b)
@@ -83,6 +83,7 @@ check_range("refine steps" 0 1000000 objects 0 refine steps)  # 0: the held-out 
 check_range("refine trial steps" 1 1000000 objects 0 refine trial_steps)
 check_range("refine held-out loss" 0 10 objects 0 refine holdout_loss_best)
 check_range("refine size" 256 256 objects 0 refine size 0)  # the photos' own resolution
+check_range("refine carved" 0 47 objects 0 refine carved)  # at least one of the 48 Gaussians stays
 check_range("refine loss" 0 10 objects 0 refine loss_final)
 check_range("psnr change" -60 60 objects 0 refine psnr_change)
 check_range("mean psnr change" -60 60 mean psnr_change)
@@ -135,7 +136,7 @@ function(expect_refusal pattern)
   endif()
 endfunction()
 execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/refined.ply
-                        --refine 0.2 --refine-size 64
+                        --refine 0.2 --refine-size 64 --refine-validate on
                 RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
 if(NOT code EQUAL 0 OR NOT err MATCHES "refining for 0.2 s on the input views at 64 x 64"
    OR NOT err MATCHES "held-out trial of [0-9]+ steps" OR NOT err MATCHES "[0-9]+ refinement steps, loss on the inputs"

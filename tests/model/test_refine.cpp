@@ -238,6 +238,7 @@ TEST_CASE("refine's held-out trial chooses the step count: the steps that help t
   c.steps = 40;
   c.optimize_cameras = false;
   c.lr_means = 3e-3;
+  c.validate = true;
   c.validate_every = 5;
   model::RefineWorkspace<float> ws;
   GaussianSet<float> a = start;
@@ -276,6 +277,7 @@ TEST_CASE("refine's held-out trial keeps the input set and cameras when fitting 
   const std::vector<float> w2c = s.w2c;
   model::RefineConfig c;
   c.steps = 20;
+  c.validate = true;
   c.validate_every = 4;
   model::RefineWorkspace<float> ws;
   const model::RefineResult r = model::refine(g, s.refine_views(), c, ws);

@@ -26,6 +26,12 @@ template <class... Parts>
   throw Error(concat(std::forward<Parts>(parts)...));
 }
 
+// An error about one file or named source: "'source': parts".
+template <class... Parts>
+[[noreturn]] void fail_in(const std::string& source, Parts&&... parts) {
+  fail("'", source, "': ", std::forward<Parts>(parts)...);
+}
+
 template <class... Parts>
 void require(bool condition, Parts&&... parts) {
   if (!condition) fail(std::forward<Parts>(parts)...);

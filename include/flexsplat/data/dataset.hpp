@@ -291,27 +291,22 @@ struct ObjectRecord {
 
 namespace detail {
 
-template <class... Parts>
-[[noreturn]] void dataset_error(const std::filesystem::path& file, Parts&&... parts) {
-  fail("'", file.string(), "': ", std::forward<Parts>(parts)...);
-}
-
 // True if p is a regular file, false if it or a parent is missing; any other failure (a name longer than the file
 // system allows, no permission, a symlink loop) is an error naming p, not a std::filesystem exception.
 inline bool is_file(const std::filesystem::path& p) {
   std::error_code ec;
   const std::filesystem::file_status st = std::filesystem::status(p, ec);
   if (ec && ec != std::errc::no_such_file_or_directory && ec != std::errc::not_a_directory)
-    dataset_error(p, "cannot be read: ", ec.message());
+    fail_in(p.string(), "cannot be read: ", ec.message());
   return std::filesystem::is_regular_file(st);
 }
 
 inline std::filesystem::path frame_file(const nlohmann::json& frame, const char* key, const std::filesystem::path& dir,
                                         const std::filesystem::path& file, std::size_t index) {
   if (!frame.contains(key) || !frame[key].is_string())
-    dataset_error(file, "frame ", index, " has no string '", key, "'");
+    fail_in(file.string(), "frame ", index, " has no string '", key, "'");
   const std::filesystem::path rel = frame[key].get<std::string>();
-  if (rel.is_absolute() || rel.empty()) dataset_error(file, "frame ", index, " '", key, "' must be a relative path");
+  if (rel.is_absolute() || rel.empty()) fail_in(file.string(), "frame ", index, " '", key, "' must be a relative path");
   return dir / rel;
 }
 
@@ -323,7 +318,7 @@ inline std::filesystem::path frame_file(const nlohmann::json& frame, const char*
 inline ObjectRecord load_object(const std::filesystem::path& dir) {
   namespace fs = std::filesystem;
   const fs::path file = dir / "cameras.json";
-  if (!detail::is_file(file)) detail::dataset_error(file, "missing (not an object folder)");
+  if (!detail::is_file(file)) fail_in(file.string(), "missing (not an object folder)");
   const nlohmann::json doc = io::read_cameras_json(file);
   const std::vector<Camera> cameras = io::parse_cameras_json(doc, file.string());
   ObjectRecord rec;
@@ -333,10 +328,10 @@ inline ObjectRecord load_object(const std::filesystem::path& dir) {
   rec.width = doc["width"].get<int>();  // parse_cameras_json checked both
   rec.height = doc["height"].get<int>();
   if (!doc.contains("depth_png_scale_m") || !doc["depth_png_scale_m"].is_number())
-    detail::dataset_error(file, "has no numeric 'depth_png_scale_m'");
+    fail_in(file.string(), "has no numeric 'depth_png_scale_m'");
   rec.depth_scale = doc["depth_png_scale_m"].get<double>();
   if (!(std::isfinite(rec.depth_scale) && rec.depth_scale > 0 && rec.depth_scale <= 1))
-    detail::dataset_error(file, "'depth_png_scale_m' = ", rec.depth_scale, " must be finite and in (0, 1]");
+    fail_in(file.string(), "'depth_png_scale_m' = ", rec.depth_scale, " must be finite and in (0, 1]");
   const nlohmann::json& frames = doc["frames"];
   for (std::size_t i = 0; i < frames.size(); ++i) {
     const nlohmann::json& frame = frames[i];
@@ -345,27 +340,27 @@ inline ObjectRecord load_object(const std::filesystem::path& dir) {
     fr.depth = detail::frame_file(frame, "depth", dir, file, i);
     fr.camera = cameras[i];
     for (const fs::path* p : {&fr.image, &fr.depth})
-      if (!detail::is_file(*p)) detail::dataset_error(*p, "missing (frame ", i, " of '", file.string(), "')");
+      if (!detail::is_file(*p)) fail_in(p->string(), "missing (frame ", i, " of '", file.string(), "')");
     const image::ImageInfo im = image::probe(fr.image);
     if (im.width != fr.camera.width || im.height != fr.camera.height || im.channels < 3)
-      detail::dataset_error(fr.image, "is ", im.width, "x", im.height, " with ", im.channels, " channels; '",
+      fail_in(fr.image.string(), "is ", im.width, "x", im.height, " with ", im.channels, " channels; '",
                             file.string(), "' says ", fr.camera.width, "x", fr.camera.height, " RGB(A)");
     const image::ImageInfo dp = image::probe(fr.depth);
     if (dp.width != fr.camera.width || dp.height != fr.camera.height || dp.channels != 1 || dp.bit_depth != 16)
-      detail::dataset_error(fr.depth, "is ", dp.width, "x", dp.height, ", ", dp.bit_depth, "-bit with ", dp.channels,
+      fail_in(fr.depth.string(), "is ", dp.width, "x", dp.height, ", ", dp.bit_depth, "-bit with ", dp.channels,
                             " channels; '", file.string(), "' says ", fr.camera.width, "x", fr.camera.height,
                             " 16-bit single-channel depth");
     rec.frames.push_back(std::move(fr));
   }
   if (doc.contains("input_views")) {
     const nlohmann::json& iv = doc["input_views"];
-    if (!iv.is_array()) detail::dataset_error(file, "'input_views' is not an array");
+    if (!iv.is_array()) fail_in(file.string(), "'input_views' is not an array");
     for (const nlohmann::json& v : iv) {
       if (!v.is_number_integer() || v.get<long long>() < 0 || v.get<long long>() >= static_cast<long long>(frames.size()))
-        detail::dataset_error(file, "'input_views' entry ", v.dump(), " is not a frame index in [0, ", frames.size(), ")");
+        fail_in(file.string(), "'input_views' entry ", v.dump(), " is not a frame index in [0, ", frames.size(), ")");
       const int index = v.get<int>();
       if (std::find(rec.input_views.begin(), rec.input_views.end(), index) != rec.input_views.end())
-        detail::dataset_error(file, "'input_views' lists frame ", index, " twice");
+        fail_in(file.string(), "'input_views' lists frame ", index, " twice");
       rec.input_views.push_back(index);
     }
   }

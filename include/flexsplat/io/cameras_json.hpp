@@ -30,24 +30,19 @@ inline constexpr double kRotationTolerance = 1e-4;
 
 namespace detail {
 
-template <class... Parts>
-[[noreturn]] void cameras_json_error(const std::string& source, Parts&&... parts) {
-  fail("'", source, "': ", std::forward<Parts>(parts)...);
-}
-
 inline void read_camera_matrix(const nlohmann::json& frame, const char* key, int rows, int cols, double* out,
                                const std::string& source, std::size_t index) {
   if (!frame.contains(key) || !frame[key].is_array() || frame[key].size() != static_cast<std::size_t>(rows))
-    cameras_json_error(source, "frame ", index, " '", key, "' is not a ", rows, "x", cols, " matrix");
+    fail_in(source, "frame ", index, " '", key, "' is not a ", rows, "x", cols, " matrix");
   for (int r = 0; r < rows; ++r) {
     const nlohmann::json& row = frame[key][static_cast<std::size_t>(r)];
     if (!row.is_array() || row.size() != static_cast<std::size_t>(cols))
-      cameras_json_error(source, "frame ", index, " '", key, "' row ", r, " does not have ", cols, " entries");
+      fail_in(source, "frame ", index, " '", key, "' row ", r, " does not have ", cols, " entries");
     for (int c = 0; c < cols; ++c) {
       const nlohmann::json& v = row[static_cast<std::size_t>(c)];
-      if (!v.is_number()) cameras_json_error(source, "frame ", index, " '", key, "'[", r, "][", c, "] is not a number");
+      if (!v.is_number()) fail_in(source, "frame ", index, " '", key, "'[", r, "][", c, "] is not a number");
       const double x = v.get<double>();
-      if (!std::isfinite(x)) cameras_json_error(source, "frame ", index, " '", key, "'[", r, "][", c, "] is not finite");
+      if (!std::isfinite(x)) fail_in(source, "frame ", index, " '", key, "'[", r, "][", c, "] is not finite");
       out[r * cols + c] = x;
     }
   }
@@ -57,7 +52,7 @@ inline int image_size_field(const nlohmann::json& obj, const char* key, const st
                             const std::string& where) {
   if (!obj.contains(key) || !obj[key].is_number_integer() || obj[key].get<long long>() < 1 ||
       obj[key].get<long long>() > 65535)
-    cameras_json_error(source, where, "'", key, "' must be an integer in [1, 65535]");
+    fail_in(source, where, "'", key, "' must be an integer in [1, 65535]");
   return obj[key].get<int>();
 }
 
@@ -74,21 +69,21 @@ inline nlohmann::json parse_cameras_json_text(const std::string& text, const std
     const std::size_t start = text.find_last_of(",[:{ \n", at);
     const std::string token = text.substr(start == std::string::npos ? 0 : start + 1, 9);
     if (token.rfind("NaN", 0) == 0 || token.rfind("Infinity", 0) == 0 || token.rfind("-Infinity", 0) == 0)
-      detail::cameras_json_error(source, "contains a non-finite number ('",
+      fail_in(source, "contains a non-finite number ('",
                                  token.substr(0, token.find_first_of(",]} \n")), "' near byte ", e.byte,
                                  "); every K and w2c entry must be finite");
-    detail::cameras_json_error(source, "not valid JSON (", e.what(), ")");
+    fail_in(source, "not valid JSON (", e.what(), ")");
   } catch (const nlohmann::json::exception& e) {
-    if (e.id == 406) detail::cameras_json_error(source, "contains a non-finite number (", e.what(), ")");
-    detail::cameras_json_error(source, "not valid JSON (", e.what(), ")");
+    if (e.id == 406) fail_in(source, "contains a non-finite number (", e.what(), ")");
+    fail_in(source, "not valid JSON (", e.what(), ")");
   }
-  if (!doc.is_object()) detail::cameras_json_error(source, "not a JSON object");
+  if (!doc.is_object()) fail_in(source, "not a JSON object");
   return doc;
 }
 
 inline nlohmann::json read_cameras_json(const std::filesystem::path& file) {
   std::ifstream in(file, std::ios::binary);
-  if (!in) detail::cameras_json_error(file.string(), "cannot open");
+  if (!in) fail_in(file.string(), "cannot open");
   const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   return parse_cameras_json_text(text, file.string());
 }
@@ -97,21 +92,21 @@ inline nlohmann::json read_cameras_json(const std::filesystem::path& file) {
 // [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, w2c's left 3x3 a rotation, every entry finite; the name is
 // the frame's "file" (else "frame i"), the orbit angles its "elevation_deg" / "azimuth_deg" when present.
 inline std::vector<Camera> parse_cameras_json(const nlohmann::json& doc, const std::string& source) {
-  if (!doc.is_object()) detail::cameras_json_error(source, "not a JSON object");
+  if (!doc.is_object()) fail_in(source, "not a JSON object");
   const int width = detail::image_size_field(doc, "width", source, "");
   const int height = detail::image_size_field(doc, "height", source, "");
   if (!doc.contains("frames") || !doc["frames"].is_array() || doc["frames"].empty())
-    detail::cameras_json_error(source, "has no non-empty 'frames' array");
+    fail_in(source, "has no non-empty 'frames' array");
   std::vector<Camera> cameras;
   for (std::size_t i = 0; i < doc["frames"].size(); ++i) {
     const nlohmann::json& frame = doc["frames"][i];
     const std::string where = "frame " + std::to_string(i);
-    if (!frame.is_object()) detail::cameras_json_error(source, where, " is not an object");
+    if (!frame.is_object()) fail_in(source, where, " is not an object");
     double K[9], w2c[12];
     detail::read_camera_matrix(frame, "K", 3, 3, K, source, i);
     detail::read_camera_matrix(frame, "w2c", 3, 4, w2c, source, i);
     if (!(K[0] > 0 && K[4] > 0 && K[3] == 0 && K[6] == 0 && K[7] == 0 && K[8] == 1))
-      detail::cameras_json_error(source, where, " 'K' must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0");
+      fail_in(source, where, " 'K' must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0");
     const int w = frame.contains("width") ? detail::image_size_field(frame, "width", source, where + " ") : width;
     const int h = frame.contains("height") ? detail::image_size_field(frame, "height", source, where + " ") : height;
     Camera cam = camera_from_arrays(K, w2c, w, h,
@@ -122,7 +117,7 @@ inline std::vector<Camera> parse_cameras_json(const nlohmann::json& doc, const s
     for (int c = 0; c < 3; ++c)
       for (int r = 0; r < 3; ++r) err = std::max(err, std::abs(rtr[c][r] - (c == r ? 1.0 : 0.0)));
     if (!(err <= kRotationTolerance))
-      detail::cameras_json_error(source, where, " 'w2c' rotation part is not a rotation (|R^T R - I|, |det R - 1| up to ",
+      fail_in(source, where, " 'w2c' rotation part is not a rotation (|R^T R - I|, |det R - 1| up to ",
                                  err, ")");
     if (frame.contains("elevation_deg") && frame["elevation_deg"].is_number())
       cam.elevation_deg = frame["elevation_deg"].get<double>();

@@ -12,12 +12,34 @@ namespace flexsplat {
 inline namespace v0 {
 namespace io {
 
+// The problems found in a parameter set, raised as one error that lists them all (one line per tensor).
+struct ParamProblems {
+  std::vector<std::string> general, missing, misshaped, unexpected;
+
+  // Returns when there is nothing to list; else fails with `header`, then the general problems and each list.
+  void raise(const std::string& header, const char* misshaped_title = "with the wrong shape") const {
+    if (general.empty() && missing.empty() && misshaped.empty() && unexpected.empty()) return;
+    std::string message = header;
+    for (const auto& p : general) message += "\n  " + p;
+    auto list = [&](const char* title, const std::vector<std::string>& items) {
+      if (items.empty()) return;
+      message += concat("\n  ", items.size(), " ", title, ":");
+      for (const auto& item : items) message += "\n    " + item;
+    };
+    list("missing", missing);
+    list(misshaped_title, misshaped);
+    list("unexpected", unexpected);
+    fail(message);
+  }
+};
+
 // owned_prefixes: name prefixes (before the source's file prefix, e.g. "camera_head.") whose every file tensor must
 // be among `specs`; empty to skip the unexpected-tensor check.
 template <class T>
 void check_parameters(const ParamSource<T>& src, const std::vector<TensorSpec>& specs,
                       const std::vector<std::string>& owned_prefixes, const std::string& what) {
-  std::vector<std::string> missing, misshaped, unexpected;
+  ParamProblems found;
+  auto &missing = found.missing, &misshaped = found.misshaped, &unexpected = found.unexpected;
   std::set<std::string> expected;
   for (const auto& s : specs) {
     expected.insert(s.name);
@@ -42,17 +64,7 @@ void check_parameters(const ParamSource<T>& src, const std::vector<TensorSpec>& 
         }
     }
   }
-  if (missing.empty() && misshaped.empty() && unexpected.empty()) return;
-  std::string message = what + " parameters from " + src.describe() + " do not match the configuration:";
-  auto list = [&](const char* title, const std::vector<std::string>& items) {
-    if (items.empty()) return;
-    message += concat("\n  ", items.size(), " ", title, ":");
-    for (const auto& item : items) message += "\n    " + item;
-  };
-  list("missing", missing);
-  list("with the wrong shape", misshaped);
-  list("unexpected", unexpected);
-  fail(message);
+  found.raise(what + " parameters from " + src.describe() + " do not match the configuration:");
 }
 
 }  // namespace io

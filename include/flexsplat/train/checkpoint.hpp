@@ -141,7 +141,9 @@ CheckpointInfo load_checkpoint(const std::filesystem::path& path, ParamStore<T>&
   if (file_training) info.state.rng_state = file.metadata(checkpoint_rng_key);
   info.optimizer_state = file_training && with_optimizer_state && store.training();
 
-  std::vector<std::string> missing, misshaped, unexpected;
+  io::ParamProblems found;
+  found.general = std::move(problems);
+  auto &missing = found.missing, &misshaped = found.misshaped, &unexpected = found.unexpected;
   std::set<std::string> expected;
   auto expect = [&](const std::string& name, const ParamInfo& t) {
     expected.insert(name);
@@ -168,20 +170,9 @@ CheckpointInfo load_checkpoint(const std::filesystem::path& path, ParamStore<T>&
   }
   for (const auto& t : file.tensors())
     if (!expected.count(t.name)) unexpected.push_back(t.name + " " + safetensors::shape_string(t.shape));
-  if (!problems.empty() || !missing.empty() || !misshaped.empty() || !unexpected.empty()) {
-    std::string message = concat("checkpoint '", file.path(), "' does not match the parameter store (",
-                                 store.tensors().size(), " tensors):");
-    for (const auto& p : problems) message += "\n  " + p;
-    auto list = [&](const char* title, const std::vector<std::string>& items) {
-      if (items.empty()) return;
-      message += concat("\n  ", items.size(), " ", title, ":");
-      for (const auto& item : items) message += "\n    " + item;
-    };
-    list("missing", missing);
-    list("with the wrong shape or dtype", misshaped);
-    list("unexpected", unexpected);
-    fail(message);
-  }
+  found.raise(concat("checkpoint '", file.path(), "' does not match the parameter store (", store.tensors().size(),
+                     " tensors):"),
+              "with the wrong shape or dtype");
   for (const auto& t : store.tensors()) {
     file.convert(file.info(t.name), store.params() + t.offset);
     if (info.optimizer_state) {
