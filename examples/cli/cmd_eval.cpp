@@ -402,8 +402,8 @@ int eval_command(Args args) {
   }
   print_table(title.c_str(), names, rows);
   if (refined) {
-    std::printf("refinement (steps: chosen by the held-out trial of trial_steps; held_in, held_best: the held-out view's "
-                "loss)\n%-20s %6s %10s %10s %7s %11s %11s %9s %9s %7s %9s\n",
+    std::printf("refinement (with --refine-validate on: trial_steps of the held-out trial, held_in and held_best the "
+                "held-out view's loss)\n%-20s %6s %10s %10s %7s %11s %11s %9s %9s %7s %9s\n",
                 "object", "steps", "loss_in", "loss_out", "pruned", "psnr_change", "trial_steps", "held_in",
                 "held_best", "carved", "size");
     for (const auto& r : results)
