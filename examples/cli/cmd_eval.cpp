@@ -298,10 +298,10 @@ int eval_command(Args args) {
   take_option(args, "--max-targets", max_targets_text);
   take_option(args, "--refine", refine_text);
   std::string refine_size_text, refine_validate = "off", refine_cameras = "on", refine_carve = "on";
-  take_option(args, "--refine-size", refine_size_text);
-  take_option(args, "--refine-validate", refine_validate);
-  take_option(args, "--refine-cameras", refine_cameras);
-  take_option(args, "--refine-carve", refine_carve);
+  bool refine_options = false;
+  for (auto [flag, value] : {std::pair{"--refine-size", &refine_size_text}, {"--refine-validate", &refine_validate},
+                             {"--refine-cameras", &refine_cameras}, {"--refine-carve", &refine_carve}})
+    if (take_option(args, flag, *value)) refine_options = true;
   take_option(args, "--rotation-noise", noise_text);
   take_option(args, "--seed", seed_text);
   take_option(args, "--gaussians", gaussians_text);
@@ -342,6 +342,8 @@ int eval_command(Args args) {
   x.refine_validate = parse_on_off(refine_validate, "--refine-validate");
   x.refine_cameras = parse_on_off(refine_cameras, "--refine-cameras");
   x.refine_carve = parse_on_off(refine_carve, "--refine-carve");
+  require(!refine_options || x.refine_seconds > 0,
+          "eval: --refine-size, --refine-validate, --refine-cameras and --refine-carve need --refine SECONDS");
 
   if (!gaussians_text.empty()) x.gaussians = parse_count(gaussians_text, "--gaussians", 0);
   // --self-attention full | local | local:WINDOW (the decoder's self-attention has no parameters of its own).

@@ -83,8 +83,8 @@ int reconstruct_command(Args args) {
   take_option(args, "--gaussians", gaussians_text);
   take_option(args, "--turntable", turntable);
   take_option(args, "--refine", refine_text);
-  take_option(args, "--refine-size", refine_size_text);
-  take_option(args, "--refine-validate", refine_validate);
+  bool refine_options = take_option(args, "--refine-size", refine_size_text);
+  if (take_option(args, "--refine-validate", refine_validate)) refine_options = true;
   take_option(args, "--turntable-size", turntable_size_text);
   const bool verbose = take_flag(args, "--verbose");
   for (const auto& a : args) require(a.empty() || a[0] != '-', "reconstruct: unknown option '", a, "'");
@@ -102,6 +102,7 @@ int reconstruct_command(Args args) {
   const index_t refine_longer = parse_size(refine_size_text, "--refine-size");
   const index_t turntable_longer = parse_size(turntable_size_text, "--turntable-size");
   const bool validate = parse_on_off(refine_validate, "--refine-validate");
+  require(!refine_options || refine_seconds > 0, "reconstruct: --refine-size and --refine-validate need --refine SECONDS");
   model_path = model_or_default(model_path);
   require(fs::is_regular_file(model_path), "reconstruct: model file '", model_path, "' does not exist");
 

@@ -114,6 +114,7 @@ expect_eval_refusal("--baseline 'posed' is not known" --baseline white,posed)
 expect_eval_refusal("--resolution 'full' is neither 'native'" --resolution full)
 expect_eval_refusal("--refine-validate 'yes': expected on or off" --refine 1 --refine-validate yes)
 expect_eval_refusal("--refine-size '0': expected an integer in \\[1, 16384\\]" --refine 1 --refine-size 0)
+expect_eval_refusal("--refine-carve need --refine SECONDS" --refine-carve off)
 
 set(images ${OBJECT}/images/000.png ${OBJECT}/images/001.png)
 execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/out.glb

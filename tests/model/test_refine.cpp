@@ -378,6 +378,11 @@ TEST_CASE("refine refuses bad inputs with a message", "[model][refine]") {
   c.ssim_weight = 2;
   CHECK_THROWS_WITH(model::refine(g, s.refine_views(), c, ws), Catch::Contains("ssim_weight 2 outside [0, 1]"));
   c.ssim_weight = 0.2;
+  std::vector<float> alpha(static_cast<std::size_t>(2 * 24 * 24), 1.0f);
+  alpha[30] = std::numeric_limits<float>::quiet_NaN();
+  model::RefineViews<float> with_alpha = s.refine_views();
+  with_alpha.alpha = alpha.data();
+  CHECK_THROWS_WITH(model::refine(g, with_alpha, c, ws), Catch::Contains("alpha value nan at flat index 30"));
   c.validate_every = 0;
   CHECK_THROWS_WITH(model::refine(g, s.refine_views(), c, ws), Catch::Contains("validate_every 0 must be >= 1"));
 }

@@ -172,6 +172,12 @@ void validate(const GaussianSet<T>& set, const RefineViews<T>& v, const RefineCo
     require(x >= 0 && x <= 1, "refine: image value ", x, " at flat index ", i, " of [", v.views, ", ", v.h, ", ", v.w,
             ", 3] is outside [0, 1]");
   }
+  if (v.alpha)
+    for (index_t i = 0; i < v.views * v.h * v.w; ++i) {
+      const double a = static_cast<double>(v.alpha[i]);
+      require(a >= 0 && a <= 1, "refine: alpha value ", a, " at flat index ", i, " of [", v.views, ", ", v.h, ", ",
+              v.w, "] is outside [0, 1]");
+    }
   for (index_t k = 0; k < v.views; ++k) {
     const T* K = v.K + 9 * k;
     require(std::isfinite(static_cast<double>(K[0])) && std::isfinite(static_cast<double>(K[4])) && K[0] > T(0) &&
