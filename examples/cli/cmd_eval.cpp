@@ -76,6 +76,7 @@ struct Experiment {
   bool refine_validate = false;   // choose the refinement's step count on a held-out input view
   bool refine_cameras = true;     // refine the predicted cameras with the Gaussians
   bool refine_carve = true;       // carve the Gaussians to the input photos' silhouettes first
+  index_t refine_grow = model::refine_grow_gaussians;  // Gaussians grown in the visual hull
   double rotation_noise_deg = 0;  // 0: none
   std::uint64_t seed = 0;         // rotation noise and the posed fit's initialisation (per object: model::object_seed)
   bool posed_fit = false;
@@ -85,7 +86,7 @@ struct Experiment {
 // The refinement's own numbers (steps, loss on the input views before and after, Gaussians pruned).
 struct RefineInfo {
   double steps = NAN, loss_initial = NAN, loss_final = NAN, pruned = NAN;
-  double trial_steps = NAN, holdout_initial = NAN, holdout_best = NAN, carved = NAN;
+  double trial_steps = NAN, holdout_initial = NAN, holdout_best = NAN, carved = NAN, grown = NAN;
   index_t h = 0, w = 0;  // the size the input views were fitted at
 };
 
@@ -135,6 +136,7 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
   // The refinement (and the posed fit beside it) fits the input photos at this size.
   const std::array<index_t, 2> fit_size =
       x.refine_seconds > 0 ? model::refine_size(rgba, c, x.refine_longer) : std::array<index_t, 2>{c.image_h, c.image_w};
+  index_t fit_gaussians = n_model;  // the posed fit's count: the refinement's start, before carving
   if (x.refine_seconds > 0) {
     model::EvalOptions before = o;
     before.white_baseline = false;
@@ -144,20 +146,19 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
     const auto t1 = std::chrono::steady_clock::now();
     const model::PhotoTargets<float> photos =
         model::photo_targets<float>(rgba, c, p.geometry.K.data(), fit_size[0], fit_size[1]);
-    model::RefineConfig rc;
-    rc.seconds = x.refine_seconds;
-    rc.validate = x.refine_validate;
-    rc.optimize_cameras = x.refine_cameras;
-    rc.lr_scale = model::refine_prediction_lr_scale;
-    rc.carve = x.refine_carve;
     const model::RefineViews<float> rv{p.views,       photos.h,   photos.w,           photos.images.data(),
                                        photos.K.data(), w2c.data(), photos.alpha.data()};
+    model::RefineConfig rc = model::prediction_refine_config(rv, x.refine_seconds, seed, x.refine_grow);
+    rc.validate = x.refine_validate;
+    rc.optimize_cameras = x.refine_cameras;
+    rc.carve = x.refine_carve;
     model::RefineWorkspace<float> rws;
     const model::RefineResult rr = model::refine(p.gaussians, rv, rc, rws);
     seconds += since(t1);
     r.refine = {static_cast<double>(rr.steps), rr.loss_initial, rr.loss_final, static_cast<double>(rr.pruned),
                 static_cast<double>(rr.trial_steps), rr.holdout_initial, rr.holdout_best, static_cast<double>(rr.carved),
-                photos.h, photos.w};
+                static_cast<double>(rr.grown), photos.h, photos.w};
+    fit_gaussians = n_model + rr.grown;
   }
   model::EvalResult e = model::score_prediction(rec, in, targets, w2c.data(), p.gaussians, sh, sw, o, ews);
   r.model = row(e, seconds);
@@ -170,9 +171,10 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
   }
   if (x.posed_fit) {
     // The same input views with their ground-truth cameras, fitted for the model's time: with --refine the
-    // prediction's plus the whole refinement budget (the refinement may stop earlier when its trial says so).
+    // prediction's plus the whole refinement budget (the refinement may stop earlier when its trial says so), with
+    // as many Gaussians as the refinement started from (the prediction's and the grown ones).
     const double budget = x.refine_seconds > 0 ? predict_seconds + x.refine_seconds : seconds;
-    const model::PosedFit f = model::posed_fit(rec, in, fit_size[0], fit_size[1], n_model, degree, budget, seed);
+    const model::PosedFit f = model::posed_fit(rec, in, fit_size[0], fit_size[1], fit_gaussians, degree, budget, seed);
     model::EvalOptions po = o;
     po.white_baseline = false, po.grid_targets = 0;
     const model::EvalResult pe = model::score_prediction(rec, in, targets, f.w2c.data(), f.gaussians, sh, sw, po, ews);
@@ -274,6 +276,7 @@ nlohmann::json refine_json(const RefineInfo& r, const Scores& refined, const Sco
   j["pruned"] = value_or_null(r.pruned);
   j["size"] = {r.h, r.w};
   j["carved"] = value_or_null(r.carved);
+  j["grown"] = value_or_null(r.grown);
   j["trial_steps"] = value_or_null(r.trial_steps);
   j["holdout_loss_initial"] = value_or_null(r.holdout_initial);
   j["holdout_loss_best"] = value_or_null(r.holdout_best);
@@ -297,10 +300,11 @@ int eval_command(Args args) {
   take_option(args, "--lpips", lpips_path);
   take_option(args, "--max-targets", max_targets_text);
   take_option(args, "--refine", refine_text);
-  std::string refine_size_text, refine_validate = "off", refine_cameras = "on", refine_carve = "on";
+  std::string refine_size_text, refine_validate = "off", refine_cameras = "on", refine_carve = "on", refine_grow_text;
   bool refine_options = false;
   for (auto [flag, value] : {std::pair{"--refine-size", &refine_size_text}, {"--refine-validate", &refine_validate},
-                             {"--refine-cameras", &refine_cameras}, {"--refine-carve", &refine_carve}})
+                             {"--refine-cameras", &refine_cameras}, {"--refine-carve", &refine_carve},
+                             {"--refine-grow", &refine_grow_text}})
     if (take_option(args, flag, *value)) refine_options = true;
   take_option(args, "--rotation-noise", noise_text);
   take_option(args, "--seed", seed_text);
@@ -336,14 +340,14 @@ int eval_command(Args args) {
   }
   if (!seed_text.empty()) x.seed = parse_seed(seed_text, "--seed");
   x.native = resolution == "native";
-  x.refine_longer = refine_size_text.empty() || refine_size_text == "native"
-                        ? 0
-                        : parse_integer(refine_size_text, "--refine-size", 1, 16384);
+  x.refine_longer = parse_longer_side(refine_size_text, "--refine-size");
   x.refine_validate = parse_on_off(refine_validate, "--refine-validate");
   x.refine_cameras = parse_on_off(refine_cameras, "--refine-cameras");
   x.refine_carve = parse_on_off(refine_carve, "--refine-carve");
+  if (!refine_grow_text.empty()) x.refine_grow = parse_integer(refine_grow_text, "--refine-grow", 0, 1 << 24);
   require(!refine_options || x.refine_seconds > 0,
-          "eval: --refine-size, --refine-validate, --refine-cameras and --refine-carve need --refine SECONDS");
+          "eval: --refine-size, --refine-validate, --refine-cameras, --refine-carve and --refine-grow need --refine "
+          "SECONDS");
 
   if (!gaussians_text.empty()) x.gaussians = parse_count(gaussians_text, "--gaussians", 0);
   // --self-attention full | local | local:WINDOW (the decoder's self-attention has no parameters of its own).
@@ -405,20 +409,21 @@ int eval_command(Args args) {
   print_table(title.c_str(), names, rows);
   if (refined) {
     std::printf("refinement (with --refine-validate on: trial_steps of the held-out trial, held_in and held_best the "
-                "held-out view's loss)\n%-20s %6s %10s %10s %7s %11s %11s %9s %9s %7s %9s\n",
+                "held-out view's loss)\n%-20s %6s %10s %10s %7s %11s %11s %9s %9s %7s %6s %9s\n",
                 "object", "steps", "loss_in", "loss_out", "pruned", "psnr_change", "trial_steps", "held_in",
-                "held_best", "carved", "size");
+                "held_best", "carved", "grown", "size");
     for (const auto& r : results)
-      std::printf("%-20s %6.0f %10.5f %10.5f %7.0f %+11.2f %11s %9s %9s %7.0f %4lldx%-4lld\n", r.name.c_str(),
+      std::printf("%-20s %6.0f %10.5f %10.5f %7.0f %+11.2f %11s %9s %9s %7.0f %6.0f %4lldx%-4lld\n", r.name.c_str(),
                   r.refine.steps, r.refine.loss_initial, r.refine.loss_final, r.refine.pruned,
                   r.model.psnr - r.feed_forward.psnr, cell(r.refine.trial_steps, "%.0f").c_str(),
                   cell(r.refine.holdout_initial, "%.5f").c_str(), cell(r.refine.holdout_best, "%.5f").c_str(),
-                  r.refine.carved, static_cast<long long>(r.refine.w),
+                  r.refine.carved, r.refine.grown, static_cast<long long>(r.refine.w),
                   static_cast<long long>(r.refine.h));
   }
   if (eo.white_baseline) print_table("baseline white (a white image)", names, white_rows);
   if (x.posed_fit)
-    print_table("baseline posed-fit (ground-truth input cameras, fitted for the model's seconds)", names, posed_rows);
+    print_table("baseline posed-fit (ground-truth input cameras, fitted for the model's seconds from as many Gaussians)",
+                names, posed_rows);
 
   if (!json_path.empty()) {
     nlohmann::json j;
@@ -463,7 +468,7 @@ const RegisterCommand registered_cmd_eval(
     "eval", {"evaluate a model on object folders: predicted cameras aligned to the ground truth, held-out views scored",
              "OBJECT_DIR... [--model M.safetensors] [--views N|i,j,k] [--max-targets N]\n"
              "  [--baseline white|posed-fit|white,posed-fit] [--refine SECONDS] [--refine-size N|native]\n"
-             "  [--refine-validate on|off] [--refine-cameras on|off] [--refine-carve on|off]\n"
+             "  [--refine-validate on|off] [--refine-cameras on|off] [--refine-carve on|off] [--refine-grow N]\n"
              "  [--rotation-noise DEG] [--seed N]\n"
              "  [--gaussians N] [--self-attention full|local[:WINDOW]] [--resolution native|model] [--lpips LPIPS.safetensors]\n"
              "  [--json out.json]\n"
@@ -478,12 +483,13 @@ const RegisterCommand registered_cmd_eval(
              "  --json: {model, resolution, objects: [{name, resolution [h, w], psnr, ssim, lpips, rotation_error_deg,\n"
              "  center_error_rel, seconds}],\n"
              "  mean, baselines}; --grid: per object its inputs, renders and ground truth\n"
-             "  --refine S: carve away the Gaussians seen on the input photos' background, then optimise the\n"
-             "  Gaussians and predicted cameras on the input views for about S seconds at the photos' own\n"
-             "  resolution (--refine-size N: N pixels on the longer side; --refine-validate on: the step count\n"
-             "  chosen on the last input view held out of a trial fit; --refine-cameras off: cameras fixed;\n"
-             "  --refine-carve off: no carving); the feed-forward scores and the PSNR change are reported too,\n"
-             "  and --baseline posed-fit then fits at the refinement's size; --rotation-noise DEG: each predicted\n"
+             "  --refine S: carve away the Gaussians seen on the input photos' background, add 4096 in the\n"
+             "  silhouettes' visual hull, then optimise the Gaussians and predicted cameras on the input views for\n"
+             "  about S seconds at the photos' own resolution (--refine-size N: N pixels on the longer side;\n"
+             "  --refine-validate on: the step count chosen on the last input view held out of a trial fit;\n"
+             "  --refine-cameras off: cameras fixed; --refine-carve off: no carving; --refine-grow N: N added);\n"
+             "  the feed-forward scores and the PSNR change are reported too, and --baseline posed-fit then fits at\n"
+             "  the refinement's size with as many Gaussians as it started from; --rotation-noise DEG: each predicted\n"
              "  input camera turned by DEG degrees about a random axis before the decoder (seeded by --seed and the\n"
              "  object's name); --baseline posed-fit: a per-scene fit from the input views with their ground-truth\n"
              "  cameras for the model's seconds; --gaussians: default the model's budget for the view count;\n"

@@ -76,7 +76,7 @@ void write_turntable(const fs::path& path, const model::Prediction<float>& p, in
 
 int reconstruct_command(Args args) {
   std::string model_path, output, gaussians_text, turntable, refine_text, refine_size_text, turntable_size_text;
-  std::string refine_validate = "off";
+  std::string refine_validate = "off", refine_grow_text;
   take_option(args, "--model", model_path);
   require(take_option(args, "-o", output) || take_option(args, "--output", output),
           "reconstruct needs -o out.glb or -o out.ply");
@@ -85,6 +85,7 @@ int reconstruct_command(Args args) {
   take_option(args, "--refine", refine_text);
   bool refine_options = take_option(args, "--refine-size", refine_size_text);
   if (take_option(args, "--refine-validate", refine_validate)) refine_options = true;
+  if (take_option(args, "--refine-grow", refine_grow_text)) refine_options = true;
   take_option(args, "--turntable-size", turntable_size_text);
   const bool verbose = take_flag(args, "--verbose");
   for (const auto& a : args) require(a.empty() || a[0] != '-', "reconstruct: unknown option '", a, "'");
@@ -96,13 +97,13 @@ int reconstruct_command(Args args) {
   }
   double refine_seconds = 0;
   if (!refine_text.empty()) refine_seconds = parse_number(refine_text, "--refine", false);
-  auto parse_size = [](const std::string& text, const char* flag) -> index_t {
-    return text.empty() || text == "native" ? 0 : parse_integer(text, flag, 1, 16384);
-  };
-  const index_t refine_longer = parse_size(refine_size_text, "--refine-size");
-  const index_t turntable_longer = parse_size(turntable_size_text, "--turntable-size");
+  const index_t refine_longer = parse_longer_side(refine_size_text, "--refine-size");
+  const index_t turntable_longer = parse_longer_side(turntable_size_text, "--turntable-size");
   const bool validate = parse_on_off(refine_validate, "--refine-validate");
-  require(!refine_options || refine_seconds > 0, "reconstruct: --refine-size and --refine-validate need --refine SECONDS");
+  const index_t refine_grow = refine_grow_text.empty() ? model::refine_grow_gaussians
+                                                      : parse_integer(refine_grow_text, "--refine-grow", 0, 1 << 24);
+  require(!refine_options || refine_seconds > 0,
+          "reconstruct: --refine-size, --refine-validate and --refine-grow need --refine SECONDS");
   model_path = model_or_default(model_path);
   require(fs::is_regular_file(model_path), "reconstruct: model file '", model_path, "' does not exist");
 
@@ -132,22 +133,20 @@ int reconstruct_command(Args args) {
     std::fprintf(stderr, "reconstruct: refining for %g s on the input views at %lld x %lld\n", refine_seconds,
                  static_cast<long long>(size[1]), static_cast<long long>(size[0]));
     const model::PhotoTargets<float> photos = model::photo_targets<float>(rgba, c, p.geometry.K.data(), size[0], size[1]);
-    model::RefineConfig rc;
-    rc.seconds = refine_seconds;
+    const model::RefineViews<float> rv{p.views,         photos.h, photos.w, photos.images.data(),
+                                       photos.K.data(), p.geometry.extrinsics.data(), photos.alpha.data()};
+    model::RefineConfig rc = model::prediction_refine_config(rv, refine_seconds, 0, refine_grow);
     rc.validate = validate;
-    rc.lr_scale = model::refine_prediction_lr_scale;
     model::RefineWorkspace<float> rws;
-    const model::RefineResult rr = model::refine(
-        p.gaussians, model::RefineViews<float>{p.views, photos.h, photos.w, photos.images.data(), photos.K.data(),
-                                               p.geometry.extrinsics.data(), photos.alpha.data()},
-        rc, rws);
+    const model::RefineResult rr = model::refine(p.gaussians, rv, rc, rws);
     if (rr.chosen_steps >= 0)
       std::fprintf(stderr, "reconstruct: held-out trial of %lld steps on all views but the last: its loss %.5f -> "
                    "%.5f at step %lld\n", static_cast<long long>(rr.trial_steps), rr.holdout_initial,
                    rr.holdout_best, static_cast<long long>(rr.chosen_steps));
     std::fprintf(stderr, "reconstruct: %lld refinement steps, loss on the inputs %.5f -> %.5f, %lld Gaussians carved "
-                 "away (seen on a photo's background), %lld pruned\n", static_cast<long long>(rr.steps),
-                 rr.loss_initial, rr.loss_final, static_cast<long long>(rr.carved), static_cast<long long>(rr.pruned));
+                 "away (seen on a photo's background), %lld grown in the silhouettes, %lld pruned\n",
+                 static_cast<long long>(rr.steps), rr.loss_initial, rr.loss_final, static_cast<long long>(rr.carved),
+                 static_cast<long long>(rr.grown), static_cast<long long>(rr.pruned));
     t.lap("refine");
   }
 
@@ -182,7 +181,7 @@ int reconstruct_command(Args args) {
 const RegisterCommand registered_cmd_reconstruct(
     "reconstruct", {"a Gaussian splat (.glb with the predicted cameras, or .ply) from a few uncalibrated images",
                     "IMAGE... -o out.glb|out.ply [--model M.safetensors] [--gaussians N] [--refine SECONDS]\n"
-                    "  [--refine-size N|native] [--refine-validate on|off] [--turntable out.png]\n"
+                    "  [--refine-size N|native] [--refine-validate on|off] [--refine-grow N] [--turntable out.png]\n"
                     "  [--turntable-size N|native] [--verbose]\n"
                     "  IMAGE: 1 to the model's max_views PNG/JPEG files of any size; RGBA is composited on white and\n"
                     "  each picture's centred window of the model's aspect ratio is resized to the model's size\n"
@@ -190,10 +189,11 @@ const RegisterCommand registered_cmd_reconstruct(
                     "  --gaussians: default the model's budget for the view count; --turntable: 8 views around the\n"
                     "  object in one picture, each at the pictures' resolution (--turntable-size N: N pixels on the longer\n"
                     "  side); --verbose: time of each stage\n"
-                    "  --refine S: carve away the Gaussians seen on the pictures' background (RGBA), then optimise the\n"
-                    "  Gaussians and the predicted cameras (all but the first) on the input pictures for about S\n"
-                    "  seconds before writing, at their own resolution (--refine-size N: N pixels on the longer side;\n"
-                    "  --refine-validate on: the step count chosen on the last picture held out of a trial fit)\n"
+                    "  --refine S: carve away the Gaussians seen on the pictures' background (RGBA) and add 4096 in\n"
+                    "  their silhouettes' visual hull (--refine-grow N: N), then optimise the Gaussians and the\n"
+                    "  predicted cameras (all but the first) on the input pictures for about S seconds before writing,\n"
+                    "  at their own resolution (--refine-size N: N pixels on the longer side; --refine-validate on:\n"
+                    "  the step count chosen on the last picture held out of a trial fit)\n"
                     "  (docs/app.md)",
                     reconstruct_command});
 

@@ -105,6 +105,11 @@ inline double parse_number(const std::string& text, const std::string& flag, boo
   return v;
 }
 
+// A picture size given as its longer side: "native" or empty is 0 (the photos' own resolution), else 1 to 16384.
+inline long long parse_longer_side(const std::string& text, const std::string& flag) {
+  return text.empty() || text == "native" ? 0 : parse_integer(text, flag, 1, 16384);
+}
+
 inline bool parse_on_off(const std::string& text, const std::string& flag) {
   require(text == "on" || text == "off", flag, " '", text, "': expected on or off");
   return text == "on";

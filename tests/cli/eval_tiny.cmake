@@ -84,6 +84,7 @@ check_range("refine trial steps" 1 1000000 objects 0 refine trial_steps)
 check_range("refine held-out loss" 0 10 objects 0 refine holdout_loss_best)
 check_range("refine size" 256 256 objects 0 refine size 0)  # the photos' own resolution
 check_range("refine carved" 0 47 objects 0 refine carved)  # at least one of the 48 Gaussians stays
+check_range("refine grown" 4096 4096 objects 0 refine grown)  # the renders show background: the default growth
 check_range("refine loss" 0 10 objects 0 refine loss_final)
 check_range("psnr change" -60 60 objects 0 refine psnr_change)
 check_range("mean psnr change" -60 60 mean psnr_change)
@@ -114,7 +115,9 @@ expect_eval_refusal("--baseline 'posed' is not known" --baseline white,posed)
 expect_eval_refusal("--resolution 'full' is neither 'native'" --resolution full)
 expect_eval_refusal("--refine-validate 'yes': expected on or off" --refine 1 --refine-validate yes)
 expect_eval_refusal("--refine-size '0': expected an integer in \\[1, 16384\\]" --refine 1 --refine-size 0)
-expect_eval_refusal("--refine-carve need --refine SECONDS" --refine-carve off)
+expect_eval_refusal("--refine-grow need --refine SECONDS" --refine-carve off)
+expect_eval_refusal("--refine-grow need --refine SECONDS" --refine-grow 10)
+expect_eval_refusal("--refine-grow '-1': expected an integer in \\[0, 16777216\\]" --refine 1 --refine-grow -1)
 
 set(images ${OBJECT}/images/000.png ${OBJECT}/images/001.png)
 execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/out.glb
@@ -143,6 +146,13 @@ if(NOT code EQUAL 0 OR NOT err MATCHES "refining for 0.2 s on the input views at
    OR NOT err MATCHES "held-out trial of [0-9]+ steps" OR NOT err MATCHES "[0-9]+ refinement steps, loss on the inputs"
    OR NOT EXISTS ${WORK_DIR}/refined.ply)
   message(FATAL_ERROR "reconstruct --refine failed (${code}):\n${out}\n${err}")
+endif()
+# Without the trial the growth always happens: the count asked for (the trial above may keep the input unchanged).
+execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/grown.ply
+                        --refine 0.2 --refine-size 64 --refine-grow 500
+                RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
+if(NOT code EQUAL 0 OR NOT err MATCHES " 500 grown in the silhouettes" OR NOT EXISTS ${WORK_DIR}/grown.ply)
+  message(FATAL_ERROR "reconstruct --refine-grow 500 failed (${code}):\n${out}\n${err}")
 endif()
 expect_refusal("cannot decode" ${CONFIG})
 expect_refusal("5 images; the model takes 1 to 4" ${images} ${images} ${OBJECT}/images/002.png)

@@ -414,3 +414,85 @@ TEST_CASE("random Gaussians for a posed fit lie in the views' silhouettes", "[mo
   const GaussianSet<float> again = model::random_gaussians_in_views<float>(200, 1, s.refine_views(), alpha.data(), 7);
   for (index_t i = 0; i < g.means.size(); ++i) REQUIRE(again.means.data()[i] == g.means.data()[i]);
 }
+
+TEST_CASE("refine grows the set in the silhouettes' visual hull, and growth fits what the start lacks",
+          "[model][refine]") {
+  auto s = refine_scene<float>(3);
+  std::vector<float> alpha;
+  raster::RenderOptions ro;
+  raster::RenderWorkspace<float> rws;
+  raster::RenderOutputs<float> out;
+  for (index_t v = 0; v < 3; ++v) {
+    raster::render_forward(s.truth, raster::view_from_arrays(s.K.data() + 9 * v, s.w2c.data() + 12 * v, 24, 24), ro, rws, out);
+    alpha.insert(alpha.end(), out.alpha.data(), out.alpha.data() + 24 * 24);
+  }
+  model::RefineViews<float> v = s.refine_views();
+  v.alpha = alpha.data();
+  // A start that lacks most of the object: 4 of the truth's 24 Gaussians, with features.
+  GaussianSet<float> start = make_gaussian_set<float>(4, 0, 1);
+  for (index_t i = 0; i < 4; ++i) {
+    std::copy_n(&s.truth.means(i, 0), 3, &start.means(i, 0));
+    std::copy_n(&s.truth.scales(i, 0), 3, &start.scales(i, 0));
+    std::copy_n(s.truth.sh.data() + 3 * i, 3, start.sh.data() + 3 * i);
+    start.opacities(i) = s.truth.opacities(i);
+    start.features(i, 0) = static_cast<float>(i + 1);
+  }
+  model::RefineConfig c;
+  c.steps = 1;
+  c.optimize_cameras = false;
+  c.carve = false;
+  c.grow = 100;
+  c.seed = 3;
+  c.lr_means = c.lr_quats = c.lr_scales = c.lr_opacity = c.lr_sh = 0;  // the grown centres stay where they were drawn
+  model::RefineWorkspace<float> ws;
+  GaussianSet<float> g = start;
+  const model::RefineResult r = model::refine(g, v, c, ws);
+  CHECK(r.grown == 100);
+  REQUIRE(g.size() == 104);
+  REQUIRE(g.features.shape() == Shape<2>{104, 1});
+  for (index_t i = 0; i < 104; ++i) CHECK(g.features(i, 0) == (i < 4 ? static_cast<float>(i + 1) : 0.0f));
+  for (index_t i = 4; i < g.size(); ++i)
+    for (index_t k = 0; k < 3; ++k) {
+      const float* E = s.w2c.data() + 12 * k;
+      double q[3];
+      for (int row = 0; row < 3; ++row)
+        q[row] = E[4 * row] * g.means(i, 0) + E[4 * row + 1] * g.means(i, 1) + E[4 * row + 2] * g.means(i, 2) + E[4 * row + 3];
+      const index_t x = static_cast<index_t>(30 * q[0] / q[2] + 12), y = static_cast<index_t>(30 * q[1] / q[2] + 12);
+      REQUIRE((x >= 0 && y >= 0 && x < 24 && y < 24));
+      REQUIRE(alpha[static_cast<std::size_t>((k * 24 + y) * 24 + x)] >= model::refine_mask_threshold);
+    }
+  // Photos without background say nothing about where the object is: nothing grows; nor without alpha.
+  const std::vector<float> opaque(alpha.size(), 1.0f);
+  model::RefineViews<float> no_background = v;
+  no_background.alpha = opaque.data();
+  GaussianSet<float> h = start;
+  CHECK(model::refine(h, no_background, c, ws).grown == 0);
+  CHECK(h.size() == 4);
+  h = start;
+  CHECK(model::refine(h, s.refine_views(), c, ws).grown == 0);
+  // Growth fits what the start lacks: the same steps reach a lower loss on the views with it than without it.
+  model::RefineConfig fit;
+  fit.steps = 60;
+  fit.optimize_cameras = false;
+  fit.seed = 3;
+  GaussianSet<float> without = start, with = start;
+  const model::RefineResult a = model::refine(without, v, fit, ws);
+  fit.grow = 100;
+  const model::RefineResult b = model::refine(with, v, fit, ws);
+  CHECK(b.grown == 100);
+  CHECK(b.loss_final < 0.7 * a.loss_final);
+  // The configuration eval and reconstruct use: growth at 3DGS's rates with background, the prediction alone without.
+  const model::RefineConfig p = model::prediction_refine_config(v, 5.0, 9);
+  CHECK(p.grow == model::refine_grow_gaussians);
+  CHECK(p.lr_scale == 1.0);
+  CHECK(p.seconds == 5.0);
+  CHECK(p.seed == 9u);
+  const model::RefineConfig q = model::prediction_refine_config(no_background, 5.0, 9);
+  CHECK(q.grow == 0);
+  CHECK(q.lr_scale == model::refine_prediction_lr_scale);
+  const model::RefineConfig none = model::prediction_refine_config(v, 5.0, 9, 0);
+  CHECK(none.grow == 0);
+  CHECK(none.lr_scale == model::refine_prediction_lr_scale);
+  c.grow = -1;
+  CHECK_THROWS_WITH(model::refine(h, v, c, ws), Catch::Contains("grow -1 must be >= 0"));
+}

@@ -243,33 +243,30 @@ void rotation_noise(T* w2c, index_t views, double deg, std::uint64_t seed) {
   }
 }
 
-// A folder's input views at the model's size with their ground-truth cameras: what the posed-fit baseline is given.
+// A folder's input views at h x w (model::photo_targets) with their ground-truth cameras: what the posed-fit
+// baseline is given.
 struct PosedViews {
-  index_t views = 0, h = 0, w = 0;
-  std::vector<float> images, alpha, K, w2c;  // [V, h, w, 3] on white, [V, h, w], [V, 3, 3] (model size), [V, 3, 4]
+  PhotoTargets<float> photos;
+  std::vector<float> w2c;  // [V, 3, 4]
 
-  RefineViews<float> refine_views() { return {views, h, w, images.data(), K.data(), w2c.data()}; }
+  RefineViews<float> refine_views() {
+    return {photos.views, photos.h, photos.w, photos.images.data(), photos.K.data(), w2c.data(), photos.alpha.data()};
+  }
 };
 
 inline PosedViews posed_views(const data::ObjectRecord& rec, const std::vector<int>& in, index_t h, index_t w) {
+  std::vector<Tensor<float, 3>> rgba;
+  std::vector<double> K;
   PosedViews p;
-  p.views = static_cast<index_t>(in.size()), p.h = h, p.w = w;
-  const index_t px = h * w;
-  std::vector<float> chw(static_cast<std::size_t>(3 * px));
-  p.images.resize(static_cast<std::size_t>(p.views * px * 3));
-  p.alpha.resize(static_cast<std::size_t>(p.views * px));
-  for (index_t v = 0; v < p.views; ++v) {
-    const data::FrameRecord& fr = rec.frames[static_cast<std::size_t>(in[static_cast<std::size_t>(v)])];
-    const Tensor<float, 3> rgba = image::read_float<float>(fr.image, 4);
-    const ViewMapping map = model_view<float>(chw.data(), TensorView<const float, 3>(rgba.view()), h, w,
-                                              {1.0f, 1.0f, 1.0f}, p.alpha.data() + v * px);
-    image::chw_to_hwc(p.images.data() + v * px * 3, chw.data(), h, w);
-    double K[9], E[12];
-    camera_arrays(fr.camera, K, E);
-    map.intrinsics(K);
-    p.K.insert(p.K.end(), K, K + 9);
+  for (int v : in) {
+    const data::FrameRecord& fr = rec.frames[static_cast<std::size_t>(v)];
+    rgba.push_back(image::read_float<float>(fr.image, 4));
+    double k[9], E[12];
+    camera_arrays(fr.camera, k, E);
+    K.insert(K.end(), k, k + 9);
     p.w2c.insert(p.w2c.end(), E, E + 12);
   }
+  p.photos = photo_targets<float>(rgba, K, h, w);
   return p;
 }
 
@@ -289,9 +286,10 @@ inline PosedFit posed_fit(const data::ObjectRecord& rec, const std::vector<int>&
   auto elapsed = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(); };
   PosedViews views = posed_views(rec, in, h, w);
   PosedFit f;
-  f.gaussians = random_gaussians_in_views<float>(n, degree, views.refine_views(), views.alpha.data(), seed);
+  f.gaussians = random_gaussians_in_views<float>(n, degree, views.refine_views(), views.photos.alpha.data(), seed);
   RefineConfig rc;
   rc.optimize_cameras = false;
+  rc.carve = false;  // the start lies in the silhouettes already
   rc.seconds = std::max(0.0, seconds - elapsed());
   if (rc.seconds <= 0) rc.steps = 1;
   RefineWorkspace<float> ws;

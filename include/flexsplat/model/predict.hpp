@@ -180,6 +180,11 @@ struct ViewMapping {
     K[0] *= scale_x, K[1] *= scale_x, K[2] = (K[2] - static_cast<double>(x0)) * scale_x;
     K[4] *= scale_y, K[5] = (K[5] - static_cast<double>(y0)) * scale_y;
   }
+  // The inverse: the model view's K -> the source camera's (in place).
+  void to_source(double* K) const {
+    K[0] /= scale_x, K[1] /= scale_x, K[2] = K[2] / scale_x + static_cast<double>(x0);
+    K[4] /= scale_y, K[5] = K[5] / scale_y + static_cast<double>(y0);
+  }
 };
 
 // The largest centred window of a W x H picture with the aspect ratio of h x w.
@@ -298,9 +303,9 @@ inline std::array<index_t, 2> refine_size(const std::vector<Tensor<float, 3>>& r
   return hw;
 }
 
-// The photos as refinement targets at h x w: each one's window resized as model_view does for the model (the
-// pictures the model saw, at another size), [V, h, w, 3] on white, with its alpha [V, h, w]; and the model's
-// intrinsics K_model [V, 3, 3] (at its image_h x image_w) carried to h x w through the same windows.
+// Photos as fitting targets at h x w: each one's window resized as model_view does for the model (the pictures the
+// model saw, at another size), [V, h, w, 3] on white, with its alpha [V, h, w]; and K [V, 3, 3], each photo's
+// intrinsics K_photo (in its own pixels, row-major) carried to h x w through the same window.
 template <class T>
 struct PhotoTargets {
   index_t views = 0, h = 0, w = 0;
@@ -308,29 +313,38 @@ struct PhotoTargets {
 };
 
 template <class T>
-PhotoTargets<T> photo_targets(const std::vector<Tensor<float, 3>>& rgba, const FlexSplatConfig& c, const T* K_model,
-                              index_t h, index_t w) {
+PhotoTargets<T> photo_targets(const std::vector<Tensor<float, 3>>& rgba, const std::vector<double>& K_photo, index_t h,
+                              index_t w) {
   require(h >= 1 && w >= 1, "photo targets: size ", w, " x ", h, " is empty");
+  require(K_photo.size() == 9 * rgba.size(), "photo targets: ", K_photo.size(), " intrinsics values for ",
+          rgba.size(), " photos (need 9 each)");
   PhotoTargets<T> t;
   t.views = static_cast<index_t>(rgba.size()), t.h = h, t.w = w;
   t.images.resize(static_cast<std::size_t>(t.views * h * w * 3));
   t.alpha.resize(static_cast<std::size_t>(t.views * h * w));
   std::vector<T> chw(static_cast<std::size_t>(3 * h * w));
   for (index_t v = 0; v < t.views; ++v) {
-    const auto& im = rgba[static_cast<std::size_t>(v)];
-    const ViewMapping there = model_view<T>(chw.data(), TensorView<const float, 3>(im.view()), h, w,
-                                            {1.0f, 1.0f, 1.0f}, t.alpha.data() + v * h * w);
+    const ViewMapping there = model_view<T>(chw.data(), TensorView<const float, 3>(rgba[static_cast<std::size_t>(v)].view()),
+                                            h, w, {1.0f, 1.0f, 1.0f}, t.alpha.data() + v * h * w);
     image::chw_to_hwc(t.images.data() + v * h * w * 3, chw.data(), h, w);
-    // The model's K back to the photo's pixels, then to h x w.
-    const ViewMapping model = view_mapping(im.shape(1), im.shape(0), c.image_h, c.image_w);
     double K[9];
-    for (int i = 0; i < 9; ++i) K[i] = static_cast<double>(K_model[9 * v + i]);
-    K[0] /= model.scale_x, K[1] /= model.scale_x, K[2] = K[2] / model.scale_x + static_cast<double>(model.x0);
-    K[4] /= model.scale_y, K[5] = K[5] / model.scale_y + static_cast<double>(model.y0);
+    std::copy_n(K_photo.data() + 9 * v, 9, K);
     there.intrinsics(K);
     for (int i = 0; i < 9; ++i) t.K.push_back(static_cast<T>(K[i]));
   }
   return t;
+}
+
+// The same with the model's intrinsics K_model [V, 3, 3] (at its image_h x image_w), carried back to each photo first.
+template <class T>
+PhotoTargets<T> photo_targets(const std::vector<Tensor<float, 3>>& rgba, const FlexSplatConfig& c, const T* K_model,
+                              index_t h, index_t w) {
+  std::vector<double> K(9 * rgba.size());
+  for (std::size_t v = 0; v < rgba.size(); ++v) {
+    for (int i = 0; i < 9; ++i) K[9 * v + i] = static_cast<double>(K_model[9 * v + i]);
+    view_mapping(rgba[v].shape(1), rgba[v].shape(0), c.image_h, c.image_w).to_source(K.data() + 9 * v);
+  }
+  return photo_targets<T>(rgba, K, h, w);
 }
 
 }  // namespace model

@@ -7,7 +7,9 @@
 // increment [exp(omega) | tau] left-multiplied onto its world-to-camera and folded in after every step (the gradient
 // is taken at omega = tau = 0); camera 0 stays fixed by default, since it is the model's frame. With prune_every > 0,
 // Gaussians whose opacity falls below refine_prune_opacity are removed every prune_every steps.
-// With the views' alpha, the Gaussians seen on a view's background are carved away first. With validate and >= 2
+// With the views' alpha, the Gaussians seen on a view's background are carved away first, and with grow > 0 (and some
+// view showing background) that many are added uniformly in the silhouettes' visual hull (random_gaussians_in_views):
+// the detail a coarse prediction lacks needs Gaussians where it has none. With validate and >= 2
 // views the step count is chosen on a view the fit does not see: a trial fits views 0..V-2 for (V-1)/(2V-1) of the
 // budget, scoring the held-out last view every validate_every steps; the result is a fit of all views from the same
 // start for the trial's best step count (0: the input set and cameras unchanged). Off by default: on 4 views it kept
@@ -30,7 +32,9 @@
 
 #include <Eigen/Dense>
 #include <Eigen/Geometry>
+#include <glm/glm.hpp>
 
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gaussians.hpp"
 #include "flexsplat/core/tensor.hpp"
@@ -55,9 +59,11 @@ inline constexpr double refine_position_decay = 0.01;    // final / initial posi
 inline constexpr double refine_init_opacity = 0.1;       // 3DGS's initial opacity
 inline constexpr double refine_mask_threshold = 0.5;     // a view's pixel is foreground at alpha >= this
 inline constexpr double refine_carve_margin = 0.01;      // carve: silhouettes widened by this x the longer image side
-// Learning rates x this when refining a prediction rather than fitting from scratch: the start is already close
-// (docs/evaluation.md: 0.3 gained most on the held-out views after 5 s at 256 x 256).
+// Learning rates x this when refining a prediction that does not grow (photos without background): the start is
+// already close (docs/evaluation.md: 0.3 gained most on the held-out views after 5 s at 256 x 256 without growth).
 inline constexpr double refine_prediction_lr_scale = 0.3;
+// Gaussians a prediction grows by in the visual hull (docs/evaluation.md: 4096 measured best after 30 s at 256 x 256).
+inline constexpr index_t refine_grow_gaussians = 4096;
 
 struct RefineConfig {
   double seconds = 0;         // wall-time budget; 0: none
@@ -76,6 +82,8 @@ struct RefineConfig {
   double extent = 0;                   // 0: mean distance from the camera centres to the opacity-weighted centre
   std::array<double, 3> background{1, 1, 1};
   bool carve = true;                   // with the views' alpha: carve_to_silhouettes first (checked like a step)
+  index_t grow = 0;                    // with the views' alpha: Gaussians added in the visual hull after carving
+  std::uint64_t seed = 0;              // the grown Gaussians' draws
   bool validate = false;               // >= 2 views: choose the step count on the held-out last view (see above)
   int validate_every = 10;             // steps between the held-out view's scores in the trial
 };
@@ -100,6 +108,7 @@ struct RefineResult {
   // was kept) and the held-out view's loss at the start and at the chosen step.
   std::int64_t trial_steps = 0, chosen_steps = -1;
   index_t carved = 0;       // Gaussians removed by carve_to_silhouettes
+  index_t grown = 0;        // Gaussians added in the visual hull
   double holdout_initial = std::numeric_limits<double>::quiet_NaN();
   double holdout_best = std::numeric_limits<double>::quiet_NaN();
 };
@@ -146,6 +155,7 @@ void validate(const GaussianSet<T>& set, const RefineViews<T>& v, const RefineCo
           " must be >= 0 and prune_opacity ", c.prune_opacity, " in [0, 1)");
   require(std::isfinite(c.extent) && c.extent >= 0, "refine: extent ", c.extent, " must be finite and >= 0");
   require(c.validate_every >= 1, "refine: validate_every ", c.validate_every, " must be >= 1");
+  require(c.grow >= 0, "refine: grow ", c.grow, " must be >= 0");
   require(v.views >= 1 && v.h >= 1 && v.w >= 1, "refine: ", v.views, " views of ", v.w, " x ", v.h,
           "; need at least one view of positive size");
   require(v.images && v.K && v.world_to_camera, "refine: null images, K or world_to_camera");
@@ -190,18 +200,37 @@ void validate(const GaussianSet<T>& set, const RefineViews<T>& v, const RefineCo
   }
 }
 
-// Mean distance from the camera centres to the opacity-weighted centre of the Gaussians (1 if that is degenerate).
+// The views' cameras (K and world-to-camera as given, at the views' size).
 template <class T>
-double scene_extent(const GaussianSet<T>& set, const std::vector<double>& w2c, index_t views) {
-  Eigen::Vector3d centre = Eigen::Vector3d::Zero();
+std::vector<Camera> view_cameras(const RefineViews<T>& v) {
+  std::vector<Camera> cams;
+  for (index_t k = 0; k < v.views; ++k)
+    cams.push_back(camera_from_arrays(v.K + 9 * k, v.world_to_camera + 12 * k, static_cast<int>(v.w),
+                                      static_cast<int>(v.h)));
+  return cams;
+}
+
+// The opacity-weighted centre of the Gaussians; false when the opacities sum to zero.
+template <class T>
+bool weighted_centre(const GaussianSet<T>& set, glm::dvec3& centre) {
+  centre = glm::dvec3(0.0);
   double weight = 0;
   for (index_t i = 0; i < set.size(); ++i) {
     const double o = static_cast<double>(set.opacities(i));
-    centre += o * Eigen::Vector3d(set.means(i, 0), set.means(i, 1), set.means(i, 2));
+    centre += o * glm::dvec3(set.means(i, 0), set.means(i, 1), set.means(i, 2));
     weight += o;
   }
-  if (!(weight > 0)) return 1.0;
+  if (!(weight > 0)) return false;
   centre /= weight;
+  return std::isfinite(centre.x) && std::isfinite(centre.y) && std::isfinite(centre.z);
+}
+
+// Mean distance from the camera centres to the opacity-weighted centre of the Gaussians (1 if that is degenerate).
+template <class T>
+double scene_extent(const GaussianSet<T>& set, const std::vector<double>& w2c, index_t views) {
+  glm::dvec3 c0;
+  if (!weighted_centre(set, c0)) return 1.0;
+  const Eigen::Vector3d centre(c0.x, c0.y, c0.z);
   double sum = 0;
   for (index_t v = 0; v < views; ++v) {
     const double* E = w2c.data() + 12 * v;
@@ -490,21 +519,17 @@ index_t carve_to_silhouettes(GaussianSet<T>& set, const RefineViews<T>& v, const
         in[y * w + x] = any;
       }
   }
+  const std::vector<Camera> cams = refine_detail::view_cameras(v);
   std::vector<index_t> keep;
   for (index_t i = 0; i < n; ++i) {
     bool out = false;
+    const glm::dvec3 p(set.means(i, 0), set.means(i, 1), set.means(i, 2));
     for (index_t k = 0; k < V && !out; ++k) {
-      const T* E = v.world_to_camera + 12 * k;
-      const T* K = v.K + 9 * k;
-      double q[3];
-      for (int r = 0; r < 3; ++r)
-        q[r] = static_cast<double>(E[4 * r]) * set.means(i, 0) + static_cast<double>(E[4 * r + 1]) * set.means(i, 1) +
-               static_cast<double>(E[4 * r + 2]) * set.means(i, 2) + static_cast<double>(E[4 * r + 3]);
-      if (!(q[2] > 0)) continue;
-      const double x = (static_cast<double>(K[0]) * q[0] + static_cast<double>(K[1]) * q[1]) / q[2] + static_cast<double>(K[2]);
-      const double y = static_cast<double>(K[4]) * q[1] / q[2] + static_cast<double>(K[5]);
-      if (!(x >= 0 && y >= 0 && x < static_cast<double>(w) && y < static_cast<double>(h))) continue;
-      out = !inside[static_cast<std::size_t>(k * h * w + static_cast<index_t>(y) * w + static_cast<index_t>(x))];
+      const glm::dvec3 q = cams[static_cast<std::size_t>(k)].to_camera(p);
+      if (!(q.z > 0)) continue;
+      const glm::dvec2 uv = cams[static_cast<std::size_t>(k)].project(q);
+      if (!(uv.x >= 0 && uv.y >= 0 && uv.x < static_cast<double>(w) && uv.y < static_cast<double>(h))) continue;
+      out = !inside[static_cast<std::size_t>(k * h * w + static_cast<index_t>(uv.y) * w + static_cast<index_t>(uv.x))];
     }
     if (!out) keep.push_back(i);
   }
@@ -525,6 +550,116 @@ index_t carve_to_silhouettes(GaussianSet<T>& set, const RefineViews<T>& v, const
   }
   set = std::move(c);
   return n - m;
+}
+
+// n Gaussians for a per-scene fit from posed views, defined by the views alone: uniform in the sphere around the
+// point nearest to the optical axes (decoder::scene_centre_from_axes; or centre_given) whose radius the narrowest
+// view sees whole (distance x sin of the smallest half field of view), kept where every view's alpha is >=
+// refine_mask_threshold (the visual hull of the silhouettes; after 64 n draws the rest is taken without the test).
+// Colour: the mean of the views' pixels the centre projects to (occlusion ignored); scale: half the spacing of n
+// points in the sphere; opacity refine_init_opacity; identity rotations; SH degree `degree` (higher bands zero). images [V, h, w, 3],
+// alpha [V, h, w] (null: no silhouette test), K and w2c as RefineViews.
+template <class T>
+GaussianSet<T> random_gaussians_in_views(index_t n, int degree, const RefineViews<T>& v, const T* alpha,
+                                         std::uint64_t seed, const glm::dvec3* centre_given = nullptr) {
+  require(n >= 1, "random Gaussians: count ", n, " must be >= 1");
+  require(v.views >= 1 && v.h >= 1 && v.w >= 1 && v.images && v.K && v.world_to_camera,
+          "random Gaussians: need at least one view with images, K and world_to_camera");
+  const index_t V = v.views;
+  const std::vector<Camera> cams = refine_detail::view_cameras(v);
+  glm::dvec3 centre;
+  if (centre_given) centre = *centre_given;
+  else {
+    std::vector<double> K(static_cast<std::size_t>(9 * V)), E(static_cast<std::size_t>(12 * V)),
+        depth(static_cast<std::size_t>(V), 1.0);
+    for (index_t k = 0; k < V; ++k)
+      camera_arrays(cams[static_cast<std::size_t>(k)], K.data() + 9 * k, E.data() + 12 * k);
+    const decoder::ViewGeometry<double> geometry{V, v.w, v.h, 1, 1, K.data(), E.data(), depth.data()};
+    const decoder::SceneCentre scene = decoder::scene_centre_from_axes(geometry);
+    centre = glm::dvec3(scene.centre[0], scene.centre[1], scene.centre[2]);
+  }
+  double radius = std::numeric_limits<double>::infinity();
+  for (const Camera& cam : cams) {
+    const double fx = cam.K[0][0], fy = cam.K[1][1], cx = cam.K[2][0], cy = cam.K[2][1];
+    const double half = std::min({std::atan2(cx, fx), std::atan2(static_cast<double>(v.w) - cx, fx),
+                                  std::atan2(cy, fy), std::atan2(static_cast<double>(v.h) - cy, fy)});
+    radius = std::min(radius, glm::length(cam.to_camera(centre)) * std::sin(std::max(half, 1e-3)));
+  }
+  require(std::isfinite(radius) && radius > 0, "random Gaussians: the views see no sphere around the scene centre (",
+          "radius ", radius, ")");
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> uni(-1.0, 1.0);
+  GaussianSet<T> s = make_gaussian_set<T>(n, degree);
+  const index_t px = v.h * v.w;
+  index_t made = 0, draws = 0;
+  while (made < n) {
+    const glm::dvec3 u(uni(rng), uni(rng), uni(rng));
+    if (glm::dot(u, u) > 1) continue;
+    ++draws;
+    const glm::dvec3 p = centre + radius * u;
+    const bool test = alpha && draws <= 64 * n;
+    bool inside = true;
+    double rgb[3] = {0, 0, 0};
+    for (index_t k = 0; k < V && inside; ++k) {
+      const Camera& cam = cams[static_cast<std::size_t>(k)];
+      const glm::dvec3 q = cam.to_camera(p);
+      if (!(q.z > 0)) {  // behind this camera: outside its silhouette
+        inside = !test;
+        if (!inside) break;
+        continue;
+      }
+      const glm::dvec2 uv = cam.project(q);
+      const double x = std::clamp(uv.x, 0.0, static_cast<double>(v.w) - 1e-9);
+      const double y = std::clamp(uv.y, 0.0, static_cast<double>(v.h) - 1e-9);
+      const index_t pix = static_cast<index_t>(y) * v.w + static_cast<index_t>(x);
+      if (test && static_cast<double>(alpha[k * px + pix]) < refine_mask_threshold) inside = false;
+      for (int ch = 0; ch < 3; ++ch) rgb[ch] += static_cast<double>(v.images[(k * px + pix) * 3 + ch]) / static_cast<double>(V);
+    }
+    if (!inside) continue;
+    for (int ch = 0; ch < 3; ++ch) {
+      s.means(made, ch) = static_cast<T>(p[ch]);
+      s.sh(made, 0, ch) = static_cast<T>((rgb[ch] - sh_color_offset) / sh_c0);
+    }
+    ++made;
+  }
+  const T scale = static_cast<T>(0.5 * radius * std::cbrt(4.18879020478639 / static_cast<double>(n)));
+  s.scales.fill(scale);
+  s.opacities.fill(static_cast<T>(refine_init_opacity));
+  return s;
+}
+
+// Whether some view's alpha is below refine_mask_threshold somewhere (the silhouettes say where the object is not).
+template <class T>
+bool shows_background(const RefineViews<T>& v, const T* alpha) {
+  return alpha && std::any_of(alpha, alpha + v.views * v.h * v.w,
+                              [](T a) { return static_cast<double>(a) < refine_mask_threshold; });
+}
+
+// Appends to `set` n Gaussians drawn by random_gaussians_in_views in the views' visual hull around the set's
+// opacity-weighted centre (the set's SH degree; zero feature rows) when some view shows background; returns how many
+// were added.
+template <class T>
+index_t grow_in_hull(GaussianSet<T>& set, const RefineViews<T>& v, const T* alpha, index_t n, std::uint64_t seed) {
+  if (n <= 0 || !shows_background(v, alpha)) return 0;
+  glm::dvec3 centre;
+  if (!refine_detail::weighted_centre(set, centre)) return 0;
+  const GaussianSet<T> more = random_gaussians_in_views<T>(n, set.sh_degree(), v, alpha, seed, &centre);
+  const index_t m = set.size(), K = set.sh.shape(1), F = set.features.empty() ? 0 : set.features.shape(1);
+  GaussianSet<T> all = make_gaussian_set<T>(m + n, set.sh_degree(), F);
+  for (const auto& [from, offset] : {std::pair<const GaussianSet<T>*, index_t>{&set, 0}, {&more, m}}) {
+    const index_t k = from->size();
+    std::copy_n(from->means.data(), k * 3, all.means.data() + offset * 3);
+    std::copy_n(from->quats.data(), k * 4, all.quats.data() + offset * 4);
+    std::copy_n(from->scales.data(), k * 3, all.scales.data() + offset * 3);
+    std::copy_n(from->opacities.data(), k, all.opacities.data() + offset);
+    std::copy_n(from->sh.data(), k * K * 3, all.sh.data() + offset * K * 3);
+  }
+  if (F > 0) {
+    std::copy_n(set.features.data(), m * F, all.features.data());
+    std::fill_n(all.features.data() + m * F, n * F, T(0));
+  }
+  set = std::move(all);
+  return n;
 }
 
 // Optimises `set` (in place; pruned Gaussians are removed, features follow their rows and are not optimised) and,
@@ -562,10 +697,12 @@ RefineResult refine(GaussianSet<T>& set, const RefineViews<T>& v, const RefineCo
     r.chosen_steps = 0;
     bool changed = false;  // the best so far is not the input: carved, or fitted
     GaussianSet<T> start = set;
-    if (carve) {
+    if (carve || c.grow > 0) {
       RefineViews<T> seen = v;
       seen.views = V - 1;
-      if (carve_to_silhouettes(start, seen, v.alpha, margin) > 0) {
+      const index_t changes = (carve ? carve_to_silhouettes(start, seen, v.alpha, margin) : 0) +
+                              grow_in_hull(start, seen, v.alpha, c.grow, c.seed);
+      if (changes > 0) {
         refine_detail::load(ws, start, cameras, V);
         const double l = held_loss();
         if (l < r.holdout_best) r.holdout_best = l, changed = true;
@@ -588,6 +725,7 @@ RefineResult refine(GaussianSet<T>& set, const RefineViews<T>& v, const RefineCo
     schedule = refine_detail::Schedule{0, r.chosen_steps, r.trial_steps};
   }
   if (carve) r.carved = carve_to_silhouettes(set, v, v.alpha, margin);
+  r.grown = grow_in_hull(set, v, v.alpha, c.grow, c.seed);
   refine_detail::load(ws, set, cameras, V);
   if (schedule.steps > 0 || schedule.seconds > 0)
     r.steps = refine_detail::optimise(ws, v, c, all, cameras, r.extent, schedule, &r.pruned,
@@ -611,82 +749,18 @@ RefineResult refine(GaussianSet<T>& set, const RefineViews<T>& v, const RefineCo
   return r;
 }
 
-// n Gaussians for a per-scene fit from posed views, defined by the views alone: uniform in the sphere around the
-// point nearest to the optical axes (decoder::scene_centre_from_axes) whose radius the narrowest view sees whole
-// (distance x sin of the smallest half field of view), kept where every view's alpha is >= refine_mask_threshold
-// (the visual hull of the silhouettes; after 64 n draws the rest is taken without the test). Colour: the mean of the
-// views' pixels the centre projects to (occlusion ignored); scale: half the spacing of n points in the sphere;
-// opacity refine_init_opacity; identity rotations; SH degree `degree` (higher bands zero). images [V, h, w, 3],
-// alpha [V, h, w] (null: no silhouette test), K and w2c as RefineViews.
+// How eval and reconstruct refine a prediction for `seconds`: carved, and grown by `grow` Gaussians at 3DGS's
+// learning rates when some photo shows background; otherwise the prediction alone at refine_prediction_lr_scale
+// (docs/evaluation.md measures both).
 template <class T>
-GaussianSet<T> random_gaussians_in_views(index_t n, int degree, const RefineViews<T>& v, const T* alpha,
-                                         std::uint64_t seed) {
-  require(n >= 1, "random Gaussians: count ", n, " must be >= 1");
-  require(v.views >= 1 && v.h >= 1 && v.w >= 1 && v.images && v.K && v.world_to_camera,
-          "random Gaussians: need at least one view with images, K and world_to_camera");
-  const index_t V = v.views;
-  std::vector<double> K(static_cast<std::size_t>(9 * V)), E(static_cast<std::size_t>(12 * V)),
-      depth(static_cast<std::size_t>(V), 1.0);
-  for (index_t i = 0; i < 9 * V; ++i) K[static_cast<std::size_t>(i)] = static_cast<double>(v.K[i]);
-  for (index_t i = 0; i < 12 * V; ++i) E[static_cast<std::size_t>(i)] = static_cast<double>(v.world_to_camera[i]);
-  const decoder::ViewGeometry<double> geometry{V, v.w, v.h, 1, 1, K.data(), E.data(), depth.data()};
-  const decoder::SceneCentre scene = decoder::scene_centre_from_axes(geometry);
-  const Eigen::Vector3d centre(scene.centre[0], scene.centre[1], scene.centre[2]);
-  std::vector<Eigen::Matrix3d> R(static_cast<std::size_t>(V));
-  std::vector<Eigen::Vector3d> t(static_cast<std::size_t>(V));
-  double radius = std::numeric_limits<double>::infinity();
-  for (index_t k = 0; k < V; ++k) {
-    const double* W = E.data() + 12 * k;
-    const double* Kk = K.data() + 9 * k;
-    auto& Rk = R[static_cast<std::size_t>(k)];
-    for (int r = 0; r < 3; ++r)
-      for (int col = 0; col < 3; ++col) Rk(r, col) = W[4 * r + col];
-    t[static_cast<std::size_t>(k)] = Eigen::Vector3d(W[3], W[7], W[11]);
-    const Eigen::Vector3d pc = Rk * centre + t[static_cast<std::size_t>(k)];
-    const double half = std::min({std::atan2(Kk[2], Kk[0]), std::atan2(static_cast<double>(v.w) - Kk[2], Kk[0]),
-                                  std::atan2(Kk[5], Kk[4]), std::atan2(static_cast<double>(v.h) - Kk[5], Kk[4])});
-    radius = std::min(radius, pc.norm() * std::sin(std::max(half, 1e-3)));
-  }
-  require(std::isfinite(radius) && radius > 0, "random Gaussians: the views see no sphere around the scene centre (",
-          "radius ", radius, ")");
-  std::mt19937_64 rng(seed);
-  std::uniform_real_distribution<double> uni(-1.0, 1.0);
-  GaussianSet<T> s = make_gaussian_set<T>(n, degree);
-  const index_t px = v.h * v.w;
-  index_t made = 0, draws = 0;
-  while (made < n) {
-    Eigen::Vector3d u(uni(rng), uni(rng), uni(rng));
-    if (u.squaredNorm() > 1) continue;
-    ++draws;
-    const Eigen::Vector3d p = centre + radius * u;
-    const bool test = alpha && draws <= 64 * n;
-    bool inside = true;
-    double rgb[3] = {0, 0, 0};
-    for (index_t k = 0; k < V && inside; ++k) {
-      const Eigen::Vector3d q = R[static_cast<std::size_t>(k)] * p + t[static_cast<std::size_t>(k)];
-      if (!(q.z() > 0)) {  // behind this camera: outside its silhouette
-        inside = !test;
-        if (!inside) break;
-        continue;
-      }
-      const double* Kk = K.data() + 9 * k;
-      const double x = std::clamp(Kk[0] * q.x() / q.z() + Kk[2], 0.0, static_cast<double>(v.w) - 1e-9);
-      const double y = std::clamp(Kk[4] * q.y() / q.z() + Kk[5], 0.0, static_cast<double>(v.h) - 1e-9);
-      const index_t pix = static_cast<index_t>(y) * v.w + static_cast<index_t>(x);
-      if (test && static_cast<double>(alpha[k * px + pix]) < refine_mask_threshold) inside = false;
-      for (int ch = 0; ch < 3; ++ch) rgb[ch] += static_cast<double>(v.images[(k * px + pix) * 3 + ch]) / static_cast<double>(V);
-    }
-    if (!inside) continue;
-    for (int ch = 0; ch < 3; ++ch) {
-      s.means(made, ch) = static_cast<T>(p[ch]);
-      s.sh(made, 0, ch) = static_cast<T>((rgb[ch] - sh_color_offset) / sh_c0);
-    }
-    ++made;
-  }
-  const T scale = static_cast<T>(0.5 * radius * std::cbrt(4.18879020478639 / static_cast<double>(n)));
-  s.scales.fill(scale);
-  s.opacities.fill(static_cast<T>(refine_init_opacity));
-  return s;
+RefineConfig prediction_refine_config(const RefineViews<T>& v, double seconds, std::uint64_t seed,
+                                      index_t grow = refine_grow_gaussians) {
+  RefineConfig c;
+  c.seconds = seconds;
+  c.seed = seed;
+  c.grow = shows_background(v, v.alpha) ? grow : 0;
+  c.lr_scale = c.grow > 0 ? 1.0 : refine_prediction_lr_scale;
+  return c;
 }
 
 }  // namespace model
