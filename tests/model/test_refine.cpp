@@ -68,6 +68,19 @@ RefineScene<T> refine_scene(index_t views, index_t n = 24, std::uint64_t seed = 
   return s;
 }
 
+// The truth's alpha [V, 24, 24] from every view of the scene.
+std::vector<float> truth_alpha(const RefineScene<float>& s) {
+  std::vector<float> alpha;
+  raster::RenderOptions ro;
+  raster::RenderWorkspace<float> rws;
+  raster::RenderOutputs<float> out;
+  for (index_t v = 0; v < s.views; ++v) {
+    raster::render_forward(s.truth, raster::view_from_arrays(s.K.data() + 9 * v, s.w2c.data() + 12 * v, 24, 24), ro, rws, out);
+    alpha.insert(alpha.end(), out.alpha.data(), out.alpha.data() + 24 * 24);
+  }
+  return alpha;
+}
+
 // The truth with jittered means, scales and colours.
 template <class T>
 GaussianSet<T> jittered(const GaussianSet<T>& truth, std::uint64_t seed) {
@@ -306,15 +319,7 @@ TEST_CASE("refine's held-out trial keeps the input set and cameras when fitting 
 
 TEST_CASE("carve_to_silhouettes removes the Gaussians seen on background and keeps the object's", "[model][refine]") {
   auto s = refine_scene<float>(3);
-  // The truth's alpha from every view.
-  std::vector<float> alpha;
-  raster::RenderOptions ro;
-  raster::RenderWorkspace<float> rws;
-  raster::RenderOutputs<float> out;
-  for (index_t v = 0; v < 3; ++v) {
-    raster::render_forward(s.truth, raster::view_from_arrays(s.K.data() + 9 * v, s.w2c.data() + 12 * v, 24, 24), ro, rws, out);
-    alpha.insert(alpha.end(), out.alpha.data(), out.alpha.data() + 24 * 24);
-  }
+  const std::vector<float> alpha = truth_alpha(s);
   // Two floaters above the object (inside every picture, outside every silhouette) after the truth's 24.
   GaussianSet<float> g = make_gaussian_set<float>(26, 0);
   g.features = Tensor<float, 2>(Shape<2>{26, 1});
@@ -418,14 +423,7 @@ TEST_CASE("random Gaussians for a posed fit lie in the views' silhouettes", "[mo
 TEST_CASE("refine grows the set in the silhouettes' visual hull, and growth fits what the start lacks",
           "[model][refine]") {
   auto s = refine_scene<float>(3);
-  std::vector<float> alpha;
-  raster::RenderOptions ro;
-  raster::RenderWorkspace<float> rws;
-  raster::RenderOutputs<float> out;
-  for (index_t v = 0; v < 3; ++v) {
-    raster::render_forward(s.truth, raster::view_from_arrays(s.K.data() + 9 * v, s.w2c.data() + 12 * v, 24, 24), ro, rws, out);
-    alpha.insert(alpha.end(), out.alpha.data(), out.alpha.data() + 24 * 24);
-  }
+  const std::vector<float> alpha = truth_alpha(s);
   model::RefineViews<float> v = s.refine_views();
   v.alpha = alpha.data();
   // A start that lacks most of the object: 4 of the truth's 24 Gaussians, with features.
