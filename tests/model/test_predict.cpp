@@ -203,6 +203,14 @@ TEST_CASE("photo targets carry the model's intrinsics to the refinement size thr
   const auto at_native = model::photo_targets<float>(photos, c, Km.data(), 200, 200);
   const double expect_native[9] = {180, 2, 110, 0, 170, 95, 0, 0, 1};  // x shifted by the window's 50 pixels
   for (int i = 0; i < 9; ++i) CHECK(at_native.K[static_cast<std::size_t>(9 + i)] == Approx(expect_native[i]).margin(1e-4));
+  // From the photo's own K the same: the round trip through the model's window is the identity (to_source).
+  const std::vector<double> own{K_photo, K_photo + 9};
+  std::vector<double> both = own;
+  both.insert(both.end(), own.begin(), own.end());
+  const auto direct = model::photo_targets<float>(photos, both, 200, 200);
+  for (int i = 0; i < 9; ++i) CHECK(direct.K[static_cast<std::size_t>(i)] == Approx(expect_native[i]).margin(1e-4));
+  CHECK_THROWS_WITH(model::photo_targets<float>(photos, own, 200, 200),
+                    Catch::Contains("9 intrinsics values for 2 photos"));
   const auto at_64 = model::photo_targets<float>(photos, c, Km.data(), 64, 64);
   const double s = 64.0 / 200.0;
   const double expect_64[9] = {180 * s, 2 * s, 110 * s, 0, 170 * s, 95 * s, 0, 0, 1};
