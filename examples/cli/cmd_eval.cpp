@@ -489,7 +489,7 @@ const RegisterCommand registered_cmd_eval(
              "  --refine-validate on: the step count chosen on the last input view held out of a trial fit;\n"
              "  --refine-cameras off: cameras fixed; --refine-carve off: no carving; --refine-grow N: N added);\n"
              "  the feed-forward scores and the PSNR change are reported too, and --baseline posed-fit then fits at\n"
-             "  the refinement's size with as many Gaussians as it started from; --rotation-noise DEG: each predicted\n"
+             "  the refinement's size with its Gaussian count before carving; --rotation-noise DEG: each predicted\n"
              "  input camera turned by DEG degrees about a random axis before the decoder (seeded by --seed and the\n"
              "  object's name); --baseline posed-fit: a per-scene fit from the input views with their ground-truth\n"
              "  cameras for the model's seconds; --gaussians: default the model's budget for the view count;\n"
