@@ -557,8 +557,8 @@ index_t carve_to_silhouettes(GaussianSet<T>& set, const RefineViews<T>& v, const
 // view sees whole (distance x sin of the smallest half field of view), kept where every view's alpha is >=
 // refine_mask_threshold (the visual hull of the silhouettes; after 64 n draws the rest is taken without the test).
 // Colour: the mean of the views' pixels the centre projects to (occlusion ignored); scale: half the spacing of n
-// points in the sphere; opacity refine_init_opacity; identity rotations; SH degree `degree` (higher bands zero). images [V, h, w, 3],
-// alpha [V, h, w] (null: no silhouette test), K and w2c as RefineViews.
+// points in the sphere; opacity refine_init_opacity; identity rotations; SH degree `degree` (higher bands zero).
+// images [V, h, w, 3], alpha [V, h, w] (null: no silhouette test), K and w2c as RefineViews.
 template <class T>
 GaussianSet<T> random_gaussians_in_views(index_t n, int degree, const RefineViews<T>& v, const T* alpha,
                                          std::uint64_t seed, const glm::dvec3* centre_given = nullptr) {
@@ -630,20 +630,20 @@ GaussianSet<T> random_gaussians_in_views(index_t n, int degree, const RefineView
 
 // Whether some view's alpha is below refine_mask_threshold somewhere (the silhouettes say where the object is not).
 template <class T>
-bool shows_background(const RefineViews<T>& v, const T* alpha) {
-  return alpha && std::any_of(alpha, alpha + v.views * v.h * v.w,
-                              [](T a) { return static_cast<double>(a) < refine_mask_threshold; });
+bool shows_background(const RefineViews<T>& v) {
+  return v.alpha && std::any_of(v.alpha, v.alpha + v.views * v.h * v.w,
+                                [](T a) { return static_cast<double>(a) < refine_mask_threshold; });
 }
 
-// Appends to `set` n Gaussians drawn by random_gaussians_in_views in the views' visual hull around the set's
-// opacity-weighted centre (the set's SH degree; zero feature rows) when some view shows background; returns how many
-// were added.
+// Appends to `set` n Gaussians drawn by random_gaussians_in_views in the visual hull of v's silhouettes (v.alpha)
+// around the set's opacity-weighted centre (the set's SH degree; zero feature rows) when some view shows background;
+// returns how many were added.
 template <class T>
-index_t grow_in_hull(GaussianSet<T>& set, const RefineViews<T>& v, const T* alpha, index_t n, std::uint64_t seed) {
-  if (n <= 0 || !shows_background(v, alpha)) return 0;
+index_t grow_in_hull(GaussianSet<T>& set, const RefineViews<T>& v, index_t n, std::uint64_t seed) {
+  if (n <= 0 || !shows_background(v)) return 0;
   glm::dvec3 centre;
   if (!refine_detail::weighted_centre(set, centre)) return 0;
-  const GaussianSet<T> more = random_gaussians_in_views<T>(n, set.sh_degree(), v, alpha, seed, &centre);
+  const GaussianSet<T> more = random_gaussians_in_views<T>(n, set.sh_degree(), v, v.alpha, seed, &centre);
   const index_t m = set.size(), K = set.sh.shape(1), F = set.features.empty() ? 0 : set.features.shape(1);
   GaussianSet<T> all = make_gaussian_set<T>(m + n, set.sh_degree(), F);
   for (const auto& [from, offset] : {std::pair<const GaussianSet<T>*, index_t>{&set, 0}, {&more, m}}) {
@@ -701,7 +701,7 @@ RefineResult refine(GaussianSet<T>& set, const RefineViews<T>& v, const RefineCo
       RefineViews<T> seen = v;
       seen.views = V - 1;
       const index_t changes = (carve ? carve_to_silhouettes(start, seen, v.alpha, margin) : 0) +
-                              grow_in_hull(start, seen, v.alpha, c.grow, c.seed);
+                              grow_in_hull(start, seen, c.grow, c.seed);
       if (changes > 0) {
         refine_detail::load(ws, start, cameras, V);
         const double l = held_loss();
@@ -725,7 +725,7 @@ RefineResult refine(GaussianSet<T>& set, const RefineViews<T>& v, const RefineCo
     schedule = refine_detail::Schedule{0, r.chosen_steps, r.trial_steps};
   }
   if (carve) r.carved = carve_to_silhouettes(set, v, v.alpha, margin);
-  r.grown = grow_in_hull(set, v, v.alpha, c.grow, c.seed);
+  r.grown = grow_in_hull(set, v, c.grow, c.seed);
   refine_detail::load(ws, set, cameras, V);
   if (schedule.steps > 0 || schedule.seconds > 0)
     r.steps = refine_detail::optimise(ws, v, c, all, cameras, r.extent, schedule, &r.pruned,
@@ -758,7 +758,7 @@ RefineConfig prediction_refine_config(const RefineViews<T>& v, double seconds, s
   RefineConfig c;
   c.seconds = seconds;
   c.seed = seed;
-  c.grow = shows_background(v, v.alpha) ? grow : 0;
+  c.grow = shows_background(v) ? grow : 0;
   c.lr_scale = c.grow > 0 ? 1.0 : refine_prediction_lr_scale;
   return c;
 }
