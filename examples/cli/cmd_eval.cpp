@@ -344,7 +344,7 @@ int eval_command(Args args) {
   x.refine_validate = parse_on_off(refine_validate, "--refine-validate");
   x.refine_cameras = parse_on_off(refine_cameras, "--refine-cameras");
   x.refine_carve = parse_on_off(refine_carve, "--refine-carve");
-  if (!refine_grow_text.empty()) x.refine_grow = parse_integer(refine_grow_text, "--refine-grow", 0, 1 << 24);
+  x.refine_grow = parse_gaussian_count(refine_grow_text, "--refine-grow", model::refine_grow_gaussians);
   require(!refine_options || x.refine_seconds > 0,
           "eval: --refine-size, --refine-validate, --refine-cameras, --refine-carve and --refine-grow need --refine "
           "SECONDS");

@@ -100,8 +100,7 @@ int reconstruct_command(Args args) {
   const index_t refine_longer = parse_longer_side(refine_size_text, "--refine-size");
   const index_t turntable_longer = parse_longer_side(turntable_size_text, "--turntable-size");
   const bool validate = parse_on_off(refine_validate, "--refine-validate");
-  const index_t refine_grow = refine_grow_text.empty() ? model::refine_grow_gaussians
-                                                      : parse_integer(refine_grow_text, "--refine-grow", 0, 1 << 24);
+  const index_t refine_grow = parse_gaussian_count(refine_grow_text, "--refine-grow", model::refine_grow_gaussians);
   require(!refine_options || refine_seconds > 0,
           "reconstruct: --refine-size, --refine-validate and --refine-grow need --refine SECONDS");
   model_path = model_or_default(model_path);

@@ -110,6 +110,11 @@ inline long long parse_longer_side(const std::string& text, const std::string& f
   return text.empty() || text == "native" ? 0 : parse_integer(text, flag, 1, 16384);
 }
 
+// A Gaussian count: `fallback` when empty, else 0 to 2^24.
+inline long long parse_gaussian_count(const std::string& text, const std::string& flag, long long fallback) {
+  return text.empty() ? fallback : parse_integer(text, flag, 0, 1 << 24);
+}
+
 inline bool parse_on_off(const std::string& text, const std::string& flag) {
   require(text == "on" || text == "off", flag, " '", text, "': expected on or off");
   return text == "on";

@@ -12,6 +12,7 @@
 #include <type_traits>
 #include <vector>
 
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/simd.hpp"
@@ -242,33 +243,20 @@ std::vector<PixelMatch> ground_truth_matches(const T* depth, const T* K, const T
     for (index_t b = 0; b < views; ++b) {
       if (a == b) continue;
       hit.clear(), target.clear();
-      const T* Ka = K + 9 * a;
-      const T* Ea = w2c + 12 * a;
-      const T* Kb = K + 9 * b;
-      const T* Eb = w2c + 12 * b;
+      const Camera ca = camera_from_arrays(K + 9 * a, w2c + 12 * a, static_cast<int>(w), static_cast<int>(h));
+      const Camera cb = camera_from_arrays(K + 9 * b, w2c + 12 * b, static_cast<int>(w), static_cast<int>(h));
       for (index_t p = 0; p < px; ++p) {
         const double z = static_cast<double>(depth[a * px + p]);
         if (!(z > 0)) continue;
-        const double x = static_cast<double>(p % w) + 0.5, y = static_cast<double>(p / w) + 0.5;
-        const double cam[3] = {(x - static_cast<double>(Ka[2])) / static_cast<double>(Ka[0]) * z,
-                               (y - static_cast<double>(Ka[5])) / static_cast<double>(Ka[4]) * z, z};
-        double world[3];
-        for (int r = 0; r < 3; ++r) {
-          world[r] = 0;
-          for (int k = 0; k < 3; ++k) world[r] += static_cast<double>(Ea[4 * k + r]) * (cam[k] - static_cast<double>(Ea[4 * k + 3]));
-        }
-        double cb[3];
-        for (int r = 0; r < 3; ++r) {
-          cb[r] = static_cast<double>(Eb[4 * r + 3]);
-          for (int k = 0; k < 3; ++k) cb[r] += static_cast<double>(Eb[4 * r + k]) * world[k];
-        }
-        if (!(cb[2] > 0)) continue;
-        const double u = static_cast<double>(Kb[0]) * cb[0] / cb[2] + static_cast<double>(Kb[2]);
-        const double v = static_cast<double>(Kb[4]) * cb[1] / cb[2] + static_cast<double>(Kb[5]);
+        const glm::dvec2 centre{static_cast<double>(p % w) + 0.5, static_cast<double>(p / w) + 0.5};
+        const glm::dvec3 seen = cb.to_camera(ca.to_world(ca.unproject(centre, z)));
+        if (!(seen.z > 0)) continue;
+        const glm::dvec2 uv = cb.project(seen);
+        const double u = uv.x, v = uv.y;
         if (!(u >= 0 && v >= 0 && u < static_cast<double>(w) && v < static_cast<double>(h))) continue;
         const index_t q = static_cast<index_t>(v) * w + static_cast<index_t>(u);
         const double zb = static_cast<double>(depth[b * px + q]);
-        if (!(zb > 0) || std::abs(zb - cb[2]) > tolerance * cb[2]) continue;
+        if (!(zb > 0) || std::abs(zb - seen.z) > tolerance * seen.z) continue;
         hit.push_back(p), target.push_back(q);
       }
       const index_t n = static_cast<index_t>(hit.size()), take = std::min(n, per_pair);
