@@ -1,6 +1,8 @@
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <cstdlib>
 #include <string>
 #include <thread>
@@ -180,4 +182,42 @@ TEST_CASE("try_run_on_all runs every worker when the pool is free and declines o
   CHECK(inner_ran == 0);
   CHECK(pool.try_run_on_all([&](int) { ++inner_ran; }));
   CHECK(inner_ran == 3);
+}
+
+TEST_CASE("regions back to back (workers polling) and after pauses (workers asleep) all run and all finish",
+          "[parallel]") {
+  // Each region's sum is read after it returns: a worker that ran late, ran twice or missed a region shows here.
+  for (const int threads : {2, 3, 4}) {
+    ThreadPool pool(threads);
+    std::vector<index_t> sums;
+    for (int round = 0; round < 2000; ++round) {
+      std::atomic<index_t> sum{0};
+      parallel_for(64, [&](index_t b, index_t e, int) {
+        for (index_t i = b; i < e; ++i) sum += i;
+      }, pool);
+      sums.push_back(sum.load());
+      if (round % 250 == 0) std::this_thread::sleep_for(std::chrono::milliseconds(2));  // past the polling time
+    }
+    CHECK(std::count(sums.begin(), sums.end(), index_t{64 * 63 / 2}) == 2000);
+    // A worker's exception after a pause reaches the caller, and the next region runs on every worker.
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    CHECK_THROWS_WITH(parallel_for(threads, [&](index_t b, index_t, int) {
+      if (b == threads - 1) fail("late boom");
+    }, pool), "late boom");
+    std::vector<int> ran(static_cast<std::size_t>(threads), 0);
+    pool.run_on_all([&](int w) { ran[static_cast<std::size_t>(w)] = 1; });
+    CHECK(std::count(ran.begin(), ran.end(), 1) == threads);
+  }
+}
+
+TEST_CASE("two threads submitting to one pool take turns", "[parallel]") {
+  ThreadPool pool(2);
+  std::atomic<index_t> total{0};
+  auto submit = [&] {
+    for (int round = 0; round < 500; ++round)
+      parallel_for(8, [&](index_t b, index_t e, int) { total += e - b; }, pool);
+  };
+  std::thread a(submit), b(submit);
+  a.join(), b.join();
+  CHECK(total == 2 * 500 * 8);
 }
