@@ -129,7 +129,8 @@ const RegisterCommand registered_cmd_curves(
                "  reads each RUN_DIR/log.jsonl of `flexsplat train`; x is the run's own CPU seconds (cpu_seconds of the\n"
                "  training line before each validation) or the step; prints each series at 0, 1/4, 1/2, 3/4 and the end\n"
                "  metrics: any validation key (rotation_deg, rra15, rra30, chance_rotation_deg, points_rotation_deg,\n"
-               "  matches_rotation_deg, matches_rra30, match_accuracy, matches_gt_depth_rotation_deg, psnr, ssim, depth_rel);\n"
+               "  matches_rotation_deg, matches_rra30, match_accuracy, matches_gt_depth_rotation_deg,\n"
+               "  matches_oracle_rotation_deg, matches_oracle_rra15, psnr, ssim, depth_rel);\n"
                "  sets default to the first run's",
                curves});
 

@@ -297,3 +297,64 @@ TEST_CASE("cameras_from_matches: reordering views 2..V reorders the cameras", "[
     CHECK(b.error(first, v).first < 10.0);
   }
 }
+
+TEST_CASE("cameras_from_correspondences solves cameras from given pixel correspondences, either order of a pair",
+          "[geometry][procrustes]") {
+  // The three side-by-side views of the previous case; correspondences from the geometry: a pixel of view a whose
+  // surface point projects into view b onto a pixel that sees the same point (within a tenth of the bump's period);
+  // view 2 shares nothing with view 0 and is placed through view 1.
+  std::mt19937 rng(5);
+  const std::vector<Eigen::Matrix3d> R{Eigen::Matrix3d::Identity(),
+                                       Eigen::AngleAxisd(-0.1, Eigen::Vector3d::UnitY()).toRotationMatrix(),
+                                       Eigen::AngleAxisd(-0.2, Eigen::Vector3d::UnitY()).toRotationMatrix()};
+  const std::vector<Eigen::Vector3d> t{Eigen::Vector3d::Zero(), R[1] * Eigen::Vector3d(-0.9, 0, 0),
+                                       R[2] * Eigen::Vector3d(-1.8, 0, 0)};
+  BumpViews b(R, t, [](index_t, const Eigen::Vector3d&) { return true; }, rng);
+  struct Match {
+    index_t view_a, pixel_a, view_b, pixel_b;
+  };
+  std::vector<Match> matches;
+  const index_t H = BumpViews::H, W = BumpViews::W, px = BumpViews::px;
+  index_t count_01 = 0, count_21 = 0;
+  for (index_t a = 0; a < 3; ++a)
+    for (index_t bv = 0; bv < 3; ++bv) {
+      // Pair (0, 1) as 0 -> 1, pair (1, 2) only as 2 -> 1 (the larger view first); views 0 and 2 share nothing.
+      if (!((a == 0 && bv == 1) || (a == 2 && bv == 1))) continue;
+      for (index_t p = 0; p < px; p += 3) {
+        const Eigen::Vector3d X = b.seen[static_cast<std::size_t>(a * px + p)];
+        const Eigen::Vector3d c = R[bv] * X + t[bv];
+        const long x = std::lround(30 * c(0) / c(2) + 11.5), y = std::lround(30 * c(1) / c(2) + 11.5);
+        if (x < 0 || y < 0 || x >= W || y >= H) continue;
+        const index_t q = y * W + x;
+        if ((b.seen[static_cast<std::size_t>(bv * px + q)] - X).norm() > 0.3) continue;
+        matches.push_back({a, p, bv, q});
+        ++(a == 0 ? count_01 : count_21);
+      }
+    }
+  REQUIRE(count_01 >= 6);
+  REQUIRE(count_21 >= 6);
+  std::vector<double> solved(36);
+  bool ok[3];
+  index_t found[3];
+  geometry::cameras_from_correspondences<double, Match>(solved.data(), std::span<const Match>(matches), b.depth.data(),
+                                                        b.K.data(), 3, H, W, ok, found);
+  for (int i = 0; i < 12; ++i) CHECK(solved[i] == Approx(b.E[i]).margin(1e-12));
+  for (index_t v = 1; v < 3; ++v) {
+    REQUIRE(ok[v]);
+    CHECK(found[v] >= 6);
+    const auto [angle, shift] = b.error(solved, v);
+    INFO("view " << v << ": rotation error " << angle << " deg, translation error " << shift);
+    CHECK(angle < 1.9);
+    CHECK(shift < 0.09);
+  }
+  // Without correspondences nothing links; a correspondence outside the views is refused by name.
+  geometry::cameras_from_correspondences<double, Match>(solved.data(), std::span<const Match>(), b.depth.data(),
+                                                        b.K.data(), 3, H, W, ok);
+  CHECK(ok[0]);
+  CHECK_FALSE(ok[1]);
+  CHECK_FALSE(ok[2]);
+  const std::vector<Match> bad{{0, 5, 3, 7}};
+  CHECK_THROWS_WITH((geometry::cameras_from_correspondences<double, Match>(solved.data(), std::span<const Match>(bad),
+                                                                           b.depth.data(), b.K.data(), 3, H, W)),
+                    Catch::Contains("correspondence (view 0 pixel 5, view 3 pixel 7) is outside 3 views of 24 x 24"));
+}

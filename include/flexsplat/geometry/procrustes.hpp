@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <span>
 #include <vector>
 
 #include <Eigen/Dense>
@@ -167,6 +168,82 @@ inline index_t robust_rigid_fit(const double* src, const double* dst, index_t n,
   return best;
 }
 
+namespace procrustes_detail {
+// One view pair's relative pose a -> b (x_b = R x_a + t) and its inlier count.
+struct PairFit {
+  index_t inliers = 0;
+  double R[9], t[3];
+};
+
+// Fits the pair from matched camera-frame points src (view a) and dst (view b), [n, 3] each; the inlier radius is
+// cfg.inlier_rel of the median depth of the matched points.
+inline PairFit fit_pair(const std::vector<double>& src, const std::vector<double>& dst, const MatchFitConfig& cfg) {
+  PairFit e;
+  const index_t n = static_cast<index_t>(src.size() / 3);
+  if (n < 3) return e;
+  std::vector<double> depths;
+  depths.reserve(static_cast<std::size_t>(2 * n));
+  for (index_t i = 0; i < n; ++i) depths.push_back(src[static_cast<std::size_t>(3 * i + 2)]), depths.push_back(dst[static_cast<std::size_t>(3 * i + 2)]);
+  std::nth_element(depths.begin(), depths.begin() + n, depths.end());
+  const double tau = cfg.inlier_rel * depths[static_cast<std::size_t>(n)];
+  e.inliers = robust_rigid_fit(src.data(), dst.data(), n, tau, cfg.ransac_rounds, cfg.seed, e.R, e.t);
+  return e;
+}
+
+// Places the views from the first along the pairs with the most inliers (Prim's maximum spanning tree), each view's
+// camera its edge composed with its parent's. edge [frames, frames] holds a -> b at a * frames + b (both directions
+// filled). extrinsics, solved and matches_out as cameras_from_matches.
+template <class T>
+void place_views(T* extrinsics, const std::vector<PairFit>& edge, index_t frames, index_t min_inliers, bool* solved,
+                 index_t* matches_out) {
+  std::vector<double> cam(static_cast<std::size_t>(12 * frames), 0.0);
+  std::vector<char> placed(static_cast<std::size_t>(frames), 0);
+  std::vector<index_t> by(static_cast<std::size_t>(frames), 0);
+  std::copy_n(identity_w2c, 12, cam.begin());
+  placed[0] = 1;
+  for (;;) {
+    index_t best = min_inliers - 1, from = -1, to = -1;
+    for (index_t a = 0; a < frames; ++a)
+      for (index_t b = 0; b < frames; ++b)
+        if (placed[static_cast<std::size_t>(a)] && !placed[static_cast<std::size_t>(b)] &&
+            edge[static_cast<std::size_t>(a * frames + b)].inliers > best)
+          best = edge[static_cast<std::size_t>(a * frames + b)].inliers, from = a, to = b;
+    if (to < 0) break;
+    const PairFit& e = edge[static_cast<std::size_t>(from * frames + to)];
+    const double* P = cam.data() + 12 * from;  // [R_a | t_a]; view b: R_e R_a, R_e t_a + t_e
+    double* Q = cam.data() + 12 * to;
+    for (int r = 0; r < 3; ++r) {
+      Q[4 * r + 3] = e.t[r];
+      for (int c = 0; c < 4; ++c) {
+        double acc = c == 3 ? Q[4 * r + 3] : 0.0;
+        for (int k = 0; k < 3; ++k) acc += e.R[3 * r + k] * P[4 * k + c];
+        Q[4 * r + c] = acc;
+      }
+    }
+    placed[static_cast<std::size_t>(to)] = 1;
+    by[static_cast<std::size_t>(to)] = best;
+  }
+  for (index_t f = 0; f < frames; ++f) {
+    const bool ok = placed[static_cast<std::size_t>(f)] != 0;
+    if (solved) solved[f] = ok;
+    if (matches_out) matches_out[f] = by[static_cast<std::size_t>(f)];
+    for (int i = 0; i < 12; ++i)
+      extrinsics[12 * f + i] = static_cast<T>(ok ? cam[static_cast<std::size_t>(12 * f + i)] : identity_w2c[i]);
+  }
+}
+
+// Stores the fit of pair (a, b) and its reverse b -> a (R^T, -R^T t).
+inline void set_edge(std::vector<PairFit>& edge, index_t frames, index_t a, index_t b, const PairFit& e) {
+  edge[static_cast<std::size_t>(a * frames + b)] = e;
+  PairFit& r = edge[static_cast<std::size_t>(b * frames + a)];
+  r.inliers = e.inliers;
+  for (int i = 0; i < 3; ++i) {
+    r.t[i] = 0;
+    for (int k = 0; k < 3; ++k) r.R[3 * i + k] = e.R[3 * k + i], r.t[i] -= e.R[3 * k + i] * e.t[k];
+  }
+}
+}  // namespace procrustes_detail
+
 // Each view's world-to-camera from descriptor matches, the first view's camera being the world: pixels whose object
 // probability is at least `min_foreground` are matched between every pair of views by mutual nearest neighbours of
 // unit-length descriptors, both ends unprojected with their own depth and intrinsics (pixel (u, v) at integer
@@ -208,12 +285,7 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
     v.unit = Eigen::Map<Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>>(
         unit.data(), static_cast<Eigen::Index>(v.point.size() / 3), static_cast<Eigen::Index>(D));
   }
-  // Every pair's relative pose a -> b (x_b = R x_a + t) and inlier count.
-  struct Edge {
-    index_t inliers = 0;
-    double R[9], t[3];
-  };
-  std::vector<Edge> edge(static_cast<std::size_t>(frames * frames));
+  std::vector<procrustes_detail::PairFit> edge(static_cast<std::size_t>(frames * frames));
   for (index_t a = 0; a < frames; ++a)
     for (index_t b = a + 1; b < frames; ++b) {
       const ViewSet &A = views[static_cast<std::size_t>(a)], &B = views[static_cast<std::size_t>(b)];
@@ -246,62 +318,55 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
         mutual.push_back({std::min(pa, pb), std::max(pa, pb), static_cast<index_t>(i), static_cast<index_t>(j)});
       }
       std::sort(mutual.begin(), mutual.end(), [](const Pair& x, const Pair& y) { return x.lo != y.lo ? x.lo < y.lo : x.hi < y.hi; });
-      std::vector<double> src, dst, depths;
+      std::vector<double> src, dst;
       for (const Pair& m : mutual) {
         src.insert(src.end(), A.point.begin() + 3 * m.i, A.point.begin() + 3 * m.i + 3);
         dst.insert(dst.end(), B.point.begin() + 3 * m.j, B.point.begin() + 3 * m.j + 3);
-        depths.push_back(A.point[static_cast<std::size_t>(3 * m.i + 2)]);
-        depths.push_back(B.point[static_cast<std::size_t>(3 * m.j + 2)]);
       }
-      const index_t n = static_cast<index_t>(mutual.size());
-      if (n < 3) continue;
-      std::nth_element(depths.begin(), depths.begin() + n, depths.end());
-      const double tau = cfg.inlier_rel * depths[static_cast<std::size_t>(n)];
-      Edge& e = edge[static_cast<std::size_t>(a * frames + b)];
-      e.inliers = robust_rigid_fit(src.data(), dst.data(), n, tau, cfg.ransac_rounds, cfg.seed, e.R, e.t);
-      // The reverse edge b -> a: R^T, -R^T t.
-      Edge& r = edge[static_cast<std::size_t>(b * frames + a)];
-      r.inliers = e.inliers;
-      for (int i = 0; i < 3; ++i) {
-        r.t[i] = 0;
-        for (int k = 0; k < 3; ++k) r.R[3 * i + k] = e.R[3 * k + i], r.t[i] -= e.R[3 * k + i] * e.t[k];
-      }
+      procrustes_detail::set_edge(edge, frames, a, b, procrustes_detail::fit_pair(src, dst, cfg));
     }
-  // Prim's maximum spanning tree from view 0: each view placed by composing its edge with its parent's camera.
-  std::vector<double> cam(static_cast<std::size_t>(12 * frames), 0.0);
-  std::vector<char> placed(static_cast<std::size_t>(frames), 0);
-  std::vector<index_t> by(static_cast<std::size_t>(frames), 0);
-  std::copy_n(identity_w2c, 12, cam.begin());
-  placed[0] = 1;
-  for (;;) {
-    index_t best = cfg.min_inliers - 1, from = -1, to = -1;
-    for (index_t a = 0; a < frames; ++a)
-      for (index_t b = 0; b < frames; ++b)
-        if (placed[static_cast<std::size_t>(a)] && !placed[static_cast<std::size_t>(b)] &&
-            edge[static_cast<std::size_t>(a * frames + b)].inliers > best)
-          best = edge[static_cast<std::size_t>(a * frames + b)].inliers, from = a, to = b;
-    if (to < 0) break;
-    const Edge& e = edge[static_cast<std::size_t>(from * frames + to)];
-    const double* P = cam.data() + 12 * from;  // [R_a | t_a]; view b: R_e R_a, R_e t_a + t_e
-    double* Q = cam.data() + 12 * to;
-    for (int r = 0; r < 3; ++r) {
-      Q[4 * r + 3] = e.t[r];
-      for (int c = 0; c < 4; ++c) {
-        double acc = c == 3 ? Q[4 * r + 3] : 0.0;
-        for (int k = 0; k < 3; ++k) acc += e.R[3 * r + k] * P[4 * k + c];
-        Q[4 * r + c] = acc;
-      }
-    }
-    placed[static_cast<std::size_t>(to)] = 1;
-    by[static_cast<std::size_t>(to)] = best;
+  procrustes_detail::place_views(extrinsics, edge, frames, cfg.min_inliers, solved, matches_out);
+}
+
+// The same solver on given correspondences instead of descriptor matches (e.g. the renderer's, as the ceiling of
+// what matching can give): Match has view_a, pixel_a, view_b, pixel_b (pixels as y * width + x); a correspondence
+// with a pixel of no positive finite depth is skipped. extrinsics, depth, intrinsics, solved, matches_out and cfg
+// (min_foreground unused) as cameras_from_matches.
+template <class T, class Match>
+void cameras_from_correspondences(T* extrinsics, std::span<const Match> matches, const T* depth, const T* intrinsics,
+                                  index_t frames, index_t height, index_t width, bool* solved = nullptr,
+                                  index_t* matches_out = nullptr, const MatchFitConfig& cfg = {}) {
+  require(frames >= 1 && height >= 1 && width >= 1, "cameras_from_correspondences: empty maps (", frames, " x ",
+          height, " x ", width, ")");
+  const index_t px = height * width;
+  std::vector<std::vector<double>> cam(static_cast<std::size_t>(frames));
+  for (index_t f = 0; f < frames; ++f) cam[static_cast<std::size_t>(f)] = camera_frame_points(depth, intrinsics, f, height, width);
+  std::vector<std::vector<double>> src(static_cast<std::size_t>(frames * frames)), dst(src.size());
+  for (const Match& m : matches) {
+    require(m.view_a >= 0 && m.view_a < frames && m.view_b >= 0 && m.view_b < frames && m.view_a != m.view_b &&
+                m.pixel_a >= 0 && m.pixel_a < px && m.pixel_b >= 0 && m.pixel_b < px,
+            "cameras_from_correspondences: correspondence (view ", m.view_a, " pixel ", m.pixel_a, ", view ", m.view_b,
+            " pixel ", m.pixel_b, ") is outside ", frames, " views of ", height, " x ", width);
+    const double za = static_cast<double>(depth[m.view_a * px + m.pixel_a]), zb = static_cast<double>(depth[m.view_b * px + m.pixel_b]);
+    if (!(za > 0) || !(zb > 0) || !std::isfinite(za) || !std::isfinite(zb)) continue;
+    // Stored with the smaller view first, so both orders of a pair feed one fit.
+    const bool swap = m.view_a > m.view_b;
+    const index_t a = swap ? m.view_b : m.view_a, b = swap ? m.view_a : m.view_b;
+    const index_t pa = swap ? m.pixel_b : m.pixel_a, pb = swap ? m.pixel_a : m.pixel_b;
+    const auto& A = cam[static_cast<std::size_t>(a)];
+    const auto& B = cam[static_cast<std::size_t>(b)];
+    auto& s = src[static_cast<std::size_t>(a * frames + b)];
+    auto& d = dst[static_cast<std::size_t>(a * frames + b)];
+    s.insert(s.end(), A.begin() + 3 * pa, A.begin() + 3 * pa + 3);
+    d.insert(d.end(), B.begin() + 3 * pb, B.begin() + 3 * pb + 3);
   }
-  for (index_t f = 0; f < frames; ++f) {
-    const bool ok = placed[static_cast<std::size_t>(f)] != 0;
-    if (solved) solved[f] = ok;
-    if (matches_out) matches_out[f] = by[static_cast<std::size_t>(f)];
-    for (int i = 0; i < 12; ++i)
-      extrinsics[12 * f + i] = static_cast<T>(ok ? cam[static_cast<std::size_t>(12 * f + i)] : identity_w2c[i]);
-  }
+  std::vector<procrustes_detail::PairFit> edge(static_cast<std::size_t>(frames * frames));
+  for (index_t a = 0; a < frames; ++a)
+    for (index_t b = a + 1; b < frames; ++b)
+      procrustes_detail::set_edge(edge, frames, a, b,
+                                  procrustes_detail::fit_pair(src[static_cast<std::size_t>(a * frames + b)],
+                                                              dst[static_cast<std::size_t>(a * frames + b)], cfg));
+  procrustes_detail::place_views(extrinsics, edge, frames, cfg.min_inliers, solved, matches_out);
 }
 
 }  // namespace geometry

@@ -143,7 +143,7 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
   const int inputs_shown = 4, targets_shown = 2, cols = inputs_shown + 2 * targets_shown;
   for (const auto& set : sets) {
     double psnr = 0, ssim = 0, rot = 0, depth = 0, rra15 = 0, rra30 = 0, prot = 0, prra15 = 0, prra30 = 0, chance = 0, mrot = 0,
-           mrra15 = 0, mrra30 = 0, macc = 0, mgt = 0;
+           mrra15 = 0, mrra30 = 0, macc = 0, mgt = 0, morc = 0, morc15 = 0;
     for (std::size_t i = 0; i < set.scenes.size(); ++i) {
       const auto& e = set.scenes[i];
       std::vector<Tensor<float, 3>> renders;
@@ -152,6 +152,7 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
       prot += s.points_rotation_deg, prra15 += s.points_rra15, prra30 += s.points_rra30, chance += s.chance_rotation_deg;
       mrot += s.matches_rotation_deg, mrra15 += s.matches_rra15, mrra30 += s.matches_rra30;
       macc += s.match_accuracy, mgt += s.matches_gt_depth_rotation_deg;
+      morc += s.matches_oracle_rotation_deg, morc15 += s.matches_oracle_rra15;
       if (i >= 4) continue;
       const Shape<3> shape{e.h, e.w, 3};
       for (int v = 0; v < inputs_shown; ++v)
@@ -175,7 +176,8 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
       result[set.name].update({{"points_rotation_deg", prot / n}, {"points_rra15", prra15 / n}, {"points_rra30", prra30 / n}});
     if (w.config().geometry.match_dim > 0)
       result[set.name].update({{"matches_rotation_deg", mrot / n}, {"matches_rra15", mrra15 / n}, {"matches_rra30", mrra30 / n},
-                               {"match_accuracy", macc / n}, {"matches_gt_depth_rotation_deg", mgt / n}});
+                               {"match_accuracy", macc / n}, {"matches_gt_depth_rotation_deg", mgt / n},
+                               {"matches_oracle_rotation_deg", morc / n}, {"matches_oracle_rra15", morc15 / n}});
   }
   if (!cells.empty()) image::write_png(picture, image::image_grid(cells, cols, 112));
   return result;

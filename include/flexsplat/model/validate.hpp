@@ -36,6 +36,9 @@ struct ValidationScore {
   // descriptor in the other view is within one pixel of the true one, and matches_rotation_deg with the renderer's
   // depth in place of the predicted one. 0 without the head.
   double match_accuracy = 0, matches_gt_depth_rotation_deg = 0;
+  // The ceiling of matching: the same solver on the renderer's correspondences with the true depth and intrinsics
+  // (a view pair that shares too few surface points cannot be linked by any descriptor). 0 without the head.
+  double matches_oracle_rotation_deg = 0, matches_oracle_rra15 = 0;
   double chance_rotation_deg = 0;  // rotation_deg of a constant guess (every camera the first one's orientation)
   double depth_rel = 0;         // mean |predicted - ground-truth depth| / ground-truth depth on object pixels
   index_t targets = 0, views = 0;
@@ -119,6 +122,12 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
     for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
     double unused15, unused30;
     detail::score_rotations(pred.data(), gt.data(), V, s.matches_gt_depth_rotation_deg, unused15, unused30);
+    std::vector<T> K(e.gt_K);
+    for (index_t v = 0; v < V; ++v) K[static_cast<std::size_t>(9 * v + 2)] -= T(0.5), K[static_cast<std::size_t>(9 * v + 5)] -= T(0.5);
+    geometry::cameras_from_correspondences<T, loss::PixelMatch>(solved.data(), std::span<const loss::PixelMatch>(e.matches),
+                                                                e.gt_depth.data(), K.data(), V, e.h, e.w);
+    for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
+    detail::score_rotations(pred.data(), gt.data(), V, s.matches_oracle_rotation_deg, s.matches_oracle_rra15, unused30);
     s.match_accuracy = loss::match_accuracy(o.descriptors.data(), std::span<const loss::PixelMatch>(e.matches), V, e.h, e.w, D);
   }
   double err = 0;
