@@ -129,7 +129,9 @@ const RegisterCommand registered_cmd_curves(
                "  reads each RUN_DIR/log.jsonl of `flexsplat train`; x is the run's own CPU seconds (cpu_seconds of the\n"
                "  training line before each validation) or the step; prints each series at 0, 1/4, 1/2, 3/4 and the end\n"
                "  metrics: any validation key (rotation_deg, rra15, rra30, chance_rotation_deg, points_rotation_deg,\n"
-               "  matches_rotation_deg, matches_rra30, match_accuracy, matches_gt_depth_rotation_deg,\n"
+               "  matches_rotation_deg, matches_rra30, match_accuracy, match_accuracy_4px, match_accuracy_0_30 (_30_60,\n"
+               "  _60_90, _90_180: by the pair's true baseline), pairs_gt_depth_rra15_0_30 (likewise: view pairs whose own\n"
+               "  fit with the renderer's depth is within 15 deg), matches_gt_depth_rotation_deg,\n"
                "  matches_oracle_rotation_deg, matches_oracle_rra15, psnr, ssim, depth_rel);\n"
                "  sets default to the first run's",
                curves});

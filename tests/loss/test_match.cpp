@@ -80,7 +80,7 @@ TEST_CASE("ground_truth_matches pairs pixels that see the same surface point and
   CHECK(loss::ground_truth_matches(depth.data(), K.data(), E.data(), 3, h, w, 5).size() == 10);
 }
 
-TEST_CASE("match_accuracy counts correspondences whose nearest descriptor is within a pixel of the true one",
+TEST_CASE("match_accuracy counts correspondences whose nearest descriptor is within a pixel (or a radius) of the true one",
           "[loss][match]") {
   // Two 6 x 6 views, D = 3: view 0's pixel p has the code of p; view 1 holds the same codes shifted right by `shift`.
   const index_t h = 6, w = 6, px = h * w, D = 3;
@@ -105,6 +105,12 @@ TEST_CASE("match_accuracy counts correspondences whose nearest descriptor is wit
   // Three pixels off (each code sits 3 columns, modulo 6, from the truth): none counts.
   CHECK(loss::match_accuracy(codes(4).data(), truth, 2, h, w, D) == 0.0);
   CHECK(loss::match_accuracy(codes(1).data(), {}, 2, h, w, D) == 0.0);
+  // Other radii: exact (0) and three pixels; a negative radius is refused.
+  CHECK(loss::match_accuracy(codes(1).data(), truth, 2, h, w, D, 0) == 1.0);
+  CHECK(loss::match_accuracy(codes(2).data(), truth, 2, h, w, D, 0) == 0.0);
+  CHECK(loss::match_accuracy(codes(4).data(), truth, 2, h, w, D, 2) == 0.0);
+  CHECK(loss::match_accuracy(codes(4).data(), truth, 2, h, w, D, 3) == 1.0);
+  CHECK_THROWS_WITH(loss::match_accuracy(codes(1).data(), truth, 2, h, w, D, -1), Catch::Contains("radius -1 is negative"));
 }
 
 TEST_CASE("match loss: the vector exp path gives the scalar path's loss and gradients", "[loss][match][simd]") {

@@ -44,3 +44,30 @@ TEST_CASE("validate_scene scores each target's render against it and the cameras
   CHECK(one.rotation_deg == 0.0);
   CHECK_THROWS_WITH(model::validate_scene(ws, *w, validation_scene(2, 0, c)), Catch::Contains("no target views"));
 }
+
+TEST_CASE("validate_scene with a match head: the ceiling of matching, accuracy and view pairs by baseline",
+          "[model][validate][match]") {
+  auto c = model::flexsplat_tiny_config();
+  c.geometry.match_dim = 8;
+  auto w = model::FlexSplatWeights<float>::create(c, true);
+  w->init(3);
+  model::ValidationWorkspace<float> ws;
+  const auto e = validation_scene(3, 1, c);
+  REQUIRE_FALSE(e.matches.empty());
+  const model::ValidationScore s = model::validate_scene(ws, *w, e);
+  // The renderer's correspondences with the true depth and intrinsics place the views (pixel-snapped matches).
+  INFO("oracle " << s.matches_oracle_rotation_deg << " deg, RRA@15 " << s.matches_oracle_rra15);
+  CHECK(s.matches_oracle_rotation_deg < 5.0);
+  CHECK(s.matches_oracle_rra15 == 1.0);
+  // Random descriptors: the bins partition the correspondences and the 3 view pairs, hits never exceed counts.
+  double matches = 0, pairs = 0, hits = 0;
+  for (std::size_t b = 0; b < 4; ++b) {
+    matches += s.matches_by_baseline[b], pairs += s.pairs_by_baseline[b], hits += s.match_hits_by_baseline[b];
+    CHECK(s.match_hits_by_baseline[b] <= s.matches_by_baseline[b]);
+    CHECK(s.pairs_within15_by_baseline[b] <= s.pairs_by_baseline[b]);
+  }
+  CHECK(matches == static_cast<double>(e.matches.size()));
+  CHECK(pairs == 3.0);
+  CHECK(hits == Approx(s.match_accuracy * matches).margin(1e-9));
+  CHECK(s.match_accuracy_4px >= s.match_accuracy);
+}

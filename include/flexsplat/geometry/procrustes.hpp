@@ -168,12 +168,13 @@ inline index_t robust_rigid_fit(const double* src, const double* dst, index_t n,
   return best;
 }
 
-namespace procrustes_detail {
-// One view pair's relative pose a -> b (x_b = R x_a + t) and its inlier count.
+// One view pair's relative pose a -> b (x_b = R x_a + t, R row-major) and its inlier count (0: not fitted).
 struct PairFit {
   index_t inliers = 0;
-  double R[9], t[3];
+  double R[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1}, t[3] = {0, 0, 0};
 };
+
+namespace procrustes_detail {
 
 // Fits the pair from matched camera-frame points src (view a) and dst (view b), [n, 3] each; the inlier radius is
 // cfg.inlier_rel of the median depth of the matched points.
@@ -251,11 +252,13 @@ inline void set_edge(std::vector<PairFit>& edge, index_t frames, index_t a, inde
 // the first along the pairs with the most inliers (a maximum spanning tree), so a view that shares nothing with the
 // first is still placed through one that does. View 0 gets [I | 0]; a view no pair links gets [I | 0] and solved
 // false. extrinsics [S, 3, 4] out; descriptors [S, H, W, D]; foreground, depth [S, H, W]; intrinsics [S, 3, 3];
-// matches_out (may be null, [S]): the inliers of the pair that placed each view (0 for view 0 and unplaced views).
+// matches_out (may be null, [S]): the inliers of the pair that placed each view (0 for view 0 and unplaced views);
+// pairs_out (may be null): every pair's own fit, [S * S], a -> b at a * S + b.
 template <class T>
 void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foreground, const T* depth, const T* intrinsics,
                           index_t frames, index_t height, index_t width, index_t D, bool* solved = nullptr,
-                          index_t* matches_out = nullptr, const MatchFitConfig& cfg = {}) {
+                          index_t* matches_out = nullptr, const MatchFitConfig& cfg = {},
+                          std::vector<PairFit>* pairs_out = nullptr) {
   require(frames >= 1 && height >= 1 && width >= 1 && D >= 1, "cameras_from_matches: empty maps (", frames, " x ",
           height, " x ", width, " x ", D, ")");
   const index_t px = height * width;
@@ -285,7 +288,7 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
     v.unit = Eigen::Map<Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>>(
         unit.data(), static_cast<Eigen::Index>(v.point.size() / 3), static_cast<Eigen::Index>(D));
   }
-  std::vector<procrustes_detail::PairFit> edge(static_cast<std::size_t>(frames * frames));
+  std::vector<PairFit> edge(static_cast<std::size_t>(frames * frames));
   for (index_t a = 0; a < frames; ++a)
     for (index_t b = a + 1; b < frames; ++b) {
       const ViewSet &A = views[static_cast<std::size_t>(a)], &B = views[static_cast<std::size_t>(b)];
@@ -326,6 +329,7 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
       procrustes_detail::set_edge(edge, frames, a, b, procrustes_detail::fit_pair(src, dst, cfg));
     }
   procrustes_detail::place_views(extrinsics, edge, frames, cfg.min_inliers, solved, matches_out);
+  if (pairs_out) *pairs_out = std::move(edge);
 }
 
 // The same solver on given correspondences instead of descriptor matches (e.g. the renderer's, as the ceiling of
@@ -360,7 +364,7 @@ void cameras_from_correspondences(T* extrinsics, std::span<const Match> matches,
     s.insert(s.end(), A.begin() + 3 * pa, A.begin() + 3 * pa + 3);
     d.insert(d.end(), B.begin() + 3 * pb, B.begin() + 3 * pb + 3);
   }
-  std::vector<procrustes_detail::PairFit> edge(static_cast<std::size_t>(frames * frames));
+  std::vector<PairFit> edge(static_cast<std::size_t>(frames * frames));
   for (index_t a = 0; a < frames; ++a)
     for (index_t b = a + 1; b < frames; ++b)
       procrustes_detail::set_edge(edge, frames, a, b,

@@ -118,10 +118,13 @@ void for_each_run(const std::vector<T>& unit, std::span<const PixelMatch> matche
 }  // namespace match_detail
 
 // The fraction of correspondences whose most similar descriptor (cosine, as the loss's logits) among all pixels of
-// view_b lies within one pixel, both axes, of pixel_b; the first of equal maxima. desc [V, h * w, D].
+// view_b lies within `radius` pixels (default one), both axes, of pixel_b; the first of equal maxima.
+// desc [V, h * w, D].
 template <class T>
-double match_accuracy(const T* desc, std::span<const PixelMatch> matches, index_t views, index_t h, index_t w, index_t D) {
+double match_accuracy(const T* desc, std::span<const PixelMatch> matches, index_t views, index_t h, index_t w, index_t D,
+                      index_t radius = 1) {
   require(desc && views >= 1 && h >= 1 && w >= 1 && D >= 1, "match accuracy: null or empty descriptors");
+  require(radius >= 0, "match accuracy: radius ", radius, " is negative");
   if (matches.empty()) return 0;
   const index_t px = h * w;
   std::vector<T> unit;
@@ -137,7 +140,7 @@ double match_accuracy(const T* desc, std::span<const PixelMatch> matches, index_
                                  const T* row = e.data() + r * px;
                                  const index_t best = std::find(row, row + px, T(1)) - row;
                                  const index_t want = matches[i0 + static_cast<std::size_t>(r)].pixel_b;
-                                 hits += std::abs(best % w - want % w) <= 1 && std::abs(best / w - want / w) <= 1;
+                                 hits += std::abs(best % w - want % w) <= radius && std::abs(best / w - want / w) <= radius;
                                }
                              });
   return hits / static_cast<double>(matches.size());

@@ -9,6 +9,7 @@
 //   train::SoloCommunicator comm;                        // or train::MpiCommunicator under mpirun
 //   model::TrainerOptions o;  o.run = "runs/a";  o.stop_at = 1000;
 //   model::TrainerResult r = model::run_training(recipe, data, comm, o);   // rerun: resumes where it stopped
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -143,7 +144,8 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
   const int inputs_shown = 4, targets_shown = 2, cols = inputs_shown + 2 * targets_shown;
   for (const auto& set : sets) {
     double psnr = 0, ssim = 0, rot = 0, depth = 0, rra15 = 0, rra30 = 0, prot = 0, prra15 = 0, prra30 = 0, chance = 0, mrot = 0,
-           mrra15 = 0, mrra30 = 0, macc = 0, mgt = 0, morc = 0, morc15 = 0;
+           mrra15 = 0, mrra30 = 0, macc = 0, mgt = 0, morc = 0, morc15 = 0, macc4 = 0;
+    std::array<double, 4> bin_hits{}, bin_count{}, bin_pairs{}, bin_pairs15{};
     for (std::size_t i = 0; i < set.scenes.size(); ++i) {
       const auto& e = set.scenes[i];
       std::vector<Tensor<float, 3>> renders;
@@ -152,7 +154,9 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
       prot += s.points_rotation_deg, prra15 += s.points_rra15, prra30 += s.points_rra30, chance += s.chance_rotation_deg;
       mrot += s.matches_rotation_deg, mrra15 += s.matches_rra15, mrra30 += s.matches_rra30;
       macc += s.match_accuracy, mgt += s.matches_gt_depth_rotation_deg;
-      morc += s.matches_oracle_rotation_deg, morc15 += s.matches_oracle_rra15;
+      morc += s.matches_oracle_rotation_deg, morc15 += s.matches_oracle_rra15, macc4 += s.match_accuracy_4px;
+      for (std::size_t b = 0; b < bin_hits.size(); ++b) bin_hits[b] += s.match_hits_by_baseline[b], bin_count[b] += s.matches_by_baseline[b],
+        bin_pairs[b] += s.pairs_by_baseline[b], bin_pairs15[b] += s.pairs_within15_by_baseline[b];
       if (i >= 4) continue;
       const Shape<3> shape{e.h, e.w, 3};
       for (int v = 0; v < inputs_shown; ++v)
@@ -176,8 +180,17 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
       result[set.name].update({{"points_rotation_deg", prot / n}, {"points_rra15", prra15 / n}, {"points_rra30", prra30 / n}});
     if (w.config().geometry.match_dim > 0)
       result[set.name].update({{"matches_rotation_deg", mrot / n}, {"matches_rra15", mrra15 / n}, {"matches_rra30", mrra30 / n},
-                               {"match_accuracy", macc / n}, {"matches_gt_depth_rotation_deg", mgt / n},
+                               {"match_accuracy", macc / n}, {"match_accuracy_4px", macc4 / n}, {"matches_gt_depth_rotation_deg", mgt / n},
                                {"matches_oracle_rotation_deg", morc / n}, {"matches_oracle_rra15", morc15 / n}});
+    // By the pair's true baseline (absent when the set has no pair in the bin): match_accuracy over the bin's
+    // correspondences, the number of view pairs and the fraction whose own fit is within 15 degrees.
+    for (std::size_t b = 0; w.config().geometry.match_dim > 0 && b < bin_hits.size(); ++b) {
+      const std::string bin = std::to_string(static_cast<int>(match_baseline_edges_deg[b])) + "_" +
+                              std::to_string(static_cast<int>(match_baseline_edges_deg[b + 1]));
+      if (bin_count[b] > 0) result[set.name]["match_accuracy_" + bin] = bin_hits[b] / bin_count[b];
+      if (bin_pairs[b] > 0)
+        result[set.name]["pairs_" + bin] = bin_pairs[b], result[set.name]["pairs_gt_depth_rra15_" + bin] = bin_pairs15[b] / bin_pairs[b];
+    }
   }
   if (!cells.empty()) image::write_png(picture, image::image_grid(cells, cols, 112));
   return result;

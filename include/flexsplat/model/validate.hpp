@@ -4,6 +4,7 @@
 // make_train_example), scored against the targets. No similarity alignment: this measures what the training
 // objective asks of the model; `flexsplat eval` runs the paper's aligned protocol.
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <vector>
 
@@ -24,6 +25,9 @@ namespace flexsplat {
 inline namespace v0 {
 namespace model {
 
+// Bins of ValidationScore::match_hits_by_baseline: the angle (degrees) between a view pair's true orientations.
+inline constexpr std::array<double, 5> match_baseline_edges_deg{0, 30, 60, 90, 180};
+
 struct ValidationScore {
   double psnr = 0, ssim = 0;    // means over the scene's target views
   double rotation_deg = 0;      // mean over input views 2..V of the relative rotation error (0 for one view)
@@ -36,6 +40,12 @@ struct ValidationScore {
   // descriptor in the other view is within one pixel of the true one, and matches_rotation_deg with the renderer's
   // depth in place of the predicted one. 0 without the head.
   double match_accuracy = 0, matches_gt_depth_rotation_deg = 0;
+  double match_accuracy_4px = 0;  // match_accuracy within four pixels: whether the descriptors find the region
+  // match_accuracy's hits and correspondences by the ground-truth angle between the pair's views (match_baseline_bins).
+  std::array<double, 4> match_hits_by_baseline{}, matches_by_baseline{};
+  // View pairs by the same bins, and how many of them have their own fit (descriptor matches with the renderer's
+  // depth, before the spanning tree) within 15 degrees of the true relative rotation.
+  std::array<double, 4> pairs_by_baseline{}, pairs_within15_by_baseline{};
   // The ceiling of matching: the same solver on the renderer's correspondences with the true depth and intrinsics
   // (a view pair that shares too few surface points cannot be linked by any descriptor). 0 without the head.
   double matches_oracle_rotation_deg = 0, matches_oracle_rra15 = 0;
@@ -117,8 +127,22 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
     const auto& o = ws.predict.geometry.outputs;
     const index_t D = w.config().geometry.match_dim;
     std::vector<T> solved(static_cast<std::size_t>(12 * V));
+    std::vector<geometry::PairFit> pair_fits;
     geometry::cameras_from_matches<T>(solved.data(), o.descriptors.data(), o.foreground.data(), e.gt_depth.data(),
-                                      o.intrinsics.data(), V, e.h, e.w, D);
+                                      o.intrinsics.data(), V, e.h, e.w, D, nullptr, nullptr, {}, &pair_fits);
+    for (index_t a = 0; a < V; ++a)
+      for (index_t b = a + 1; b < V; ++b) {
+        const geometry::PairFit& f = pair_fits[static_cast<std::size_t>(a * V + b)];
+        double fit_b[12];  // the fit as view b's camera with view a at the identity
+        for (int r = 0; r < 3; ++r)
+          for (int c = 0; c < 4; ++c) fit_b[4 * r + c] = c < 3 ? f.R[3 * r + c] : f.t[r];
+        const double baseline = rotation_error_deg(gt.data() + 12 * a, gt.data() + 12 * b);
+        const double err = relative_rotation_error_deg(identity_w2c, fit_b, gt.data() + 12 * a, gt.data() + 12 * b);
+        std::size_t bin = 0;
+        while (bin + 1 < s.pairs_by_baseline.size() && baseline >= match_baseline_edges_deg[bin + 1]) ++bin;
+        s.pairs_by_baseline[bin] += 1;
+        s.pairs_within15_by_baseline[bin] += f.inliers >= geometry::MatchFitConfig{}.min_inliers && err <= 15;
+      }
     for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
     double unused15, unused30;
     detail::score_rotations(pred.data(), gt.data(), V, s.matches_gt_depth_rotation_deg, unused15, unused30);
@@ -129,6 +153,20 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
     for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
     detail::score_rotations(pred.data(), gt.data(), V, s.matches_oracle_rotation_deg, s.matches_oracle_rra15, unused30);
     s.match_accuracy = loss::match_accuracy(o.descriptors.data(), std::span<const loss::PixelMatch>(e.matches), V, e.h, e.w, D);
+    s.match_accuracy_4px = loss::match_accuracy(o.descriptors.data(), std::span<const loss::PixelMatch>(e.matches), V, e.h, e.w, D, 4);
+    std::array<std::vector<loss::PixelMatch>, 4> by_bin;
+    for (const loss::PixelMatch& m : e.matches) {
+      const double angle = rotation_error_deg(gt.data() + 12 * m.view_a, gt.data() + 12 * m.view_b);
+      std::size_t bin = 0;
+      while (bin + 1 < by_bin.size() && angle >= match_baseline_edges_deg[bin + 1]) ++bin;
+      by_bin[bin].push_back(m);
+    }
+    for (std::size_t bin = 0; bin < by_bin.size(); ++bin) {
+      const double n = static_cast<double>(by_bin[bin].size());
+      s.matches_by_baseline[bin] = n;
+      s.match_hits_by_baseline[bin] =
+          n * loss::match_accuracy(o.descriptors.data(), std::span<const loss::PixelMatch>(by_bin[bin]), V, e.h, e.w, D);
+    }
   }
   double err = 0;
   index_t n = 0;
