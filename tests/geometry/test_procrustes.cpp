@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <random>
+#include <utility>
 #include <vector>
 
 #include <Eigen/Geometry>
@@ -153,6 +154,14 @@ struct BumpViews {
     return {angle, (got.col(3) - want.col(3)).norm()};
   }
 };
+
+// Three cameras side by side along x, each turned a little further right (0, 0.1, 0.2 rad about y).
+std::pair<std::vector<Eigen::Matrix3d>, std::vector<Eigen::Vector3d>> side_by_side() {
+  const std::vector<Eigen::Matrix3d> R{Eigen::Matrix3d::Identity(),
+                                       Eigen::AngleAxisd(-0.1, Eigen::Vector3d::UnitY()).toRotationMatrix(),
+                                       Eigen::AngleAxisd(-0.2, Eigen::Vector3d::UnitY()).toRotationMatrix()};
+  return {R, {Eigen::Vector3d::Zero(), R[1] * Eigen::Vector3d(-0.9, 0, 0), R[2] * Eigen::Vector3d(-1.8, 0, 0)}};
+}
 }  // namespace
 
 TEST_CASE("cameras_from_matches solves cameras from descriptor matches and depth, wrong matches voted out",
@@ -222,11 +231,7 @@ TEST_CASE("cameras_from_matches places a view that shares nothing with the first
   // Three cameras side by side along x: view 2's object pixels are surface points view 0 cannot see (x > 1.25, past
   // the edge of its field of view at this depth), all of which view 1 sees.
   std::mt19937 rng(5);
-  const std::vector<Eigen::Matrix3d> R{Eigen::Matrix3d::Identity(),
-                                       Eigen::AngleAxisd(-0.1, Eigen::Vector3d::UnitY()).toRotationMatrix(),
-                                       Eigen::AngleAxisd(-0.2, Eigen::Vector3d::UnitY()).toRotationMatrix()};
-  const std::vector<Eigen::Vector3d> t{Eigen::Vector3d::Zero(), R[1] * Eigen::Vector3d(-0.9, 0, 0),
-                                       R[2] * Eigen::Vector3d(-1.8, 0, 0)};
+  const auto [R, t] = side_by_side();
   BumpViews b(R, t, [](index_t v, const Eigen::Vector3d& X) { return v != 2 || X(0) > 1.25; }, rng);
   std::vector<double> solved(36);
   bool ok[3];
@@ -304,11 +309,7 @@ TEST_CASE("cameras_from_correspondences solves cameras from given pixel correspo
   // surface point projects into view b onto a pixel that sees the same point (within a tenth of the bump's period);
   // view 2 shares nothing with view 0 and is placed through view 1.
   std::mt19937 rng(5);
-  const std::vector<Eigen::Matrix3d> R{Eigen::Matrix3d::Identity(),
-                                       Eigen::AngleAxisd(-0.1, Eigen::Vector3d::UnitY()).toRotationMatrix(),
-                                       Eigen::AngleAxisd(-0.2, Eigen::Vector3d::UnitY()).toRotationMatrix()};
-  const std::vector<Eigen::Vector3d> t{Eigen::Vector3d::Zero(), R[1] * Eigen::Vector3d(-0.9, 0, 0),
-                                       R[2] * Eigen::Vector3d(-1.8, 0, 0)};
+  const auto [R, t] = side_by_side();
   BumpViews b(R, t, [](index_t, const Eigen::Vector3d&) { return true; }, rng);
   struct Match {
     index_t view_a, pixel_a, view_b, pixel_b;

@@ -24,6 +24,9 @@ TEST_CASE("train config: structured_inputs and point_weight are read, checked an
   j["structured_inputs"] = false;
   j["stages"][0]["point_weight"] = 0.0;
   CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("point_weight and match_weight are 0"));
+  j["stages"][0]["point_weight"] = 0.5;
+  j["stages"][0]["match_coarse_weight"] = 1.0;
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("has match_coarse_weight 1 without match_weight"));
 }
 
 TEST_CASE("train config: the baseline curriculum grows linearly, then holds, and is checked", "[train][config]") {

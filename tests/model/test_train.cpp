@@ -161,7 +161,7 @@ TEST_CASE("a training example's ground-truth points are each view's surface in t
   CHECK(model::matches_per_pair(1) == 0);
 }
 
-TEST_CASE("point_weight and match_weight: scene_gradient is the derivative of scene_loss along a random direction",
+TEST_CASE("point_weight, match_weight and match_coarse_weight: scene_gradient is the derivative of scene_loss along a random direction",
           "[model][train][points]") {
   auto c = model::flexsplat_tiny_config();
   c.geometry.point_head = true;
@@ -174,6 +174,8 @@ TEST_CASE("point_weight and match_weight: scene_gradient is the derivative of sc
   sc.point_weight = 1.0;
   sc.point_loss.min_valid_pixels = 10;
   sc.match_weight = 0.5;
+  sc.match_coarse_weight = 0.7;  // cells of 7 x 7 pixels: 4 x 4 per view
+  sc.match_coarse_cell = 7;
   model::SceneWorkspace<double> ws;
   auto& store = w->store();
   const index_t n = store.size();
@@ -197,6 +199,13 @@ TEST_CASE("point_weight and match_weight: scene_gradient is the derivative of sc
   loss_at(0);
   INFO("analytic " << g_dot << ", numeric " << numeric);
   CHECK(g_dot == Approx(numeric).epsilon(1e-5));
+  // The coarse term is part of the loss; a cell that does not divide the views is refused by name.
+  model::StepConfig fine = sc;
+  fine.match_coarse_weight = 0;
+  CHECK(model::scene_loss<double>(ws, *w, e, fine).match < model::scene_loss<double>(ws, *w, e, sc).match);
+  model::StepConfig odd = sc;
+  odd.match_coarse_cell = 5;
+  CHECK_THROWS_WITH(model::scene_loss<double>(ws, *w, e, odd), Catch::Contains("match_coarse_cell 5 does not divide the 28 x 28 views"));
   // Without the heads the weights are refused by name.
   auto plain = model::FlexSplatWeights<double>::create(model::flexsplat_tiny_config(), true);
   plain->init(5);

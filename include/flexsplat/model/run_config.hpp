@@ -162,6 +162,8 @@ inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where)
   s.step.depth_weight = k.number("depth_weight", 0.0, 0, 1e6);
   s.step.point_weight = k.number("point_weight", 0.0, 0, 1e6);
   s.step.match_weight = k.number("match_weight", 0.0, 0, 1e6);
+  s.step.match_coarse_weight = k.number("match_coarse_weight", 0.0, 0, 1e6);
+  s.step.match_coarse_cell = static_cast<index_t>(k.integer("match_coarse_cell", 0, 0, 4096));
   if (const nlohmann::json* o = k.find("objective")) {
     Keys ok(*o, k.path("objective"));
     auto& w = s.step.objective;
@@ -176,6 +178,8 @@ inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where)
               s.step.match_weight > 0,
           "train config: '", where,
           "' has no loss (appearance is false and camera_weight, depth_weight, point_weight and match_weight are 0)");
+  require(s.step.match_coarse_weight == 0 || s.step.match_weight > 0, "train config: '", where, "' has match_coarse_weight ",
+          s.step.match_coarse_weight, " without match_weight (the coarse term refines the match loss)");
   require(s.step.train_geometry || s.step.appearance, "train config: '", where,
           "' trains nothing (train_geometry and appearance are both false)");
   return s;

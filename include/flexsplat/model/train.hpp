@@ -121,6 +121,10 @@ struct StepConfig {
   double depth_weight = 0.0;         // VGGT's supervised depth loss
   double point_weight = 0.0;         // VGGT's point-map loss (needs the point head)
   double match_weight = 0.0;         // the match head's correspondence and object-mask losses (needs the match head)
+  // The correspondence loss again on descriptors averaged over cells of match_coarse_cell pixels (0: the trunk's
+  // patch), which asks which region of the other view a pixel's region is: context, not texture (needs match_weight).
+  double match_coarse_weight = 0.0;
+  index_t match_coarse_cell = 0;
   ObjectiveWeights objective;
   loss::CameraLossConfig camera_loss;
   loss::DepthLossConfig depth_loss;
@@ -147,6 +151,8 @@ struct SceneWorkspace {
   std::vector<RenderView<T>> views;
   std::vector<std::uint8_t> depth_mask;
   std::vector<T> d_points, d_points_conf, d_descriptors, d_foreground;
+  std::vector<T> coarse, d_coarse, coarse_prob, d_coarse_prob, coarse_alpha;  // the coarse match loss's cell maps
+  std::vector<loss::PixelMatch> coarse_matches;
 };
 
 namespace detail {
@@ -217,6 +223,41 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
       ws.d_foreground.assign(static_cast<std::size_t>(V * px), T(0));
       loss::match_loss_backward(ws.d_descriptors.data(), ws.d_foreground.data(), sc.match_weight, o.descriptors.data(),
                                 o.foreground.data(), e.masks.data(), m, V, px, D, sc.match_loss);
+    }
+    if (sc.match_coarse_weight > 0) {
+      const index_t cell = sc.match_coarse_cell > 0 ? sc.match_coarse_cell : c.geometry.aggregator.patch_size;
+      require(e.h % cell == 0 && e.w % cell == 0, "training: match_coarse_cell ", cell, " does not divide the ", e.w,
+              " x ", e.h, " views");
+      const index_t cw = e.w / cell, cpx = (e.h / cell) * cw;
+      auto cell_of = [&](index_t p) { return (p / e.w / cell) * cw + (p % e.w) / cell; };
+      ws.coarse.assign(static_cast<std::size_t>(V * cpx * D), T(0));
+      const T inv = T(1) / static_cast<T>(cell * cell);
+      for (index_t v = 0; v < V; ++v)
+        for (index_t p = 0; p < px; ++p)
+          for (index_t d = 0; d < D; ++d)
+            ws.coarse[static_cast<std::size_t>((v * cpx + cell_of(p)) * D + d)] += inv * o.descriptors.data()[(v * px + p) * D + d];
+      ws.coarse_matches.clear();
+      for (const loss::PixelMatch& pm : e.matches)
+        ws.coarse_matches.push_back({pm.view_a, cell_of(pm.pixel_a), pm.view_b, cell_of(pm.pixel_b)});
+      // Only the correspondence term: the object mask is the fine loss's.
+      loss::MatchLossConfig cc = sc.match_loss;
+      cc.foreground_weight = 0;
+      ws.coarse_prob.assign(static_cast<std::size_t>(V * cpx), T(0.5));
+      ws.coarse_alpha.assign(ws.coarse_prob.size(), T(0));
+      const std::span<const loss::PixelMatch> cm(ws.coarse_matches);
+      r.match += sc.match_coarse_weight * loss::match_loss_forward(ws.coarse.data(), ws.coarse_prob.data(),
+                                                                   ws.coarse_alpha.data(), cm, V, cpx, D, cc).total;
+      if (backward) {
+        ws.d_coarse.assign(ws.coarse.size(), T(0));
+        ws.d_coarse_prob.assign(ws.coarse_prob.size(), T(0));
+        loss::match_loss_backward(ws.d_coarse.data(), ws.d_coarse_prob.data(), sc.match_coarse_weight, ws.coarse.data(),
+                                  ws.coarse_prob.data(), ws.coarse_alpha.data(), cm, V, cpx, D, cc);
+        for (index_t v = 0; v < V; ++v)
+          for (index_t p = 0; p < px; ++p)
+            for (index_t d = 0; d < D; ++d)
+              ws.d_descriptors[static_cast<std::size_t>((v * px + p) * D + d)] +=
+                  inv * ws.d_coarse[static_cast<std::size_t>((v * cpx + cell_of(p)) * D + d)];
+      }
     }
   }
   if (sc.appearance) {
