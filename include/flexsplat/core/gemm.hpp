@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/half.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/tensor.hpp"
@@ -174,8 +175,44 @@ inline dnnl::primitive_attr onednn_attr(float alpha, float beta) {
   }
   return attr;
 }
+
+// Whether oneDNN has a bf16 matmul for this CPU (its bf16 kernels need AVX-512; without them it creates none).
+inline bool onednn_bf16_matmul() {
+  static const bool yes = [] {
+    try {
+      using dt = dnnl::memory::data_type;
+      const auto any = dnnl::memory::format_tag::any;
+      const dnnl::matmul::primitive_desc pd(
+          dnnl::matmul::desc(dnnl::memory::desc({128, 96}, dt::bf16, any), dnnl::memory::desc({96, 128}, dt::bf16, any),
+                             dnnl::memory::desc({128, 128}, dt::f32, dnnl::memory::format_tag::ab)),
+          onednn_engine());
+      return true;
+    } catch (const dnnl::error&) {
+      return false;
+    }
+  }();
+  return yes;
+}
 #endif
+
+// The stored rows x cols of X (row stride ld) rounded to bf16 values, dense (row stride cols) into out: GemmBackend::bf16
+// where oneDNN has no bf16 kernels for the CPU.
+inline void round_bf16_dense(std::vector<float>& out, const float* X, index_t rows, index_t cols, index_t ld) {
+  out.resize(static_cast<std::size_t>(rows * cols));
+  for (index_t r = 0; r < rows; ++r)
+    for (index_t c = 0; c < cols; ++c) out[static_cast<std::size_t>(r * cols + c)] = float(bf16(X[r * ld + c]));
+}
 }  // namespace detail
+
+// Whether GemmBackend::bf16 runs oneDNN's bf16 matmul on this CPU; otherwise it rounds both operands to bf16 and
+// multiplies them in fp32 on the BLAS (or Eigen): the same product, without the speed.
+inline bool bf16_gemm_native() {
+#if defined(FLEXSPLAT_HAVE_DNNL)
+  return detail::onednn_bf16_matmul();
+#else
+  return false;
+#endif
+}
 
 // Weights that stay fixed while products use them (inference). Under GemmBackend::bf16, a float product whose whole
 // op(B) lies inside a range given to freeze() reorders that B to bf16 once, into the layout oneDNN's matmul prefers,
@@ -201,6 +238,7 @@ public:
 #if defined(FLEXSPLAT_HAVE_DNNL)
     kernels_.clear();
     packed_.clear();
+    rounded_.clear();
 #endif
     bytes_ = 0;
   }
@@ -236,6 +274,10 @@ public:
   // `threads` OpenMP threads (gemm() calls this on the calling thread before splitting, with the pool's size).
   void prepare(Trans ta, Trans tb, index_t M, index_t N, index_t K, float alpha, index_t lda, const float* B,
                index_t ldb, float beta, index_t ldc, int threads) {
+    if (!detail::onednn_bf16_matmul()) {
+      rounded(tb, K, N, B, ldb);
+      return;
+    }
     try {
       entry(ta, tb, M, N, K, alpha, lda, B, ldb, beta, ldc, threads);
     } catch (const dnnl::error& e) {
@@ -267,6 +309,17 @@ public:
       fail("gemm (bf16, oneDNN, cached weights): M ", M, " N ", N, " K ", K, " lda ", lda, " ldb ", ldb, " ldc ", ldc,
            ": ", e.what());
     }
+  }
+
+  // Without oneDNN's bf16 kernels: op(B)'s values rounded to bf16, dense in B's own orientation (made once).
+  const std::vector<float>& rounded(Trans tb, index_t K, index_t N, const float* B, index_t ldb) {
+    std::lock_guard lock(mutex_);
+    std::vector<float>& copy = rounded_[Operand{B, K, N, ldb, int(tb)}];
+    if (copy.empty()) {
+      detail::round_bf16_dense(copy, B, tb == Trans::no ? K : N, tb == Trans::no ? N : K, ldb);
+      bytes_ += copy.size() * sizeof(float);
+    }
+    return copy;
   }
 #endif
 
@@ -306,6 +359,7 @@ private:
     dnnl::memory memory;
   };
   std::map<Operand, std::vector<std::unique_ptr<Packed>>> packed_;
+  std::map<Operand, std::vector<float>> rounded_;  // nodes never move: other threads read them while the map grows
 
   std::pair<const Kernel*, const dnnl::memory*> entry(Trans ta, Trans tb, index_t M, index_t N, index_t K,
                                                       float alpha, index_t lda, const float* B, index_t ldb,
@@ -461,6 +515,17 @@ void gemm_block(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, i
   }
 #if defined(FLEXSPLAT_HAVE_DNNL)
   if constexpr (std::is_same_v<T, float>) {
+    if (backend == GemmBackend::bf16 && !onednn_bf16_matmul()) {
+      thread_local std::vector<float> a_round, b_round;
+      const index_t a_cols = ta == Trans::no ? K : M, b_cols = tb == Trans::no ? N : K;
+      round_bf16_dense(a_round, A, ta == Trans::no ? M : K, a_cols, lda);
+      const float* b = b_round.data();
+      if (cache) b = cache->rounded(tb, K, N, B, ldb).data();
+      else round_bf16_dense(b_round, B, tb == Trans::no ? K : N, b_cols, ldb), b = b_round.data();
+      gemm_block<float>(have_blas ? GemmBackend::blas : GemmBackend::eigen, ta, tb, M, N, K, alpha, a_round.data(),
+                        a_cols, b, b_cols, beta, C, ldc);
+      return;
+    }
     if (backend == GemmBackend::bf16 && cache) {
       cache->multiply(ta, tb, M, N, K, alpha, A, lda, B, ldb, beta, C, ldc);
       return;
@@ -500,6 +565,10 @@ inline std::string gemm_backend_name(GemmBackend backend = default_gemm_backend(
   if (backend == GemmBackend::eigen)
     return concat("Eigen ", EIGEN_WORLD_VERSION, '.', EIGEN_MAJOR_VERSION, '.', EIGEN_MINOR_VERSION);
 #if defined(FLEXSPLAT_HAVE_DNNL)
+  if (backend == GemmBackend::bf16 && !bf16_gemm_native())
+    return concat("bf16-rounded operands multiplied in fp32 on ",
+                  gemm_backend_name(have_blas ? GemmBackend::blas : GemmBackend::eigen),
+                  " (oneDNN has no bf16 kernels for this CPU)");
   if (backend == GemmBackend::bf16) {
     const dnnl_version_t* v = dnnl_version();
     return concat("oneDNN ", v->major, '.', v->minor, '.', v->patch, " bf16 matmul (fp32 accumulation), single-threaded "
