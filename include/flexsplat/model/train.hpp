@@ -18,6 +18,7 @@
 #include "flexsplat/geometry/unproject.hpp"
 #include "flexsplat/loss/geometry.hpp"
 #include "flexsplat/loss/match.hpp"
+#include "flexsplat/model/cameras.hpp"
 #include "flexsplat/model/frames.hpp"
 #include "flexsplat/model/geometry_stage.hpp"
 #include "flexsplat/model/objective.hpp"
@@ -88,8 +89,8 @@ TrainExample<T> make_train_example(const data::SceneSample& s, const FlexSplatCo
   e.gt_depth.resize(depth.size());
   for (std::size_t i = 0; i < depth.size(); ++i) e.gt_depth[i] = static_cast<T>(depth[i] / frame.scale);
   // VGGT encodes intrinsics with pixel u at the integer coordinate u.
-  std::vector<T> K_vggt(e.gt_K);
-  for (index_t v = 0; v < V; ++v) K_vggt[9 * v + 2] -= T(0.5), K_vggt[9 * v + 5] -= T(0.5);
+  std::vector<T> K_vggt(e.gt_K.size());
+  intrinsics_to_vggt(K_vggt.data(), e.gt_K.data(), V);
   e.gt_pose_enc.resize(static_cast<std::size_t>(9 * V));
   geometry::extri_intri_to_pose_encoding(e.gt_pose_enc.data(), e.gt_extrinsics.data(), K_vggt.data(), V, h, w);
   e.gt_points.resize(static_cast<std::size_t>(V * px * 3));

@@ -28,6 +28,13 @@ namespace model {
 // Bins of ValidationScore::match_hits_by_baseline: the angle (degrees) between a view pair's true orientations.
 inline constexpr std::array<double, 5> match_baseline_edges_deg{0, 30, 60, 90, 180};
 
+// The bin of match_baseline_edges_deg an angle falls in (the last holds 180).
+inline std::size_t baseline_bin(double angle_deg) {
+  std::size_t bin = 0;
+  while (bin + 2 < match_baseline_edges_deg.size() && angle_deg >= match_baseline_edges_deg[bin + 1]) ++bin;
+  return bin;
+}
+
 struct ValidationScore {
   double psnr = 0, ssim = 0;    // means over the scene's target views
   double rotation_deg = 0;      // mean over input views 2..V of the relative rotation error (0 for one view)
@@ -41,7 +48,7 @@ struct ValidationScore {
   // depth in place of the predicted one. 0 without the head.
   double match_accuracy = 0, matches_gt_depth_rotation_deg = 0;
   double match_accuracy_4px = 0;  // match_accuracy within four pixels: whether the descriptors find the region
-  // match_accuracy's hits and correspondences by the ground-truth angle between the pair's views (match_baseline_bins).
+  // match_accuracy's hits and correspondences by the ground-truth angle between the pair's views (baseline_bin).
   std::array<double, 4> match_hits_by_baseline{}, matches_by_baseline{};
   // View pairs by the same bins, and how many of them have their own fit (descriptor matches with the renderer's
   // depth, before the spanning tree) within 15 degrees of the true relative rotation.
@@ -127,6 +134,10 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
     const auto& o = ws.predict.geometry.outputs;
     const index_t D = w.config().geometry.match_dim;
     std::vector<T> solved(static_cast<std::size_t>(12 * V));
+    std::vector<std::size_t> pair_bin(static_cast<std::size_t>(V * V));  // each view pair's true baseline bin
+    for (index_t a = 0; a < V; ++a)
+      for (index_t b = 0; b < V; ++b)
+        pair_bin[static_cast<std::size_t>(a * V + b)] = baseline_bin(rotation_error_deg(gt.data() + 12 * a, gt.data() + 12 * b));
     std::vector<geometry::PairFit> pair_fits;
     geometry::cameras_from_matches<T>(solved.data(), o.descriptors.data(), o.foreground.data(), e.gt_depth.data(),
                                       o.intrinsics.data(), V, e.h, e.w, D, nullptr, nullptr, {}, &pair_fits);
@@ -136,18 +147,16 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
         double fit_b[12];  // the fit as view b's camera with view a at the identity
         for (int r = 0; r < 3; ++r)
           for (int c = 0; c < 4; ++c) fit_b[4 * r + c] = c < 3 ? f.R[3 * r + c] : f.t[r];
-        const double baseline = rotation_error_deg(gt.data() + 12 * a, gt.data() + 12 * b);
         const double err = relative_rotation_error_deg(identity_w2c, fit_b, gt.data() + 12 * a, gt.data() + 12 * b);
-        std::size_t bin = 0;
-        while (bin + 1 < s.pairs_by_baseline.size() && baseline >= match_baseline_edges_deg[bin + 1]) ++bin;
+        const std::size_t bin = pair_bin[static_cast<std::size_t>(a * V + b)];
         s.pairs_by_baseline[bin] += 1;
         s.pairs_within15_by_baseline[bin] += f.inliers >= geometry::MatchFitConfig{}.min_inliers && err <= 15;
       }
     for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
     double unused15, unused30;
     detail::score_rotations(pred.data(), gt.data(), V, s.matches_gt_depth_rotation_deg, unused15, unused30);
-    std::vector<T> K(e.gt_K);
-    for (index_t v = 0; v < V; ++v) K[static_cast<std::size_t>(9 * v + 2)] -= T(0.5), K[static_cast<std::size_t>(9 * v + 5)] -= T(0.5);
+    std::vector<T> K(e.gt_K.size());
+    intrinsics_to_vggt(K.data(), e.gt_K.data(), V);
     geometry::cameras_from_correspondences<T, loss::PixelMatch>(solved.data(), std::span<const loss::PixelMatch>(e.matches),
                                                                 e.gt_depth.data(), K.data(), V, e.h, e.w);
     for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
@@ -155,12 +164,7 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
     s.match_accuracy = loss::match_accuracy(o.descriptors.data(), std::span<const loss::PixelMatch>(e.matches), V, e.h, e.w, D);
     s.match_accuracy_4px = loss::match_accuracy(o.descriptors.data(), std::span<const loss::PixelMatch>(e.matches), V, e.h, e.w, D, 4);
     std::array<std::vector<loss::PixelMatch>, 4> by_bin;
-    for (const loss::PixelMatch& m : e.matches) {
-      const double angle = rotation_error_deg(gt.data() + 12 * m.view_a, gt.data() + 12 * m.view_b);
-      std::size_t bin = 0;
-      while (bin + 1 < by_bin.size() && angle >= match_baseline_edges_deg[bin + 1]) ++bin;
-      by_bin[bin].push_back(m);
-    }
+    for (const loss::PixelMatch& m : e.matches) by_bin[pair_bin[static_cast<std::size_t>(m.view_a * V + m.view_b)]].push_back(m);
     for (std::size_t bin = 0; bin < by_bin.size(); ++bin) {
       const double n = static_cast<double>(by_bin[bin].size());
       s.matches_by_baseline[bin] = n;
