@@ -173,7 +173,7 @@ void check_erf(simd::DispatchLevel level) {
 DISPATCH_TEST_CASES("simd dispatch: erf of dispatch vectors is accurate to float precision", "[simd][dispatch]",
                     check_erf)
 
-TEST_CASE("simd dispatch: the blend exp is accurate to float precision where the blend uses it", "[simd][dispatch]") {
+TEST_CASE("simd dispatch: the blend exp is accurate to float precision where the blend uses it (avx512)", "[simd][dispatch]") {
   if (!level_available(simd::DispatchLevel::avx512))
     FLEXSPLAT_SKIP("CPU lacks avx512: the 16-lane blend exp cannot run here");
   // The blend's lanes that matter have -sigma in [-sigma_max, 0], sigma_max < 6 (opacity <= 1).
