@@ -93,6 +93,9 @@ TEST_CASE("VGGT intrinsics move by half a pixel and the camera adjoints add", "[
   CHECK(K[2] == 64.5);
   CHECK(K[5] == 48.5);
   CHECK(K[0] == 100);
+  double back[9];  // intrinsics_to_vggt undoes it exactly
+  model::intrinsics_to_vggt(back, K, 1);
+  for (int i = 0; i < 9; ++i) CHECK(back[i] == Kv[i]);
   const double E[12] = {1, 0, 0, 0.5, 0, 1, 0, -1, 0, 0, 1, 3};
   const auto cam = raster::view_from_arrays(K, E, 128, 96);
   CHECK(cam.fx == 100);
