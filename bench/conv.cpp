@@ -2,6 +2,7 @@
 // within the DPT's scratch (geometry::dpt_conv_scratch_budget elements): im2col + one GEMM per band, and one GEMM per
 // kernel tap on a window of the padded input (detail::conv2d_forward_shifted). Time (best of reps), fraction of the
 // machine's SGEMM rate in the same run, and the largest difference between the two outputs over the largest output.
+// Then the same for conv2d_backward's two input-gradient paths.
 // Usage: conv [size=252] [reps=5]
 #include <algorithm>
 #include <chrono>
@@ -64,9 +65,14 @@ int main(int argc, char** argv) {
       {"unit 256 @4t", 256, 256, 4 * t, 4 * t, 3}, {"unit 256 @2t", 256, 256, 2 * t, 2 * t, 3},
       {"unit 256 @t", 256, 256, t, t, 3},          {"output_conv1", 256, 128, 8 * t, 8 * t, 3},
       {"output_conv2", 128, 32, size, size, 3},
+      // the small models' (features 32 at 56 x 56, the UNet's 16 and 32 channels), then channel ratios around the
+      // input gradient's switch (C_out <= C_in takes the correlation)
+      {"dpt 32 @56", 32, 32, 56, 56, 3}, {"unet 16 @56", 16, 16, 56, 56, 3}, {"unet 32 @28", 32, 32, 28, 28, 3},
+      {"48->24 @56", 48, 24, 56, 56, 3}, {"16->32 @56", 16, 32, 56, 56, 3}, {"8->32 @56", 8, 32, 56, 56, 3},
+      {"3->16 @56", 3, 16, 56, 56, 3},
   };
-  std::printf("%-14s %5s %5s %9s %10s %7s %10s %7s %9s\n", "conv", "cin", "cout", "map", "im2col ms", "/SGEMM",
-              "shifted ms", "/SGEMM", "rel diff");
+  std::printf("forward\n%-14s %5s %5s %9s %10s %7s %10s %7s %9s %s\n", "conv", "cin", "cout", "map", "im2col ms",
+              "/SGEMM", "shifted ms", "/SGEMM", "rel diff", "taken");
   for (const Case& c : cases) {
     const nn::Conv2dShape s{1, c.cin, c.cout, c.h, c.w, c.k, c.k, 1, (c.k - 1) / 2};
     const auto x = random_values(std::size_t(c.cin * c.h * c.w), 1);
@@ -86,9 +92,45 @@ int main(int argc, char** argv) {
       diff = std::max(diff, double(std::abs(y0[i] - y1[i])));
       scale = std::max(scale, double(std::abs(y0[i])));
     }
-    std::printf("%-14s %5ld %5ld %4ldx%-4ld %10.2f %7.2f %10.2f %7.2f %9.1e\n", c.name, long(c.cin), long(c.cout),
+    std::printf("%-14s %5ld %5ld %4ldx%-4ld %10.2f %7.2f %10.2f %7.2f %9.1e %s\n", c.name, long(c.cin), long(c.cout),
                 long(c.h), long(c.w), t0 * 1e3, flops / t0 * 1e-9 / rate.gflops, t1 * 1e3,
-                flops / t1 * 1e-9 / rate.gflops, diff / scale);
+                flops / t1 * 1e-9 / rate.gflops, diff / scale,
+                nn::detail::conv2d_use_shifted(s, scratch.size()) ? "shifted" : "im2col");
+  }
+  // The input gradient's two stride-1 paths (conv2d_backward's d_in): the adjoint of im2col (a GEMM into a zeroed
+  // C_in * k * k column matrix, scattered back) and the correlation of d_out with the flipped kernel.
+  std::printf("\ninput gradient\n%-14s %5s %5s %9s %10s %7s %10s %7s %9s %s\n", "conv", "cin", "cout", "map",
+              "columns ms", "/SGEMM", "correl. ms", "/SGEMM", "rel diff", "taken");
+  for (const Case& c : cases) {
+    const nn::Conv2dShape s{1, c.cin, c.cout, c.h, c.w, c.k, c.k, 1, (c.k - 1) / 2};
+    const auto dy = random_values(std::size_t(c.cout * c.h * c.w), 4);
+    const auto wt = random_values(std::size_t(c.cout * c.cin * c.k * c.k), 5);
+    std::vector<float> dx0(std::size_t(c.cin * c.h * c.w)), dx1(dx0.size());
+    std::vector<float> scratch(std::size_t(std::max({geometry::dpt_conv_scratch_budget, nn::conv2d_row_scratch_size(s),
+                                                     nn::conv2d_correlate_scratch_size(s, 1)})));
+    const double flops = 2.0 * double(c.cout) * double(c.cin * c.k * c.k) * double(c.h * c.w);
+    const std::span<float> sp(scratch);
+    const double t0 = best_seconds(
+        [&] {
+          std::fill(dx0.begin(), dx0.end(), 0.0f);
+          nn::detail::conv2d_backward_input_columns(dx0.data(), dy.data(), wt.data(), s, sp);
+        },
+        reps);
+    const double t1 = best_seconds(
+        [&] {
+          std::fill(dx1.begin(), dx1.end(), 0.0f);
+          nn::detail::conv2d_backward_input_correlate(dx1.data(), dy.data(), wt.data(), s, sp);
+        },
+        reps);
+    double diff = 0, scale = 0;
+    for (std::size_t i = 0; i < dx0.size(); ++i) {
+      diff = std::max(diff, double(std::abs(dx0[i] - dx1[i])));
+      scale = std::max(scale, double(std::abs(dx0[i])));
+    }
+    std::printf("%-14s %5ld %5ld %4ldx%-4ld %10.2f %7.2f %10.2f %7.2f %9.1e %s\n", c.name, long(c.cin), long(c.cout),
+                long(c.h), long(c.w), t0 * 1e3, flops / t0 * 1e-9 / rate.gflops, t1 * 1e3,
+                flops / t1 * 1e-9 / rate.gflops, diff / scale,
+                nn::detail::conv2d_use_correlate(s, scratch.size()) ? "correlation" : "columns");
   }
   return 0;
 }

@@ -74,6 +74,49 @@ TEST_CASE("conv2d matches the direct definition and passes the float64 gradient 
   }
 }
 
+TEST_CASE("conv2d's input gradient as a correlation (stride 1, C_out <= C_in) passes the float64 gradient check and "
+          "equals the column path in bands of any height",
+          "[nn][conv]") {
+  for (auto [k, pad] : {std::pair{3, 1}, std::pair{5, 2}, std::pair{3, 0}, std::pair{5, 1}, std::pair{2, 1}, std::pair{2, 0}}) {
+    const nn::Conv2dShape s{2, 4, 3, 9, 7, k, k, 1, pad};
+    INFO("kernel " << k << " padding " << pad);
+    REQUIRE(nn::detail::conv2d_use_correlate(s, nn::conv2d_scratch_size(s)));
+    auto x = random_vector(2 * 4 * 9 * 7, 91), w = random_vector(3 * 4 * k * k, 92), b = random_vector(3, 93);
+    std::vector<double> y(2 * 3 * s.conv_out_h() * s.conv_out_w()), scratch(nn::conv2d_scratch_size(s));
+    std::vector<double> dx(x.size()), dw(w.size()), db(b.size());
+    auto result = testing::check_gradients(
+        {{"x", x, dx}, {"weight", w, dw}, {"bias", b, db}}, y.size(),
+        [&](std::span<double> o) { nn::conv2d_forward(o.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch)); },
+        [&](std::span<const double> d) {
+          nn::conv2d_backward(dx.data(), dw.data(), db.data(), d.data(), x.data(), w.data(), s, std::span<double>(scratch));
+        });
+    INFO(result.summary());
+    CHECK(result.ok());
+    const auto dy = random_vector(y.size(), 94);
+    std::vector<double> columns(x.size(), 0.5), big(nn::conv2d_scratch_size(s));
+    nn::detail::conv2d_backward_input_columns(columns.data(), dy.data(), w.data(), s, std::span<double>(big));
+    for (index_t rows : {index_t(1), index_t(2), s.in_h}) {
+      INFO("rows per band " << rows);
+      // One element short of the next row: the band height is what the scratch holds.
+      std::vector<double> band(nn::conv2d_correlate_scratch_size(s, rows + 1) - 1), dx1(x.size(), 0.5);
+      CHECK(nn::detail::conv2d_correlate_band_rows(s, band.size()) == std::min(rows, s.in_h));
+      nn::detail::conv2d_backward_input_correlate(dx1.data(), dy.data(), w.data(), s, std::span<double>(band));
+      for (std::size_t i = 0; i < x.size(); ++i) REQUIRE(dx1[i] == Approx(columns[i]).margin(1e-12));
+    }
+    std::vector<double> short_scratch(nn::conv2d_correlate_scratch_size(s, 1) - 1), dx1(x.size());
+    CHECK_FALSE(nn::detail::conv2d_use_correlate(s, short_scratch.size()));
+    CHECK_THROWS_WITH(nn::detail::conv2d_backward_input_correlate(dx1.data(), dy.data(), w.data(), s,
+                                                                  std::span<double>(short_scratch)),
+                      Catch::Contains("conv2d backward (correlated): needs stride 1"));
+  }
+  // More output than input channels, a stride, a 1 x 1 kernel, padding as wide as it or a map of fewer than 8 C_out
+  // pixels (batch included) keep the column path.
+  for (const nn::Conv2dShape& s : {nn::Conv2dShape{1, 3, 4, 9, 7, 3, 3, 1, 1}, nn::Conv2dShape{1, 4, 3, 9, 7, 3, 3, 2, 1},
+                                   nn::Conv2dShape{1, 4, 3, 9, 7, 1, 1, 1, 0}, nn::Conv2dShape{1, 4, 3, 9, 7, 3, 3, 1, 3},
+                                   nn::Conv2dShape{3, 64, 32, 4, 5, 3, 3, 1, 1}})
+    CHECK_FALSE(nn::detail::conv2d_use_correlate(s, std::size_t(1) << 20));
+}
+
 TEST_CASE("conv_transpose2d matches the direct definition and passes the float64 gradient check", "[nn][conv]") {
   for (auto [k, stride, pad, outpad] : {std::tuple{4, 4, 0, 0}, std::tuple{2, 2, 0, 0}, std::tuple{3, 2, 1, 1}}) {
     nn::Conv2dShape s{2, 3, 2, 4, 5, k, k, stride, pad, outpad};

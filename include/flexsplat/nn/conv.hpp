@@ -34,13 +34,30 @@ inline void validate_conv(const Conv2dShape& s, bool transposed, const char* wha
   require(!transposed || s.output_padding < s.stride, what, ": output_padding must be smaller than stride");
 }
 
-// Scratch elements for one image's whole column matrix (one GEMM per image). conv2d also takes less, down to one
-// output row's columns (conv2d_row_scratch_size), and then runs bands of output rows.
-inline index_t conv2d_scratch_size(const Conv2dShape& s) {
+// Scratch elements for one image's whole column matrix (one GEMM per image).
+inline index_t conv2d_columns_size(const Conv2dShape& s) {
   return s.in_channels * s.kernel_h * s.kernel_w * s.conv_out_h() * s.conv_out_w();
 }
 inline index_t conv2d_row_scratch_size(const Conv2dShape& s) {
   return s.in_channels * s.kernel_h * s.kernel_w * s.conv_out_w();
+}
+// Backward's input gradient of a stride-1 square kernel with padding < kernel (detail::conv2d_backward_input_correlate):
+// the flipped weight [C_in, C_out * kh * kw], then per band of input rows the columns of d_out, C_out * kh * kw * W each.
+// It writes C_out * k * k columns per pixel where the column path writes C_in * k * k, zeroes them and scatters them
+// back, but first copies the flipped kernel (C_in * C_out * k * k): taken where C_out <= C_in and the maps have at
+// least 8 C_out pixels, where it was faster in bench/conv (slower on VGGT-1B's 256-channel maps up to 16 x 16).
+inline bool conv2d_backward_correlates(const Conv2dShape& s) {
+  return s.stride == 1 && s.kernel_h == s.kernel_w && s.kernel_h > 1 && s.padding < s.kernel_h &&
+         s.out_channels <= s.in_channels && s.batch * s.in_h * s.in_w >= 8 * s.out_channels;
+}
+inline index_t conv2d_correlate_scratch_size(const Conv2dShape& s, index_t rows) {
+  return s.out_channels * s.kernel_h * s.kernel_w * (s.in_channels + rows * s.in_w);
+}
+// Scratch elements with which conv2d_forward and conv2d_backward run on whole images (one GEMM per image). Both also
+// take less, down to one output row's columns (conv2d_row_scratch_size), and then run bands of rows.
+inline index_t conv2d_scratch_size(const Conv2dShape& s) {
+  const index_t columns = conv2d_columns_size(s);
+  return conv2d_backward_correlates(s) ? std::max(columns, conv2d_correlate_scratch_size(s, s.in_h)) : columns;
 }
 // Stride 1 without a column matrix (detail::conv2d_forward_shifted): the weight as kh*kw matrices [C_out, C_in], and
 // per band of output rows the zero-padded input rows it reads (+ kw - 1 elements the last tap reads past them) and the
@@ -241,11 +258,69 @@ void conv2d_forward_im2col(T* out, const T* in, const T* weight, const T* bias, 
   }
 }
 
+// d_in += the adjoint of im2col applied to W^T d_out, per band of output rows (any stride and padding).
+template <class T>
+void conv2d_backward_input_columns(T* d_in, const T* d_out, const T* weight, const Conv2dShape& s,
+                                   std::span<T> scratch) {
+  const index_t oh = s.conv_out_h(), ow = s.conv_out_w(), K = s.in_channels * s.kernel_h * s.kernel_w;
+  const index_t band = conv2d_band_rows(s, scratch.size());
+  for (index_t b = 0; b < s.batch; ++b)
+    for (index_t oy0 = 0; oy0 < oh; oy0 += band) {
+      const index_t rows = std::min(band, oh - oy0), n = rows * ow;
+      gemm(Trans::yes, Trans::no, K, n, s.out_channels, T(1), weight, K, d_out + b * s.out_channels * oh * ow + oy0 * ow,
+           oh * ow, T(0), scratch.data(), n);
+      col2im_add(d_in + b * s.in_channels * s.in_h * s.in_w, scratch.data(), s.in_channels, s.in_h, s.in_w, s.kernel_h,
+                 s.kernel_w, s.stride, s.padding, oy0, rows, ow);
+    }
+}
+
+// Input rows per band of the correlated input gradient for `scratch` elements (0 if not even one row fits).
+inline index_t conv2d_correlate_band_rows(const Conv2dShape& s, std::size_t scratch) {
+  const index_t fixed = conv2d_correlate_scratch_size(s, 0), row = conv2d_correlate_scratch_size(s, 1) - fixed;
+  const index_t have = static_cast<index_t>(scratch);
+  return have < fixed + row ? 0 : std::min(s.in_h, (have - fixed) / row);
+}
+
+// d_in += the correlation of d_out with the kernel flipped and its channels swapped, padding k - 1 - p: per band of
+// input rows one im2col of d_out and one GEMM that adds into d_in, where the column path writes a C_in * k * k column
+// matrix, zeroed first, and scatters it back. Needs conv2d_backward_correlates(s) and one band's scratch.
+template <class T>
+void conv2d_backward_input_correlate(T* d_in, const T* d_out, const T* weight, const Conv2dShape& s,
+                                     std::span<T> scratch) {
+  const index_t cin = s.in_channels, cout = s.out_channels, k = s.kernel_h, taps = k * k, K = cout * taps;
+  const index_t h = s.in_h, w = s.in_w, oh = s.conv_out_h(), ow = s.conv_out_w();
+  const index_t band = conv2d_correlate_band_rows(s, scratch.size());
+  require(s.stride == 1 && s.kernel_h == s.kernel_w && s.padding < s.kernel_h && band >= 1,
+          "conv2d backward (correlated): needs stride 1, a square kernel, padding below it and ",
+          conv2d_correlate_scratch_size(s, 1), " scratch elements, got stride ", s.stride, ", kernel ", s.kernel_h, "x",
+          s.kernel_w, ", padding ", s.padding, ", ", scratch.size(), " elements");
+  T* flipped = scratch.data();
+  T* cols = flipped + cin * K;
+  parallel_for(cin, [&](index_t c0, index_t c1, int) {
+    for (index_t c = c0; c < c1; ++c)
+      for (index_t o = 0; o < cout; ++o)
+        for (index_t t = 0; t < taps; ++t) flipped[c * K + o * taps + t] = weight[(o * cin + c) * taps + taps - 1 - t];
+  });
+  for (index_t b = 0; b < s.batch; ++b) {
+    const T* dy = d_out + b * cout * oh * ow;
+    T* dx = d_in + b * cin * h * w;
+    for (index_t y0 = 0; y0 < h; y0 += band) {
+      const index_t rows = std::min(band, h - y0), n = rows * w;
+      im2col(cols, dy, cout, oh, ow, k, k, 1, k - 1 - s.padding, y0, rows, w);
+      gemm(Trans::no, Trans::no, cin, n, K, T(1), flipped, K, cols, n, T(1), dx + y0 * w, h * w);
+    }
+  }
+}
+
 // The shifted path pays kh*kw GEMMs with K = C_in instead of one; it wins where the column matrix is large
 // (bench/conv, docs/nn.md).
 inline bool conv2d_use_shifted(const Conv2dShape& s, std::size_t scratch) {
   return s.stride == 1 && !conv2d_pointwise(s) && s.conv_out_h() * s.conv_out_w() >= conv2d_shifted_min_pixels &&
          conv2d_shifted_band_rows(s, scratch) >= 1;
+}
+
+inline bool conv2d_use_correlate(const Conv2dShape& s, std::size_t scratch) {
+  return conv2d_backward_correlates(s) && conv2d_correlate_band_rows(s, scratch) >= 1;
 }
 }  // namespace detail
 
@@ -253,7 +328,7 @@ inline bool conv2d_use_shifted(const Conv2dShape& s, std::size_t scratch) {
 // output row where that is smaller; for callers with no conv2d_backward to follow.
 inline index_t conv2d_forward_scratch_size(const Conv2dShape& s) {
   if (detail::conv2d_pointwise(s)) return 0;
-  const index_t full = conv2d_scratch_size(s);
+  const index_t full = conv2d_columns_size(s);
   if (!detail::conv2d_use_shifted(s, static_cast<std::size_t>(full))) return full;
   return std::min(full, conv2d_shifted_scratch_size(s, s.conv_out_h()));
 }
@@ -272,7 +347,9 @@ void conv2d_forward(T* out, const T* in, const T* weight, const T* bias, const C
     detail::conv2d_forward_shifted(out + b * out_size, in + b * in_size, weight, bias, s, scratch);
 }
 
-// Adds into d_in, d_weight, d_bias (each may be null); scratch as for conv2d_forward, in bands the same way.
+// Adds into d_in, d_weight, d_bias (each may be null); scratch as for conv2d_forward, in bands the same way. The input
+// gradient of a stride-1 k x k kernel is a correlation of d_out where the scratch holds a band of it
+// (detail::conv2d_backward_input_correlate), else the adjoint of im2col.
 template <class T>
 void conv2d_backward(T* d_in, T* d_weight, T* d_bias, const T* d_out, const T* in, const T* weight,
                      const Conv2dShape& s, std::span<T> scratch) {
@@ -292,20 +369,16 @@ void conv2d_backward(T* d_in, T* d_weight, T* d_bias, const T* d_out, const T* i
              d_in + b * s.in_channels * s.in_h * s.in_w, oh * ow);
       continue;
     }
-    for (index_t oy0 = 0; oy0 < oh; oy0 += band) {
+    for (index_t oy0 = 0; d_weight && oy0 < oh; oy0 += band) {
       const index_t rows = std::min(band, oh - oy0), n = rows * ow;
-      if (d_weight) {
-        detail::im2col(scratch.data(), x, s.in_channels, s.in_h, s.in_w, s.kernel_h, s.kernel_w, s.stride, s.padding,
-                       oy0, rows, ow);
-        gemm(Trans::no, Trans::yes, s.out_channels, K, n, T(1), dy + oy0 * ow, oh * ow, scratch.data(), n, T(1), d_weight, K);
-      }
-      if (d_in) {
-        gemm(Trans::yes, Trans::no, K, n, s.out_channels, T(1), weight, K, dy + oy0 * ow, oh * ow, T(0), scratch.data(), n);
-        detail::col2im_add(d_in + b * s.in_channels * s.in_h * s.in_w, scratch.data(), s.in_channels, s.in_h, s.in_w,
-                           s.kernel_h, s.kernel_w, s.stride, s.padding, oy0, rows, ow);
-      }
+      detail::im2col(scratch.data(), x, s.in_channels, s.in_h, s.in_w, s.kernel_h, s.kernel_w, s.stride, s.padding,
+                     oy0, rows, ow);
+      gemm(Trans::no, Trans::yes, s.out_channels, K, n, T(1), dy + oy0 * ow, oh * ow, scratch.data(), n, T(1), d_weight, K);
     }
   }
+  if (!d_in || pointwise) return;
+  if (detail::conv2d_use_correlate(s, scratch.size())) detail::conv2d_backward_input_correlate(d_in, d_out, weight, s, scratch);
+  else detail::conv2d_backward_input_columns(d_in, d_out, weight, s, scratch);
 }
 
 // out [B, C_out, OH, OW] with OH = (H-1)*stride - 2*padding + kh + output_padding. scratch >= conv_transpose2d_scratch_size(s).
