@@ -40,6 +40,22 @@ std::vector<float> random_values(std::size_t n, unsigned seed) {
   return v;
 }
 
+// One table row: both paths' times, their fractions of the SGEMM rate, the largest difference between their
+// outputs over the largest output, and the path the library takes.
+void print_row(const char* name, const nn::Conv2dShape& s, const std::vector<float>& a, const std::vector<float>& b,
+               double ta, double tb, double sgemm_gflops, const char* taken) {
+  const double flops = 2.0 * double(s.out_channels) * double(s.in_channels * s.kernel_h * s.kernel_w) *
+                       double(s.conv_out_h() * s.conv_out_w());
+  double diff = 0, scale = 0;
+  for (std::size_t i = 0; i < a.size(); ++i) {
+    diff = std::max(diff, double(std::abs(a[i] - b[i])));
+    scale = std::max(scale, double(std::abs(a[i])));
+  }
+  std::printf("%-14s %5ld %5ld %4ldx%-4ld %10.2f %7.2f %10.2f %7.2f %9.1e %s\n", name, long(s.in_channels),
+              long(s.out_channels), long(s.in_h), long(s.in_w), ta * 1e3, flops / ta * 1e-9 / sgemm_gflops, tb * 1e3,
+              flops / tb * 1e-9 / sgemm_gflops, diff / scale, taken);
+}
+
 struct Case {
   const char* name;
   index_t cin, cout, h, w, k;
@@ -81,21 +97,12 @@ int main(int argc, char** argv) {
     std::vector<float> y0(std::size_t(c.cout * c.h * c.w)), y1(y0.size());
     std::vector<float> scratch(std::size_t(std::max({geometry::dpt_conv_scratch_budget, nn::conv2d_row_scratch_size(s),
                                                      nn::conv2d_shifted_scratch_size(s, 1)})));
-    const double flops = 2.0 * double(c.cout) * double(c.cin * c.k * c.k) * double(c.h * c.w);
     const std::span<float> sp(scratch);
     const double t0 = best_seconds(
         [&] { nn::detail::conv2d_forward_im2col(y0.data(), x.data(), wt.data(), b.data(), s, sp); }, reps);
     const double t1 = best_seconds(
         [&] { nn::detail::conv2d_forward_shifted(y1.data(), x.data(), wt.data(), b.data(), s, sp); }, reps);
-    double diff = 0, scale = 0;
-    for (std::size_t i = 0; i < y0.size(); ++i) {
-      diff = std::max(diff, double(std::abs(y0[i] - y1[i])));
-      scale = std::max(scale, double(std::abs(y0[i])));
-    }
-    std::printf("%-14s %5ld %5ld %4ldx%-4ld %10.2f %7.2f %10.2f %7.2f %9.1e %s\n", c.name, long(c.cin), long(c.cout),
-                long(c.h), long(c.w), t0 * 1e3, flops / t0 * 1e-9 / rate.gflops, t1 * 1e3,
-                flops / t1 * 1e-9 / rate.gflops, diff / scale,
-                nn::detail::conv2d_use_shifted(s, scratch.size()) ? "shifted" : "im2col");
+    print_row(c.name, s, y0, y1, t0, t1, rate.gflops, nn::detail::conv2d_use_shifted(s, scratch.size()) ? "shifted" : "im2col");
   }
   // The input gradient's two stride-1 paths (conv2d_backward's d_in): the adjoint of im2col (a GEMM into a zeroed
   // C_in * k * k column matrix, scattered back) and the correlation of d_out with the flipped kernel.
@@ -108,7 +115,6 @@ int main(int argc, char** argv) {
     std::vector<float> dx0(std::size_t(c.cin * c.h * c.w)), dx1(dx0.size());
     std::vector<float> scratch(std::size_t(std::max({geometry::dpt_conv_scratch_budget, nn::conv2d_row_scratch_size(s),
                                                      nn::conv2d_correlate_scratch_size(s, 1)})));
-    const double flops = 2.0 * double(c.cout) * double(c.cin * c.k * c.k) * double(c.h * c.w);
     const std::span<float> sp(scratch);
     const double t0 = best_seconds(
         [&] {
@@ -122,15 +128,8 @@ int main(int argc, char** argv) {
           nn::detail::conv2d_backward_input_correlate(dx1.data(), dy.data(), wt.data(), s, sp);
         },
         reps);
-    double diff = 0, scale = 0;
-    for (std::size_t i = 0; i < dx0.size(); ++i) {
-      diff = std::max(diff, double(std::abs(dx0[i] - dx1[i])));
-      scale = std::max(scale, double(std::abs(dx0[i])));
-    }
-    std::printf("%-14s %5ld %5ld %4ldx%-4ld %10.2f %7.2f %10.2f %7.2f %9.1e %s\n", c.name, long(c.cin), long(c.cout),
-                long(c.h), long(c.w), t0 * 1e3, flops / t0 * 1e-9 / rate.gflops, t1 * 1e3,
-                flops / t1 * 1e-9 / rate.gflops, diff / scale,
-                nn::detail::conv2d_use_correlate(s, scratch.size()) ? "correlation" : "columns");
+    print_row(c.name, s, dx0, dx1, t0, t1, rate.gflops,
+              nn::detail::conv2d_use_correlate(s, scratch.size()) ? "correlation" : "columns");
   }
   return 0;
 }

@@ -30,6 +30,18 @@ std::vector<double> direct_conv(const std::vector<double>& x, const std::vector<
   return y;
 }
 
+// The float64 gradient check of conv2d_forward / conv2d_backward with the given scratch, into x, weight and bias.
+testing::GradCheckResult conv2d_gradient_check(std::vector<double>& x, std::vector<double>& w, std::vector<double>& b,
+                                               const nn::Conv2dShape& s, std::vector<double>& scratch) {
+  std::vector<double> dx(x.size()), dw(w.size()), db(b.size());
+  return testing::check_gradients(
+      {{"x", x, dx}, {"weight", w, dw}, {"bias", b, db}}, s.batch * s.out_channels * s.conv_out_h() * s.conv_out_w(),
+      [&](std::span<double> o) { nn::conv2d_forward(o.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch)); },
+      [&](std::span<const double> d) {
+        nn::conv2d_backward(dx.data(), dw.data(), db.data(), d.data(), x.data(), w.data(), s, std::span<double>(scratch));
+      });
+}
+
 std::vector<double> direct_conv_transpose(const std::vector<double>& x, const std::vector<double>& w,
                                           const std::vector<double>& b, const nn::Conv2dShape& s) {
   const index_t oh = s.transposed_out_h(), ow = s.transposed_out_w();
@@ -62,13 +74,7 @@ TEST_CASE("conv2d matches the direct definition and passes the float64 gradient 
     nn::conv2d_forward(y.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch));
     auto expect = direct_conv(x, w, b, s);
     for (std::size_t i = 0; i < y.size(); ++i) REQUIRE(y[i] == Approx(expect[i]).margin(1e-12));
-    std::vector<double> dx(x.size()), dw(w.size()), db(b.size());
-    auto result = testing::check_gradients(
-        {{"x", x, dx}, {"weight", w, dw}, {"bias", b, db}}, y.size(),
-        [&](std::span<double> o) { nn::conv2d_forward(o.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch)); },
-        [&](std::span<const double> d) {
-          nn::conv2d_backward(dx.data(), dw.data(), db.data(), d.data(), x.data(), w.data(), s, std::span<double>(scratch));
-        });
+    const auto result = conv2d_gradient_check(x, w, b, s, scratch);
     INFO("kernel " << k << " stride " << stride << ": " << result.summary());
     CHECK(result.ok());
   }
@@ -83,13 +89,7 @@ TEST_CASE("conv2d's input gradient as a correlation (stride 1, C_out <= C_in) pa
     REQUIRE(nn::detail::conv2d_use_correlate(s, nn::conv2d_scratch_size(s)));
     auto x = random_vector(2 * 4 * 9 * 7, 91), w = random_vector(3 * 4 * k * k, 92), b = random_vector(3, 93);
     std::vector<double> y(2 * 3 * s.conv_out_h() * s.conv_out_w()), scratch(nn::conv2d_scratch_size(s));
-    std::vector<double> dx(x.size()), dw(w.size()), db(b.size());
-    auto result = testing::check_gradients(
-        {{"x", x, dx}, {"weight", w, dw}, {"bias", b, db}}, y.size(),
-        [&](std::span<double> o) { nn::conv2d_forward(o.data(), x.data(), w.data(), b.data(), s, std::span<double>(scratch)); },
-        [&](std::span<const double> d) {
-          nn::conv2d_backward(dx.data(), dw.data(), db.data(), d.data(), x.data(), w.data(), s, std::span<double>(scratch));
-        });
+    const auto result = conv2d_gradient_check(x, w, b, s, scratch);
     INFO(result.summary());
     CHECK(result.ok());
     const auto dy = random_vector(y.size(), 94);
