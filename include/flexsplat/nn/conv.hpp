@@ -348,8 +348,8 @@ void conv2d_forward(T* out, const T* in, const T* weight, const T* bias, const C
 }
 
 // Adds into d_in, d_weight, d_bias (each may be null); scratch as for conv2d_forward, in bands the same way. The input
-// gradient of a stride-1 k x k kernel is a correlation of d_out where the scratch holds a band of it
-// (detail::conv2d_backward_input_correlate), else the adjoint of im2col.
+// gradient is a correlation of d_out (detail::conv2d_backward_input_correlate) for the shapes of
+// conv2d_backward_correlates when the scratch holds a band of it, else the adjoint of im2col.
 template <class T>
 void conv2d_backward(T* d_in, T* d_weight, T* d_bias, const T* d_out, const T* in, const T* weight,
                      const Conv2dShape& s, std::span<T> scratch) {
