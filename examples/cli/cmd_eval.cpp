@@ -314,6 +314,9 @@ int eval_command(Args args) {
   require(resolution == "native" || resolution == "model", "eval: --resolution '", resolution,
           "' is neither 'native' (the folders' image size) nor 'model' (the model's input size)");
   take_option(args, "--self-attention", attention_text);
+  std::string cameras_text = "model";
+  take_option(args, "--cameras", cameras_text);
+  const model::CameraSource camera_source = model::parse_camera_source(cameras_text);
   const bool quiet = take_flag(args, "--quiet");
   for (const auto& a : args) require(a.empty() || a[0] != '-', "eval: unknown option '", a, "'");
   require(!args.empty(), "eval needs at least one OBJECT_DIR (a folder with cameras.json, or a folder of them)");
@@ -371,6 +374,7 @@ int eval_command(Args args) {
   const std::vector<data::ObjectRecord> objects = data::load_objects(dirs);
   eo.lpips = lpips ? &*lpips : nullptr;
   model::PredictWorkspace<float> ws;
+  ws.cameras = camera_source;
   ws.keep_packed_weights = true;  // one fixed model for every object: under bf16, pack it once
   model::EvalWorkspace ews;
   std::vector<ObjectResult> results;
@@ -471,7 +475,7 @@ const RegisterCommand registered_cmd_eval(
              "  [--refine-validate on|off] [--refine-cameras on|off] [--refine-carve on|off] [--refine-grow N]\n"
              "  [--rotation-noise DEG] [--seed N]\n"
              "  [--gaussians N] [--self-attention full|local[:WINDOW]] [--resolution native|model] [--lpips LPIPS.safetensors]\n"
-             "  [--json out.json]\n"
+             "  [--cameras model|orbit] [--json out.json]\n"
              "  [--grid out.png [--grid-targets 4]] [--quiet]\n"
              "  OBJECT_DIR: a folder in the layout of ../shared/data/objects/<name> or a folder of them\n"
              "  inputs: the folder's input_views (--views N: those when it lists N, else N evenly spaced frames;\n"
@@ -494,6 +498,8 @@ const RegisterCommand registered_cmd_eval(
              "  object's name); --baseline posed-fit: a per-scene fit from the input views with their ground-truth\n"
              "  cameras for the model's seconds; --gaussians: default the model's budget for the view count;\n"
              "  --self-attention: the decoder's, whatever the model was trained with (local: windows of 512)\n"
+             "  --cameras orbit: the input cameras searched on an orbit around the object from the predicted\n"
+             "  silhouettes, depth and colours (models with a match head) instead of the model's own cameras\n"
              "  (docs/app.md)",
              eval_command});
 

@@ -87,6 +87,9 @@ int reconstruct_command(Args args) {
   if (take_option(args, "--refine-validate", refine_validate)) refine_options = true;
   if (take_option(args, "--refine-grow", refine_grow_text)) refine_options = true;
   take_option(args, "--turntable-size", turntable_size_text);
+  std::string cameras_text = "model";
+  take_option(args, "--cameras", cameras_text);
+  const model::CameraSource camera_source = model::parse_camera_source(cameras_text);
   const bool verbose = take_flag(args, "--verbose");
   for (const auto& a : args) require(a.empty() || a[0] != '-', "reconstruct: unknown option '", a, "'");
   require(!args.empty(), "reconstruct needs at least one IMAGE (PNG or JPEG)");
@@ -122,6 +125,7 @@ int reconstruct_command(Args args) {
   std::fprintf(stderr, "reconstruct: predicting at %lld x %lld\n", static_cast<long long>(c.image_w),
                static_cast<long long>(c.image_h));
   model::PredictWorkspace<float> ws;
+  ws.cameras = camera_source;
   model::Prediction<float> p = model::predict<float>(ws, *w, TensorView<const float, 4>(images.view()), n_gaussians);
   t.ms.emplace_back("geometry (VGGT)", p.geometry_ms);
   t.ms.emplace_back("decoder", p.decoder_ms);
@@ -181,13 +185,14 @@ const RegisterCommand registered_cmd_reconstruct(
     "reconstruct", {"a Gaussian splat (.glb with the predicted cameras, or .ply) from a few uncalibrated images",
                     "IMAGE... -o out.glb|out.ply [--model M.safetensors] [--gaussians N] [--refine SECONDS]\n"
                     "  [--refine-size N|native] [--refine-validate on|off] [--refine-grow N] [--turntable out.png]\n"
-                    "  [--turntable-size N|native] [--verbose]\n"
+                    "  [--turntable-size N|native] [--cameras model|orbit] [--verbose]\n"
                     "  IMAGE: 1 to the model's max_views PNG/JPEG files of any size; RGBA is composited on white and\n"
                     "  each picture's centred window of the model's aspect ratio is resized to the model's size\n"
                     "  --model: default the shipped model (models/flexsplat-small.safetensors in the source tree)\n"
                     "  --gaussians: default the model's budget for the view count; --turntable: 8 views around the\n"
                     "  object in one picture, each at the pictures' resolution (--turntable-size N: N pixels on the longer\n"
-                    "  side); --verbose: time of each stage\n"
+                    "  side); --verbose: time of each stage; --cameras orbit: the cameras searched on an orbit around the\n"
+                    "  object from the predicted silhouettes, depth and colours (models with a match head)\n"
                     "  --refine S: carve away the Gaussians seen on the pictures' background (RGBA) and add 4096 in\n"
                     "  their silhouettes' visual hull (--refine-grow N: N), then optimise the Gaussians and the\n"
                     "  predicted cameras (all but the first) on the input pictures for about S seconds before writing,\n"

@@ -30,6 +30,9 @@ printf 'not a picture' >"$work/text.png"
 expect_error "cannot decode" reconstruct "$spot" "$work/text.png" --model "$model" "${out[@]}"
 expect_error "smaller than one 7 x 7 patch" reconstruct "$spot" "$data/one_pixel.png" --model "$model" "${out[@]}"
 expect_error "must be full, local or local:WINDOW" eval "$object" --model "$model" --self-attention windowed
+expect_error "camera source 'bogus' is not one of: model, orbit" eval "$object" --model "$model" --cameras bogus
+expect_error "camera source 'orbit' needs the object probability of a match head" reconstruct "$spot" "$spot" \
+  --model "$model" --cameras orbit "${out[@]}"
 expect_error "5000 Gaussians requested; the decoder has 4096 queries" eval "$object" --model "$model" --gaussians 5000
 # Numeric options: the whole value must parse (no "1e3" read as 1), and the message names the option.
 expect_error "\-\-gaussians '1e3': expected an integer" reconstruct "$spot" --model "$model" --gaussians 1e3 "${out[@]}"

@@ -72,6 +72,13 @@ inline Camera look_at(glm::dvec3 eye, glm::dvec3 target, int width, int height, 
   return cam;
 }
 
+// A camera position on the orbit of `radius` around the origin: elevation above the xy plane, azimuth from +x towards
+// +y (radians); look_at(orbit_eye(...), origin) gives the orbit's camera.
+inline glm::dvec3 orbit_eye(double elevation, double azimuth, double radius) {
+  return {radius * std::cos(elevation) * std::cos(azimuth), radius * std::cos(elevation) * std::sin(azimuth),
+          radius * std::sin(elevation)};
+}
+
 // The row-major world-to-camera [I | 0]: the first view's camera in the model's frame.
 inline constexpr double identity_w2c[12] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0};
 

@@ -18,12 +18,12 @@ namespace flexsplat {
 inline namespace v0 {
 namespace data {
 
-// Orbit camera: eye = target + radius * (cos el cos az, cos el sin az, sin el), as in the shared renders.
+// Orbit camera: eye = radius * (cos el cos az, cos el sin az, sin el) (core/camera.hpp's orbit_eye) looking at
+// `target`, as in the shared renders.
 inline Camera orbit_camera(double elevation_deg, double azimuth_deg, double radius, double hfov_deg, int width,
                            int height, glm::dvec3 target = glm::dvec3(0.0)) {
   const double el = elevation_deg * std::numbers::pi / 180, az = azimuth_deg * std::numbers::pi / 180;
-  const glm::dvec3 eye(radius * std::cos(el) * std::cos(az), radius * std::cos(el) * std::sin(az),
-                       radius * std::sin(el));
+  const glm::dvec3 eye = orbit_eye(el, az, radius);
   Camera cam = look_at(eye, target, width, height, intrinsics_from_fov(width, height, hfov_deg));
   cam.elevation_deg = elevation_deg;
   cam.azimuth_deg = azimuth_deg;

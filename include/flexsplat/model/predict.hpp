@@ -20,6 +20,7 @@
 #include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/model.hpp"
+#include "flexsplat/geometry/orbit_search.hpp"
 #include "flexsplat/geometry/pose_encoding.hpp"
 #include "flexsplat/geometry/procrustes.hpp"
 #include "flexsplat/image/layout.hpp"
@@ -56,8 +57,21 @@ std::vector<Camera> input_cameras(const Prediction<T>& p, const std::vector<std:
   return cameras;
 }
 
+// Where the cameras the decoder sees come from. model: the camera head, or with a match head the cameras solved from
+// its matches (geometry/procrustes.hpp); orbit_search: the views placed on an orbit around the object by their
+// predicted silhouettes (the match head's object probability), depth and colour (geometry/orbit_search.hpp).
+enum class CameraSource { model, orbit_search };
+
+inline CameraSource parse_camera_source(const std::string& s) {
+  if (s == "model") return CameraSource::model;
+  if (s == "orbit") return CameraSource::orbit_search;
+  fail("camera source '", s, "' is not one of: model, orbit");
+}
+
 template <class T>
 struct PredictWorkspace {
+  CameraSource cameras = CameraSource::model;
+  geometry::OrbitSearchConfig orbit;  // with CameraSource::orbit_search
   GeometryStage<T> geometry;
   decoder::ModelWorkspace<T> model;
   // Under GemmBackend::bf16: pack the weights to bf16 once (GemmWeightCache, 2 bytes per weight) and keep them for
@@ -122,7 +136,7 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
   // With the match head each view's camera is solved from its matches with the first view where that fit is
   // determined; the camera head's camera stays for the others.
   std::vector<index_t> matched(static_cast<std::size_t>(views), 0);
-  if (c.geometry.match_dim > 0 && views > 1) {
+  if (c.geometry.match_dim > 0 && views > 1 && ws.cameras == CameraSource::model) {
     const auto& o = ws.geometry.outputs;
     std::vector<T> solved(static_cast<std::size_t>(12 * views));
     std::unique_ptr<bool[]> ok(new bool[static_cast<std::size_t>(views)]);
@@ -135,6 +149,15 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
       }
       std::copy(solved.begin() + 12 * v, solved.begin() + 12 * (v + 1), ws.geometry.result.extrinsics.begin() + 12 * v);
     }
+  }
+  if (ws.cameras == CameraSource::orbit_search && views > 1) {
+    require(c.geometry.match_dim > 0, "predict: camera source 'orbit' needs the object probability of a match head; "
+            "this model has none (geometry match_dim 0)");
+    const auto& o = ws.geometry.outputs;
+    std::vector<T> solved(static_cast<std::size_t>(12 * views));
+    geometry::cameras_from_orbit_search<T>(solved.data(), images, o.foreground.data(), o.depth.data(), o.intrinsics.data(),
+                                           views, h, wd, ws.orbit);
+    std::copy(solved.begin(), solved.end(), ws.geometry.result.extrinsics.begin());
   }
   if (before_decoder) before_decoder(ws.geometry.result);
   ws.model.keep_for_backward = false;  // no backward follows: the decoder's layers share one cache, no RGB head

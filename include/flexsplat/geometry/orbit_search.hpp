@@ -1,0 +1,441 @@
+#pragma once
+// Cameras from silhouettes and depth, for photos around one object: every view is placed on an orbit around a common
+// centre (looking at it along its optical axis, image up towards the object's up, roll small) and the orbit
+// parameters (elevation, azimuth, roll, distance) are searched so that every view's object pixels, unprojected with
+// their depth, land inside every other view's silhouette and not in front of its surface (the visual-hull and
+// free-space constraints, which hold between any two views, however little they overlap), where they meet that
+// surface with the same colour. A coarse grid from the first view, coordinate sweeps over the views, then a local
+// pattern search. No gradient; the first view's camera is the world, as cameras_from_matches.
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <numbers>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "flexsplat/core/camera.hpp"
+#include "flexsplat/core/error.hpp"
+#include "flexsplat/core/tensor.hpp"
+
+namespace flexsplat {
+inline namespace v0 {
+namespace geometry {
+
+struct OrbitSearchConfig {
+  double min_foreground = 0.5;      // pixels at or above this object probability form the silhouette
+  index_t samples = 256;            // object pixels per view scored against the other views
+  double elevation_min_deg = -20;   // the coarse grid's elevations (degrees above the object's equator)
+  double elevation_max_deg = 70;
+  double elevation_step_deg = 10;
+  double azimuth_step_deg = 10;     // the coarse grid's azimuths relative to the first view
+  double silhouette_px = 2;         // a point this many pixels outside another view's silhouette costs 1
+  double depth_tolerance = 0.03;    // relative depth within which two views see the same surface point
+  double occluded_cost = 0.1;       // a point hidden behind another view's surface (explains nothing)
+  double colour_weight = 0.5;       // cost of a colour difference of 1 (per channel mean) on a shared surface point
+  // The rim's median depth lies in front of the orbit centre (by 5-15 % on the shared objects): the coarse search tries
+  // these multiples of it for every view.
+  std::vector<double> distance_scales{1.0, 1.05, 1.1, 1.15, 1.2};
+  double coarse_tolerance = 3;      // the grid stages' silhouette and depth tolerances, in multiples of the above
+  index_t beam_width = 16;           // partial solutions kept while views are added
+  index_t finalists = 3;            // best beams refined to the end
+  int sweeps = 2;                   // coordinate sweeps on the grid after the first view's pass
+  int refine_rounds = 4;            // halvings of the local search's steps
+  double refine_step_deg = 5;       // the local search's first angle step
+  double refine_step_distance = 0.04;  // its first relative distance step
+};
+
+// One view's orbit parameters (radians; distance in depth units).
+struct OrbitPose {
+  double elevation = 0, azimuth = 0, roll = 0, distance = 1;
+};
+
+namespace orbit_detail {
+
+struct View {
+  index_t h = 0, w = 0;
+  double fx = 1, fy = 1, cx = 0, cy = 0;
+  std::vector<unsigned char> mask;  // [h * w] object pixel
+  std::vector<float> outside;       // [h * w] pixels to the silhouette (0 inside)
+  std::vector<float> depth;         // [h * w]
+  std::vector<float> colour;        // [h * w * 3] (empty without images)
+  std::vector<double> point;        // sampled object pixels in the camera frame [n, 3]
+  std::vector<float> point_colour;  // [n, 3] (empty without images)
+  double distance = 1;              // from the camera to the orbit centre along the optical axis
+};
+
+// Two-pass 3-4 chamfer distance to the nearest mask pixel, in pixels.
+inline void chamfer_outside(View& v) {
+  const index_t h = v.h, w = v.w;
+  const float inf = 1e9f;
+  v.outside.assign(static_cast<std::size_t>(h * w), inf);
+  auto at = [&](index_t y, index_t x) -> float& { return v.outside[static_cast<std::size_t>(y * w + x)]; };
+  for (index_t i = 0; i < h * w; ++i)
+    if (v.mask[static_cast<std::size_t>(i)]) v.outside[static_cast<std::size_t>(i)] = 0;
+  for (index_t y = 0; y < h; ++y)
+    for (index_t x = 0; x < w; ++x) {
+      float d = at(y, x);
+      if (x > 0) d = std::min(d, at(y, x - 1) + 3);
+      if (y > 0) {
+        d = std::min(d, at(y - 1, x) + 3);
+        if (x > 0) d = std::min(d, at(y - 1, x - 1) + 4);
+        if (x + 1 < w) d = std::min(d, at(y - 1, x + 1) + 4);
+      }
+      at(y, x) = d;
+    }
+  for (index_t y = h - 1; y >= 0; --y)
+    for (index_t x = w - 1; x >= 0; --x) {
+      float d = at(y, x);
+      if (x + 1 < w) d = std::min(d, at(y, x + 1) + 3);
+      if (y + 1 < h) {
+        d = std::min(d, at(y + 1, x) + 3);
+        if (x + 1 < w) d = std::min(d, at(y + 1, x + 1) + 4);
+        if (x > 0) d = std::min(d, at(y + 1, x - 1) + 4);
+      }
+      at(y, x) = d;
+    }
+  for (float& d : v.outside) d /= 3;
+}
+
+// World-to-camera of an orbit pose around the origin, object up +z (core/camera.hpp's look_at), then the roll about
+// the optical axis.
+inline void orbit_extrinsics(const OrbitPose& p, glm::dmat3& R, glm::dvec3& t) {
+  const glm::dvec3 eye = orbit_eye(p.elevation, p.azimuth, p.distance);
+  const Camera cam = look_at(eye, glm::dvec3(0.0), 1, 1, glm::dmat3(1.0));
+  const double c = std::cos(p.roll), s = std::sin(p.roll);
+  glm::dmat3 roll(1.0);  // column-major: rotates the camera's x, y axes about z
+  roll[0][0] = c, roll[1][0] = -s, roll[0][1] = s, roll[1][1] = c;
+  R = roll * cam.R;
+  t = -(R * eye);
+}
+
+struct Placed {
+  glm::dmat3 R{1.0};
+  glm::dvec3 t{0.0};
+};
+
+inline Placed place(const OrbitPose& p) {
+  Placed q;
+  orbit_extrinsics(p, q.R, q.t);
+  return q;
+}
+
+// Mean cost of view a's sampled points seen from view b.
+inline double pair_cost(const View& a, const Placed& pa, const View& b, const Placed& pb, const OrbitSearchConfig& cfg) {
+  const index_t n = static_cast<index_t>(a.point.size() / 3);
+  if (n == 0) return 0;
+  const glm::dmat3 M = pb.R * glm::transpose(pa.R);
+  const glm::dvec3 m = pb.t - M * pa.t;
+  const bool colours = !a.point_colour.empty() && !b.colour.empty() && cfg.colour_weight > 0;
+  double sum = 0;
+  for (index_t i = 0; i < n; ++i) {
+    const glm::dvec3 X(a.point[static_cast<std::size_t>(3 * i)], a.point[static_cast<std::size_t>(3 * i + 1)],
+                       a.point[static_cast<std::size_t>(3 * i + 2)]);
+    const glm::dvec3 Y = M * X + m;
+    if (!(Y.z > 1e-9)) {
+      sum += 1;
+      continue;
+    }
+    const double u = b.fx * Y.x / Y.z + b.cx, v = b.fy * Y.y / Y.z + b.cy;
+    const double ur = std::round(u), vr = std::round(v);
+    if (!(ur >= 0 && vr >= 0 && ur < static_cast<double>(b.w) && vr < static_cast<double>(b.h))) {
+      sum += 1;
+      continue;
+    }
+    const std::size_t pix = static_cast<std::size_t>(static_cast<index_t>(vr) * b.w + static_cast<index_t>(ur));
+    const double out = static_cast<double>(b.outside[pix]);
+    if (out > 0) {
+      sum += std::min(out / cfg.silhouette_px, 1.0);
+      continue;
+    }
+    const double z = static_cast<double>(b.depth[pix]), tol = cfg.depth_tolerance * z;
+    if (Y.z < z - tol) {
+      sum += std::min((z - tol - Y.z) / tol, 1.0);  // free space of view b holds a surface point
+    } else if (Y.z <= z + tol) {
+      if (colours) {
+        double diff = 0;
+        for (int k = 0; k < 3; ++k)
+          diff += std::abs(static_cast<double>(a.point_colour[static_cast<std::size_t>(3 * i + k)]) -
+                           static_cast<double>(b.colour[3 * pix + static_cast<std::size_t>(k)]));
+        sum += cfg.colour_weight * diff / 3;
+      }
+    } else {
+      sum += cfg.occluded_cost;
+    }
+  }
+  return sum / static_cast<double>(n);
+}
+
+// Cost of view v against the views in `others` (both directions).
+inline double view_cost(const std::vector<View>& views, const std::vector<Placed>& placed, index_t v, const Placed& pv,
+                        const OrbitSearchConfig& cfg) {
+  double c = 0;
+  for (index_t o = 0; o < static_cast<index_t>(views.size()); ++o) {
+    if (o == v) continue;
+    const std::size_t so = static_cast<std::size_t>(o), sv = static_cast<std::size_t>(v);
+    c += pair_cost(views[sv], pv, views[so], placed[so], cfg) + pair_cost(views[so], placed[so], views[sv], pv, cfg);
+  }
+  return c;
+}
+
+// View f's silhouette, its distance to the rim-estimated orbit centre and its sampled points; false without object
+// pixels.
+template <class T>
+bool prepare_view(View& v, const T* images, const T* foreground, const T* depth, const T* intrinsics, index_t f,
+                  index_t height, index_t width, const OrbitSearchConfig& cfg) {
+  const index_t px = height * width;
+  v.h = height, v.w = width;
+  const T* K = intrinsics + 9 * f;
+  v.fx = static_cast<double>(K[0]), v.fy = static_cast<double>(K[4]);
+  v.cx = static_cast<double>(K[2]), v.cy = static_cast<double>(K[5]);
+  require(std::isfinite(v.fx) && std::isfinite(v.fy) && v.fx > 0 && v.fy > 0 && std::isfinite(v.cx) && std::isfinite(v.cy),
+          "cameras_from_orbit_search: view ", f, " has intrinsics fx ", v.fx, ", fy ", v.fy, ", cx ", v.cx, ", cy ", v.cy);
+  v.mask.assign(static_cast<std::size_t>(px), 0);
+  v.depth.assign(static_cast<std::size_t>(px), 0.f);
+  index_t count = 0;
+  for (index_t p = 0; p < px; ++p) {
+    const double fg = static_cast<double>(foreground[f * px + p]), z = static_cast<double>(depth[f * px + p]);
+    v.depth[static_cast<std::size_t>(p)] = static_cast<float>(z);
+    if (fg >= cfg.min_foreground && z > 0 && std::isfinite(z)) v.mask[static_cast<std::size_t>(p)] = 1, ++count;
+  }
+  if (images) {
+    v.colour.resize(static_cast<std::size_t>(3 * px));
+    for (index_t p = 0; p < px; ++p)
+      for (index_t k = 0; k < 3; ++k)
+        v.colour[static_cast<std::size_t>(3 * p + k)] = static_cast<float>(images[(f * 3 + k) * px + p]);
+  }
+  if (count == 0) return false;
+  chamfer_outside(v);
+  // The orbit centre's distance: the median depth of the silhouette's rim (a round object's rim lies at its centre's
+  // depth).
+  std::vector<double> rim;
+  for (index_t y = 0; y < height; ++y)
+    for (index_t x = 0; x < width; ++x) {
+      const index_t p = y * width + x;
+      if (!v.mask[static_cast<std::size_t>(p)]) continue;
+      const bool edge = x == 0 || y == 0 || x + 1 == width || y + 1 == height || !v.mask[static_cast<std::size_t>(p - 1)] ||
+                        !v.mask[static_cast<std::size_t>(p + 1)] || !v.mask[static_cast<std::size_t>(p - width)] ||
+                        !v.mask[static_cast<std::size_t>(p + width)];
+      if (edge) rim.push_back(static_cast<double>(v.depth[static_cast<std::size_t>(p)]));
+    }
+  std::nth_element(rim.begin(), rim.begin() + static_cast<std::ptrdiff_t>(rim.size() / 2), rim.end());
+  v.distance = rim[rim.size() / 2];
+  // Samples: every k-th object pixel.
+  const index_t stride = std::max<index_t>(1, (count + cfg.samples - 1) / cfg.samples);
+  index_t seen = 0;
+  for (index_t p = 0; p < px; ++p) {
+    if (!v.mask[static_cast<std::size_t>(p)]) continue;
+    if (seen++ % stride) continue;
+    const double z = static_cast<double>(v.depth[static_cast<std::size_t>(p)]);
+    const double u = static_cast<double>(p % width), vv = static_cast<double>(p / width);
+    v.point.insert(v.point.end(), {(u - v.cx) / v.fx * z, (vv - v.cy) / v.fy * z, z});
+    if (images)
+      for (index_t k = 0; k < 3; ++k) v.point_colour.push_back(v.colour[static_cast<std::size_t>(3 * p + k)]);
+  }
+  return true;
+}
+
+// Sum of every ordered pair's cost.
+inline double total_cost(const std::vector<View>& views, const std::vector<Placed>& placed, const OrbitSearchConfig& cfg) {
+  double c = 0;
+  for (std::size_t a = 0; a < views.size(); ++a)
+    for (std::size_t b = 0; b < views.size(); ++b)
+      if (a != b) c += pair_cost(views[a], placed[a], views[b], placed[b], cfg);
+  return c;
+}
+
+}  // namespace orbit_detail
+
+// Each view's world-to-camera [S, 3, 4] (the first view's camera is the world, [I | 0]) from its silhouette, depth and
+// colour. images [S, 3, H, W] in [0, 1] (may be null: no colour term); foreground, depth [S, H, W]; intrinsics
+// [S, 3, 3] with pixel (u, v) at integer coordinates (geometry/unproject.hpp). Views without object pixels keep
+// [I | 0] and a false entry in `solved` (may be null, [S]). cost_out (may be null): the final total cost.
+template <class T>
+void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foreground, const T* depth, const T* intrinsics,
+                               index_t frames, index_t height, index_t width, const OrbitSearchConfig& cfg = {},
+                               bool* solved = nullptr, double* cost_out = nullptr) {
+  using namespace orbit_detail;
+  require(frames >= 1 && height >= 1 && width >= 1, "cameras_from_orbit_search: empty maps (", frames, " x ", height,
+          " x ", width, ")");
+  require(cfg.samples >= 1 && cfg.elevation_step_deg > 0 && cfg.azimuth_step_deg > 0 && cfg.silhouette_px > 0 &&
+              cfg.depth_tolerance > 0 && cfg.elevation_max_deg >= cfg.elevation_min_deg &&
+              cfg.elevation_max_deg < 89 && cfg.elevation_min_deg > -89,
+          "cameras_from_orbit_search: invalid config (samples ", cfg.samples, ", steps ", cfg.elevation_step_deg, " / ",
+          cfg.azimuth_step_deg, " deg, elevations ", cfg.elevation_min_deg, " .. ", cfg.elevation_max_deg, ")");
+  const double deg = std::numbers::pi / 180;
+  std::vector<View> views(static_cast<std::size_t>(frames));
+  std::vector<bool> usable(static_cast<std::size_t>(frames), false);
+  for (index_t f = 0; f < frames; ++f)
+    usable[static_cast<std::size_t>(f)] = prepare_view(views[static_cast<std::size_t>(f)], images, foreground, depth,
+                                                       intrinsics, f, height, width, cfg);
+  if (solved)
+    for (index_t f = 0; f < frames; ++f) solved[f] = f == 0 || (usable[0] && usable[static_cast<std::size_t>(f)]);
+  for (index_t f = 0; f < frames; ++f)
+    for (int i = 0; i < 12; ++i) extrinsics[12 * f + i] = static_cast<T>(identity_w2c[i]);
+  if (frames == 1 || !usable[0]) {
+    if (cost_out) *cost_out = 0;
+    return;
+  }
+  // The views that take part; an unusable view keeps [I | 0] and contributes nothing.
+  std::vector<index_t> active;
+  for (index_t f = 0; f < frames; ++f)
+    if (usable[static_cast<std::size_t>(f)]) active.push_back(f);
+  std::vector<View> act;
+  for (index_t f : active) act.push_back(views[static_cast<std::size_t>(f)]);
+  const index_t A = static_cast<index_t>(act.size());
+  std::vector<double> elevations, azimuths;
+  for (double e = cfg.elevation_min_deg; e <= cfg.elevation_max_deg + 1e-9; e += cfg.elevation_step_deg) elevations.push_back(e * deg);
+  for (double a = 0; a < 360 - 1e-9; a += cfg.azimuth_step_deg) azimuths.push_back(a * deg);
+  std::vector<OrbitPose> pose(static_cast<std::size_t>(A));
+  for (index_t v = 0; v < A; ++v) pose[static_cast<std::size_t>(v)].distance = act[static_cast<std::size_t>(v)].distance;
+  std::vector<Placed> placed(static_cast<std::size_t>(A));
+  auto total = [&] { return total_cost(act, placed, cfg); };
+  // The grid's cells are far apart for a cost that is sharp at the solution: the grid stages see the silhouettes and
+  // depths with wider tolerances.
+  OrbitSearchConfig coarse = cfg;
+  coarse.silhouette_px *= cfg.coarse_tolerance, coarse.depth_tolerance *= cfg.coarse_tolerance;
+  // Grid search of view v's elevation and azimuth against the placed views (all others, or only view 0 in `first`).
+  auto grid_view = [&](index_t v, bool first) {
+    OrbitPose best = pose[static_cast<std::size_t>(v)];
+    double best_cost = std::numeric_limits<double>::infinity();
+    for (double e : elevations)
+      for (double a : azimuths) {
+        OrbitPose p = pose[static_cast<std::size_t>(v)];
+        p.elevation = e, p.azimuth = a, p.roll = 0;
+        const Placed q = place(p);
+        double c;
+        if (first)
+          c = pair_cost(act[static_cast<std::size_t>(v)], q, act[0], placed[0], coarse) + pair_cost(act[0], placed[0], act[static_cast<std::size_t>(v)], q, coarse);
+        else
+          c = view_cost(act, placed, v, q, coarse);
+        if (c < best_cost) best_cost = c, best = p;
+      }
+    pose[static_cast<std::size_t>(v)] = best;
+    placed[static_cast<std::size_t>(v)] = place(best);
+  };
+  // 1. Beam search: the views placed one by one on the grid, each placement scored against the views before it; the
+  // first view's elevation and the distances' scale start the beams.
+  struct Beam {
+    std::vector<OrbitPose> pose;
+    std::vector<Placed> placed;
+    double cost = 0;
+  };
+  std::vector<Beam> beams;
+  for (double scale : cfg.distance_scales)
+    for (double e0 : elevations) {
+      Beam b;
+      b.pose.resize(static_cast<std::size_t>(A));
+      for (index_t v = 0; v < A; ++v) b.pose[static_cast<std::size_t>(v)].distance = scale * act[static_cast<std::size_t>(v)].distance;
+      b.pose[0].elevation = e0;
+      b.placed.resize(static_cast<std::size_t>(A));
+      b.placed[0] = place(b.pose[0]);
+      beams.push_back(std::move(b));
+    }
+  struct Candidate {
+    double cost;
+    std::size_t beam;
+    OrbitPose pose;
+    Placed placed;
+  };
+  for (index_t v = 1; v < A; ++v) {
+    std::vector<Candidate> cand;
+    for (std::size_t bi = 0; bi < beams.size(); ++bi) {
+      const Beam& b = beams[bi];
+      for (double scale : cfg.distance_scales)
+      for (double e : elevations)
+        for (double a : azimuths) {
+          OrbitPose p = b.pose[static_cast<std::size_t>(v)];
+          p.elevation = e, p.azimuth = a, p.roll = 0, p.distance = scale * act[static_cast<std::size_t>(v)].distance;
+          const Placed q = place(p);
+          double c = b.cost;
+          for (index_t o = 0; o < v; ++o) {
+            const std::size_t so = static_cast<std::size_t>(o);
+            c += pair_cost(act[static_cast<std::size_t>(v)], q, act[so], b.placed[so], coarse) +
+                 pair_cost(act[so], b.placed[so], act[static_cast<std::size_t>(v)], q, coarse);
+          }
+          cand.push_back({c, bi, p, q});
+        }
+    }
+    const std::size_t keep = std::min(cand.size(), static_cast<std::size_t>(cfg.beam_width));
+    std::partial_sort(cand.begin(), cand.begin() + static_cast<std::ptrdiff_t>(keep), cand.end(),
+                      [](const Candidate& x, const Candidate& y) { return x.cost < y.cost; });
+    std::vector<Beam> next;
+    for (std::size_t k = 0; k < keep; ++k) {
+      Beam b = beams[cand[k].beam];
+      b.pose[static_cast<std::size_t>(v)] = cand[k].pose;
+      b.placed[static_cast<std::size_t>(v)] = cand[k].placed;
+      b.cost = cand[k].cost;
+      next.push_back(std::move(b));
+    }
+    beams = std::move(next);
+  }
+  std::sort(beams.begin(), beams.end(), [](const Beam& x, const Beam& y) { return x.cost < y.cost; });
+  std::vector<OrbitPose> best_pose;
+  std::vector<Placed> best_placed;
+  double best_total = std::numeric_limits<double>::infinity();
+  for (std::size_t fin = 0; fin < std::min(beams.size(), static_cast<std::size_t>(cfg.finalists)); ++fin) {
+  pose = beams[fin].pose, placed = beams[fin].placed;
+  // 2. Coordinate sweeps on the grid: each view against all the others (the first keeps azimuth 0: the gauge).
+  for (int s = 0; s < cfg.sweeps; ++s)
+    for (index_t v = 0; v < A; ++v) {
+      if (v == 0) {
+        OrbitPose keep = pose[0];
+        double best_c = view_cost(act, placed, 0, placed[0], coarse);
+        for (double e : elevations) {
+          OrbitPose p = pose[0];
+          p.elevation = e;
+          const double c = view_cost(act, placed, 0, place(p), coarse);
+          if (c < best_c) best_c = c, keep = p;
+        }
+        pose[0] = keep, placed[0] = place(keep);
+      } else {
+        grid_view(v, false);
+      }
+    }
+  // 3. Local pattern search on all four parameters, steps halving.
+  double step = cfg.refine_step_deg * deg, dstep = cfg.refine_step_distance;
+  for (int r = 0; r < cfg.refine_rounds; ++r, step /= 2, dstep /= 2) {
+    for (int pass = 0; pass < 2; ++pass)
+      for (index_t v = 0; v < A; ++v) {
+        OrbitPose& p = pose[static_cast<std::size_t>(v)];
+        double cur = view_cost(act, placed, v, placed[static_cast<std::size_t>(v)], cfg);
+        for (int k = 0; k < 4; ++k) {
+          if (v == 0 && k == 1) continue;  // the first view's azimuth is the gauge
+          for (const double sign : {1.0, -1.0}) {
+            OrbitPose q = p;
+            double* field = k == 0 ? &q.elevation : k == 1 ? &q.azimuth : k == 2 ? &q.roll : &q.distance;
+            *field = k == 3 ? q.distance * (1 + sign * dstep) : *field + sign * step;
+            if (k == 0 && std::abs(q.elevation) > 88 * deg) continue;
+            const Placed pq = place(q);
+            const double c = view_cost(act, placed, v, pq, cfg);
+            if (c < cur) {
+              cur = c, p = q, placed[static_cast<std::size_t>(v)] = pq;
+              break;
+            }
+          }
+        }
+      }
+  }
+  const double c = total();
+  if (c < best_total) best_total = c, best_pose = pose, best_placed = placed;
+  }
+  pose = best_pose, placed = best_placed;
+  if (cost_out) *cost_out = best_total;
+  // Relative to the first view: E_v E_0^-1.
+  const Placed& p0 = placed[0];
+  const glm::dmat3 R0t = glm::transpose(p0.R);
+  for (index_t i = 1; i < A; ++i) {  // the first view's entries stay exactly [I | 0]
+    const Placed& p = placed[static_cast<std::size_t>(i)];
+    const glm::dmat3 R = p.R * R0t;
+    const glm::dvec3 t = p.t - R * p0.t;
+    T* E = extrinsics + 12 * active[static_cast<std::size_t>(i)];
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) E[4 * r + c] = static_cast<T>(R[c][r]);
+      E[4 * r + 3] = static_cast<T>(t[r]);
+    }
+  }
+}
+
+}  // namespace geometry
+}  // namespace v0
+}  // namespace flexsplat
