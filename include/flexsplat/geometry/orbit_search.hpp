@@ -4,8 +4,8 @@
 // parameters (elevation, azimuth, roll, distance) are searched so that every view's object pixels, unprojected with
 // their depth, land inside every other view's silhouette and not in front of its surface (the visual-hull and
 // free-space constraints, which hold between any two views, however little they overlap), where they meet that
-// surface with the same colour. A coarse grid from the first view, coordinate sweeps over the views, then a local
-// pattern search. No gradient; the first view's camera is the world, as cameras_from_matches.
+// surface with the same colour. A beam search over a grid adding the views one by one, coordinate sweeps over the
+// views, then a local pattern search. No gradient; the first view's camera is the world, as cameras_from_matches.
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -39,7 +39,7 @@ struct OrbitSearchConfig {
   double coarse_tolerance = 3;      // the grid stages' silhouette and depth tolerances, in multiples of the above
   index_t beam_width = 16;           // partial solutions kept while views are added
   index_t finalists = 3;            // best beams refined to the end
-  int sweeps = 2;                   // coordinate sweeps on the grid after the first view's pass
+  int sweeps = 2;                   // coordinate sweeps on the grid after the beam search
   int refine_rounds = 4;            // halvings of the local search's steps
   double refine_step_deg = 5;       // the local search's first angle step
   double refine_step_distance = 0.04;  // its first relative distance step
@@ -287,15 +287,14 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
   for (double e = cfg.elevation_min_deg; e <= cfg.elevation_max_deg + 1e-9; e += cfg.elevation_step_deg) elevations.push_back(e * deg);
   for (double a = 0; a < 360 - 1e-9; a += cfg.azimuth_step_deg) azimuths.push_back(a * deg);
   std::vector<OrbitPose> pose(static_cast<std::size_t>(A));
-  for (index_t v = 0; v < A; ++v) pose[static_cast<std::size_t>(v)].distance = act[static_cast<std::size_t>(v)].distance;
   std::vector<Placed> placed(static_cast<std::size_t>(A));
   auto total = [&] { return total_cost(act, placed, cfg); };
   // The grid's cells are far apart for a cost that is sharp at the solution: the grid stages see the silhouettes and
   // depths with wider tolerances.
   OrbitSearchConfig coarse = cfg;
   coarse.silhouette_px *= cfg.coarse_tolerance, coarse.depth_tolerance *= cfg.coarse_tolerance;
-  // Grid search of view v's elevation and azimuth against the placed views (all others, or only view 0 in `first`).
-  auto grid_view = [&](index_t v, bool first) {
+  // Grid search of view v's elevation and azimuth against all the other placed views.
+  auto grid_view = [&](index_t v) {
     OrbitPose best = pose[static_cast<std::size_t>(v)];
     double best_cost = std::numeric_limits<double>::infinity();
     for (double e : elevations)
@@ -303,11 +302,7 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
         OrbitPose p = pose[static_cast<std::size_t>(v)];
         p.elevation = e, p.azimuth = a, p.roll = 0;
         const Placed q = place(p);
-        double c;
-        if (first)
-          c = pair_cost(act[static_cast<std::size_t>(v)], q, act[0], placed[0], coarse) + pair_cost(act[0], placed[0], act[static_cast<std::size_t>(v)], q, coarse);
-        else
-          c = view_cost(act, placed, v, q, coarse);
+        const double c = view_cost(act, placed, v, q, coarse);
         if (c < best_cost) best_cost = c, best = p;
       }
     pose[static_cast<std::size_t>(v)] = best;
@@ -389,7 +384,7 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
         }
         pose[0] = keep, placed[0] = place(keep);
       } else {
-        grid_view(v, false);
+        grid_view(v);
       }
     }
   // 3. Local pattern search on all four parameters, steps halving.
