@@ -1,11 +1,15 @@
-// Run time against error of geometry::cameras_from_orbit_search given the renderer's silhouettes and depth (the
-// ceiling of the search: what it finds when the model's predictions are exact) on object folders: random input view
-// sets of each count, median and mean relative rotation error, the sets within 15 degrees, seconds per set.
-// Usage: orbit_search [--size 56] [--sets 2] [--seed 7] [--counts 2,3,4,8] OBJECT_DIR...
+// Run time against error of geometry::cameras_from_orbit_search on object folders: random input view sets of each
+// count, median and mean relative rotation error, the sets within 15 degrees, seconds per set. Without --model the
+// inputs are the renderer's silhouettes, depth and intrinsics (the ceiling of the search: what it finds when the
+// model's predictions are exact). With --model the model's own predictions, then each of them swapped for the
+// renderer's in turn (which prediction limits the search), and the predictions' errors.
+// Usage: orbit_search [--size 56] [--sets 2] [--seed 7] [--counts 2,3,4,8] [--model M.safetensors] OBJECT_DIR...
 //   e.g. `build/bench/orbit_search ../shared/data/objects/*`
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
+#include <map>
 #include <numeric>
 #include <random>
 #include <string>
@@ -14,23 +18,80 @@
 #include "flexsplat/data/dataset.hpp"
 #include "flexsplat/geometry/orbit_search.hpp"
 #include "flexsplat/image/image_io.hpp"
+#include "flexsplat/image/layout.hpp"
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/model/evaluate.hpp"
 #include "flexsplat/model/frames.hpp"
+#include "flexsplat/model/predict.hpp"
+#include "flexsplat/model/weights.hpp"
 
 using namespace flexsplat;
+
+namespace {
+
+struct Maps {
+  std::vector<float> foreground, depth, K;  // [n, size, size], [n, size, size], [n, 3, 3] (VGGT integer-pixel)
+};
+
+// The renderer's maps at size x size: nearest source pixel of each view pixel's centre (the views are square).
+Maps renderer_maps(const data::ObjectRecord& rec, const std::vector<int>& in, const model::PosedViews& pv, int size) {
+  const int n = static_cast<int>(in.size());
+  const std::size_t px = static_cast<std::size_t>(size) * static_cast<std::size_t>(size);
+  Maps m;
+  m.depth.resize(static_cast<std::size_t>(n) * px), m.foreground.resize(m.depth.size()), m.K.resize(9 * static_cast<std::size_t>(n));
+  for (int v = 0; v < n; ++v) {
+    const Tensor<double, 2> d = image::read_depth_png<double>(rec.frames[static_cast<std::size_t>(in[static_cast<std::size_t>(v)])].depth, rec.depth_scale);
+    const index_t H = d.shape(0), W = d.shape(1);
+    for (int y = 0; y < size; ++y)
+      for (int x = 0; x < size; ++x) {
+        const index_t sy = std::min<index_t>(H - 1, static_cast<index_t>((y + 0.5) * static_cast<double>(H) / size));
+        const index_t sx = std::min<index_t>(W - 1, static_cast<index_t>((x + 0.5) * static_cast<double>(W) / size));
+        m.depth[static_cast<std::size_t>(v) * px + static_cast<std::size_t>(y * size + x)] = static_cast<float>(d(sy, sx));
+      }
+  }
+  for (std::size_t i = 0; i < m.foreground.size(); ++i) m.foreground[i] = m.depth[i] > 0 && pv.photos.alpha[i] > 0.5f ? 1.f : 0.f;
+  model::intrinsics_to_vggt(m.K.data(), pv.photos.K.data(), n);
+  return m;
+}
+
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]);
+}
+
+// Per view, the median ratio of b to a over the true object pixels (the view's scale).
+std::vector<double> view_scales(const std::vector<float>& a, const std::vector<float>& b, const std::vector<float>& fg,
+                                int n, std::size_t px) {
+  std::vector<double> s(static_cast<std::size_t>(n), 1.0);
+  for (int v = 0; v < n; ++v) {
+    std::vector<double> r;
+    for (std::size_t i = v * px; i < (v + 1) * px; ++i)
+      if (fg[i] > 0.5f) r.push_back(static_cast<double>(b[i]) / static_cast<double>(a[i]));
+    if (!r.empty()) s[static_cast<std::size_t>(v)] = median(r);
+  }
+  return s;
+}
+
+struct Errors {
+  std::vector<double> rotation;
+  double seconds = 0;
+};
+
+}  // namespace
 
 int main(int argc, char** argv) try {
   int size = 56, sets = 2;
   unsigned seed = 7;
   std::vector<int> counts{2, 3, 4, 8};
   std::vector<std::string> dirs;
+  std::string model_path;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     const bool more = i + 1 < argc;
     if (a == "--size" && more) size = std::stoi(argv[++i]);
     else if (a == "--sets" && more) sets = std::stoi(argv[++i]);
     else if (a == "--seed" && more) seed = static_cast<unsigned>(std::stoul(argv[++i]));
+    else if (a == "--model" && more) model_path = argv[++i];
     else if (a == "--counts" && more) {
       counts.clear();
       std::string s = argv[++i];
@@ -41,14 +102,31 @@ int main(int argc, char** argv) try {
       }
     } else dirs.push_back(a);
   }
-  require(!dirs.empty() && size >= 8 && sets >= 1, "usage: orbit_search [--size N] [--sets N] [--seed N] [--counts 2,3,4,8] OBJECT_DIR...");
+  require(!dirs.empty() && size >= 8 && sets >= 1,
+          "usage: orbit_search [--size N] [--sets N] [--seed N] [--counts 2,3,4,8] [--model M.safetensors] OBJECT_DIR...");
+  std::unique_ptr<model::FlexSplatWeights<float>> w;
+  if (!model_path.empty()) {
+    w = model::load_flexsplat<float>(model_path);
+    require(w->config().geometry.match_dim > 0, "orbit_search: model '", model_path,
+            "' has no match head (the search needs its object probability)");
+    require(w->config().image_h == w->config().image_w, "orbit_search: the model's views are not square");
+    size = static_cast<int>(w->config().image_h);
+  }
   std::vector<data::ObjectRecord> objects;
   for (const auto& d : dirs) objects.push_back(data::load_object(d));
+  // Input sources: which maps come from the renderer (r) and which from the model (m): silhouettes, depth, intrinsics.
+  const std::vector<std::pair<std::string, std::string>> sources =
+      w ? std::vector<std::pair<std::string, std::string>>{{"model", "mmm"}, {"model, true silhouettes", "rmm"},
+                                                            {"model, true depth", "mrm"}, {"model, true intrinsics", "mmr"},
+                                                            {"renderer", "rrr"}}
+        : std::vector<std::pair<std::string, std::string>>{{"renderer", "rrr"}};
   std::mt19937 rng(seed);
-  std::printf("| views | sets | median error | mean error | within 15° | seconds per set |\n|---|---|---|---|---|---|\n");
+  std::printf("| views | inputs | sets | median error | mean error | within 15° | seconds per set |\n|---|---|---|---|---|---|---|\n");
+  std::vector<std::string> quality;
   for (const int n : counts) {
-    std::vector<double> errors;
-    double seconds = 0;
+    std::map<std::string, Errors> errors;
+    double iou = 0, shape = 0, flat = 0, focal = 0;
+    int measured = 0;
     for (const auto& rec : objects) {
       const int frames = static_cast<int>(rec.frames.size());
       require(n >= 2 && n <= frames, "orbit_search: ", n, " views asked of ", rec.dir.string(), " (", frames, " frames)");
@@ -57,41 +135,89 @@ int main(int argc, char** argv) try {
         std::iota(all.begin(), all.end(), 0);
         std::shuffle(all.begin(), all.end(), rng);
         const std::vector<int> in(all.begin(), all.begin() + n);
-        model::PosedViews pv = model::posed_views(rec, in, size, size);
+        const model::PosedViews pv = model::posed_views(rec, in, size, size);
         const std::size_t px = static_cast<std::size_t>(size) * static_cast<std::size_t>(size);
-        std::vector<float> depth(static_cast<std::size_t>(n) * px), K(9 * static_cast<std::size_t>(n)), fg(depth.size());
-        for (int v = 0; v < n; ++v) {  // nearest source pixel of each view pixel's centre (the views are square)
-          const Tensor<double, 2> d = image::read_depth_png<double>(rec.frames[static_cast<std::size_t>(in[static_cast<std::size_t>(v)])].depth, rec.depth_scale);
-          const index_t H = d.shape(0), W = d.shape(1);
-          for (int y = 0; y < size; ++y)
-            for (int x = 0; x < size; ++x) {
-              const index_t sy = std::min<index_t>(H - 1, static_cast<index_t>((y + 0.5) * static_cast<double>(H) / size));
-              const index_t sx = std::min<index_t>(W - 1, static_cast<index_t>((x + 0.5) * static_cast<double>(W) / size));
-              depth[static_cast<std::size_t>(v) * px + static_cast<std::size_t>(y * size + x)] = static_cast<float>(d(sy, sx));
+        const Maps truth = renderer_maps(rec, in, pv, size);
+        // The search takes [n, 3, size, size]; the photos are [n, size, size, 3].
+        std::vector<float> images(static_cast<std::size_t>(n) * 3 * px);
+        for (std::size_t v = 0; v < static_cast<std::size_t>(n); ++v)
+          image::hwc_to_chw(images.data() + v * 3 * px, pv.photos.images.data() + v * 3 * px, size, size);
+        Maps pred;
+        std::vector<double> sp;     // each view's predicted depth scale to the renderer's
+        std::vector<float> filled;  // the renderer's depth where it has one, else the prediction's (scaled to it)
+        if (w) {
+          std::vector<Tensor<float, 3>> rgba;
+          for (int v : in) rgba.push_back(image::read_float<float>(rec.frames[static_cast<std::size_t>(v)].image, 4));
+          const Tensor<float, 4> x = model::model_input<float>(rgba, w->config());
+          images.assign(x.data(), x.data() + x.size());
+          model::PredictWorkspace<float> ws;
+          model::predict<float>(ws, *w, TensorView<const float, 4>(x.view()));
+          const auto& o = ws.geometry.outputs;
+          pred.foreground.assign(o.foreground.data(), o.foreground.data() + o.foreground.size());
+          pred.depth.assign(o.depth.data(), o.depth.data() + o.depth.size());
+          pred.K.assign(o.intrinsics.data(), o.intrinsics.data() + o.intrinsics.size());
+          // The predictions' errors: silhouette IoU, depth after each view's median scale (its shape), the same for a
+          // constant depth per view (no shape at all), focal length.
+          sp = view_scales(pred.depth, truth.depth, truth.foreground, n, px);
+          for (int v = 0; v < n; ++v) {
+            double inter = 0, uni = 0, e = 0, ef = 0, cnt = 0;
+            std::vector<double> gd;
+            for (std::size_t i = v * px; i < (v + 1) * px; ++i) {
+              const bool p = pred.foreground[i] >= 0.5f, g = truth.foreground[i] > 0.5f;
+              inter += p && g, uni += p || g;
+              if (g) gd.push_back(truth.depth[i]);
             }
+            const double mid = median(gd);
+            for (std::size_t i = v * px; i < (v + 1) * px; ++i)
+              if (truth.foreground[i] > 0.5f) {
+                const double g = truth.depth[i];
+                e += std::abs(sp[static_cast<std::size_t>(v)] * pred.depth[i] - g) / g, ef += std::abs(mid - g) / g, ++cnt;
+              }
+            iou += uni > 0 ? inter / uni : 1, shape += e / cnt, flat += ef / cnt;
+            focal += std::abs(pred.K[9 * static_cast<std::size_t>(v)] / truth.K[9 * static_cast<std::size_t>(v)] - 1);
+            ++measured;
+          }
+          // Renderer depth next to predicted silhouettes, whose pixels may have no true depth.
+          filled = truth.depth;
+          for (int v = 0; v < n; ++v)
+            for (std::size_t i = v * px; i < (v + 1) * px; ++i)
+              if (!(truth.foreground[i] > 0.5f)) filled[i] = static_cast<float>(sp[static_cast<std::size_t>(v)] * pred.depth[i]);
         }
-        for (std::size_t i = 0; i < fg.size(); ++i) fg[i] = depth[i] > 0 && pv.photos.alpha[i] > 0.5f ? 1.f : 0.f;
-        model::intrinsics_to_vggt(K.data(), pv.photos.K.data(), n);
-        std::vector<float> E(12 * static_cast<std::size_t>(n));
-        const auto t0 = std::chrono::steady_clock::now();
-        geometry::cameras_from_orbit_search<float>(E.data(), pv.photos.images.data(), fg.data(), depth.data(), K.data(), n,
-                                                   size, size);
-        seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-        const std::vector<double> pred(E.begin(), E.end()), gt(pv.w2c.begin(), pv.w2c.end());
-        double e = 0;
-        for (int v = 1; v < n; ++v) e += model::relative_rotation_error_deg(pred.data(), pred.data() + 12 * v, gt.data(), gt.data() + 12 * v);
-        errors.push_back(e / (n - 1));
+        for (const auto& [name, from] : sources) {
+          auto pick = [&](int k) -> const Maps& { return from[static_cast<std::size_t>(k)] == 'r' ? truth : pred; };
+          std::vector<float> E(12 * static_cast<std::size_t>(n));
+          const auto t0 = std::chrono::steady_clock::now();
+          const float* depth = from == "mrm" ? filled.data() : pick(1).depth.data();
+          geometry::cameras_from_orbit_search<float>(E.data(), images.data(), pick(0).foreground.data(), depth,
+                                                     pick(2).K.data(), n, size, size);
+          errors[name].seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+          const std::vector<double> p(E.begin(), E.end()), gt(pv.w2c.begin(), pv.w2c.end());
+          double e = 0;
+          for (int v = 1; v < n; ++v) e += model::relative_rotation_error_deg(p.data(), p.data() + 12 * v, gt.data(), gt.data() + 12 * v);
+          errors[name].rotation.push_back(e / (n - 1));
+        }
       }
     }
-    std::vector<double> sorted = errors;
-    std::sort(sorted.begin(), sorted.end());
-    const double median = sorted.size() % 2 ? sorted[sorted.size() / 2]
-                                             : 0.5 * (sorted[sorted.size() / 2 - 1] + sorted[sorted.size() / 2]);
-    const double mean = std::accumulate(sorted.begin(), sorted.end(), 0.0) / static_cast<double>(sorted.size());
-    const auto within = std::count_if(errors.begin(), errors.end(), [](double e) { return e <= 15; });
-    std::printf("| %d | %zu | %.1f° | %.1f° | %lld / %zu | %.2f |\n", n, errors.size(), median, mean,
-                static_cast<long long>(within), errors.size(), seconds / static_cast<double>(errors.size()));
+    for (const auto& [name, from] : sources) {
+      const Errors& e = errors[name];
+      const double mean = std::accumulate(e.rotation.begin(), e.rotation.end(), 0.0) / static_cast<double>(e.rotation.size());
+      const auto within = std::count_if(e.rotation.begin(), e.rotation.end(), [](double x) { return x <= 15; });
+      std::printf("| %d | %s | %zu | %.1f° | %.1f° | %lld / %zu | %.2f |\n", n, name.c_str(), e.rotation.size(),
+                  median(e.rotation), mean, static_cast<long long>(within), e.rotation.size(),
+                  e.seconds / static_cast<double>(e.rotation.size()));
+    }
     std::fflush(stdout);
+    if (measured > 0) {
+      char line[256];
+      std::snprintf(line, sizeof line, "| %d | %.3f | %.3f | %.3f | %.3f |", n, iou / measured, shape / measured,
+                    flat / measured, focal / measured);
+      quality.push_back(line);
+    }
+  }
+  if (!quality.empty()) {
+    std::printf("\n| views | silhouette IoU | depth error (each view scaled) | same for a constant depth | focal error |\n"
+                "|---|---|---|---|---|\n");
+    for (const auto& l : quality) std::printf("%s\n", l.c_str());
   }
   return 0;
 } catch (const std::exception& e) {

@@ -132,7 +132,7 @@ const RegisterCommand registered_cmd_curves(
                "  matches_rotation_deg, matches_rra30, match_accuracy, match_accuracy_4px, match_accuracy_0_30 (_30_60,\n"
                "  _60_90, _90_180: by the pair's true baseline), pairs_gt_depth_rra15_0_30 (likewise: view pairs whose own\n"
                "  fit with the renderer's depth is within 15 deg), matches_gt_depth_rotation_deg,\n"
-               "  matches_oracle_rotation_deg, matches_oracle_rra15, psnr, ssim, depth_rel);\n"
+               "  matches_oracle_rotation_deg, matches_oracle_rra15, psnr, ssim, depth_rel, depth_shape_rel);\n"
                "  sets default to the first run's",
                curves});
 

@@ -100,6 +100,48 @@ TEST_CASE("depth loss: gradient check for depth and confidence with a mask", "[l
   CHECK(r.ok());
 }
 
+TEST_CASE("depth shape loss: by hand, blind to each view's scale, zero below min_valid_pixels", "[loss][depth]") {
+  // Two 1x3 images. Image 0: log ratios log 2, 0, 0 -> mean log(2)/3, mean |r - mean| = 4 log(2) / 9.
+  // Image 1: pred = 3 gt everywhere -> 0 (a pure scale).
+  const std::vector<double> gt{1, 2, 3, 1, 2, 3}, pred{2, 2, 3, 3, 6, 9};
+  const double l0 = 4 * std::log(2.0) / 9;
+  CHECK(loss::depth_shape_loss_forward(pred.data(), gt.data(), nullptr, 2, 1, 3, 1) == Approx(l0 / 2).epsilon(1e-14));
+  // Scaling each view by its own factor changes nothing.
+  std::vector<double> scaled = pred;
+  for (int i = 0; i < 3; ++i) scaled[i] *= 0.25, scaled[3 + i] *= 7;
+  CHECK(loss::depth_shape_loss_forward(scaled.data(), gt.data(), nullptr, 2, 1, 3, 1) == Approx(l0 / 2).epsilon(1e-13));
+  // A masked pixel is left out; an image with fewer valid pixels than asked is left out of the mean.
+  const std::uint8_t mask[6] = {0, 1, 1, 1, 1, 1};
+  CHECK(loss::depth_shape_loss_forward(pred.data(), gt.data(), mask, 2, 1, 3, 4) == 0.0);
+  CHECK(loss::depth_shape_loss_forward(pred.data(), gt.data(), mask, 2, 1, 3, 3) == Approx(0.0).margin(1e-15));
+  CHECK(loss::depth_shape_loss_forward(pred.data(), gt.data(), mask, 2, 1, 3, 2) == Approx(0.0).margin(1e-15));
+  CHECK(loss::depth_shape_loss_forward(pred.data(), gt.data(), nullptr, 2, 1, 3, 100) == 0.0);
+  std::vector<double> bad = pred;
+  bad[4] = 0;
+  CHECK_THROWS_WITH(loss::depth_shape_loss_forward(bad.data(), gt.data(), nullptr, 2, 1, 3, 1), Catch::Contains("pixel 4"));
+}
+
+TEST_CASE("depth shape loss: gradient check with a mask", "[loss][depth][gradcheck]") {
+  const index_t n = 3, h = 6, w = 7, total = n * h * w;
+  auto pred = uniform(total, 11, 1, 3), gt = uniform(total, 12, 1, 3);
+  std::vector<std::uint8_t> mask(total, 1);
+  for (index_t i = 0; i < total; i += 4) mask[i] = 0;
+  for (index_t i = 2 * h * w; i < total; ++i) mask[i] = i % 9 == 0;  // image 2: too few valid pixels, left out
+  std::vector<double> dp(total);
+  const auto r = testing::check_gradients(
+      {{"depth", pred, dp}}, 1,
+      [&](std::span<double> out) { out[0] = loss::depth_shape_loss_forward(pred.data(), gt.data(), mask.data(), n, h, w, 10); },
+      [&](std::span<const double> d) {
+        loss::depth_shape_loss_backward(dp.data(), d[0], pred.data(), gt.data(), mask.data(), n, h, w, 10);
+      });
+  INFO(r.summary());
+  CHECK(r.ok());
+  std::vector<double> fresh(total, 0.0);
+  loss::depth_shape_loss_backward(fresh.data(), 1.0, pred.data(), gt.data(), mask.data(), n, h, w, 10);
+  for (index_t i = 2 * h * w; i < total; ++i) CHECK(fresh[static_cast<std::size_t>(i)] == 0.0);
+  CHECK(std::any_of(fresh.begin(), fresh.begin() + 2 * h * w, [](double g) { return g != 0.0; }));
+}
+
 TEST_CASE("point loss: Euclidean conf and reg terms and the background term by hand", "[loss][points]") {
   // Two valid pixels with errors (3, 4, 0) -> 5 and (0, 0, 0) -> 0, confidence 2 and 3; one background pixel at 1.5.
   const std::vector<double> pred{4, 4, 1, 1, 2, 3, 9, 9, 9}, gt{1, 0, 1, 1, 2, 3, 0, 0, 0}, conf{2, 3, 1.5};

@@ -59,6 +59,7 @@ TEST_CASE("the whole model passes the float64 gradient check from the losses to 
   model::StepConfig sc;
   sc.camera_weight = 0.5;
   sc.depth_weight = 0.2;
+  sc.depth_shape_weight = 0.3;
   // The rendered-depth term's weight U is the depth head's confidence held constant by design, so finite differences
   // (which see U move) cannot check it here; test_objective checks that term with the geometry outputs fixed.
   sc.objective.depth = 0;
@@ -77,7 +78,9 @@ TEST_CASE("the whole model passes the float64 gradient check from the losses to 
   for (const auto& t : store.tensors()) params.push_back({t.name, store.param(t), store.grad(t), zero_reason(t.name)});
   // The probes run forward only (scene_loss), which must report scene_gradient's loss to the bit.
   std::fill(scratch.begin(), scratch.end(), 0.0);
-  const double full = model::scene_gradient(ws, *w, scratch.data(), e, sc).loss;
+  const model::StepReport report = model::scene_gradient(ws, *w, scratch.data(), e, sc);
+  REQUIRE(report.depth_shape > 0);  // the depth shape term is in the checked loss
+  const double full = report.loss;
   const double forward = model::scene_loss(ws, *w, e, sc).loss;
   INFO("scene_gradient loss " << full << ", scene_loss " << forward);
   REQUIRE(forward == full);

@@ -228,6 +228,76 @@ void depth_loss_backward(T* d_pred, T* d_conf, double d_total, const T* pred, co
   }
 }
 
+// Depth shape loss: the per-view relative shape of the depth map, blind to each view's scale (which the view's
+// distance absorbs when cameras are solved from depth: geometry/orbit_search.hpp). Per image with at least
+// min_valid_pixels valid pixels, r = log d - log d_gt, L = mean |r - mean r| over its valid pixels; total = mean of L
+// over those images (0 without one). The absolute depth loss's L1 gradient is sign(d - d_gt): while a view's scale is
+// off, every pixel has the same sign and the shape gets no signal from it; this term's gradient is the shape's alone.
+template <class T>
+double depth_shape_loss_forward(const T* pred, const T* gt, const std::uint8_t* mask, index_t images, index_t h,
+                                index_t w, index_t min_valid_pixels = 100) {
+  require(pred && gt && images >= 1 && h >= 1 && w >= 1, "depth shape loss: null or empty maps");
+  const index_t px = h * w;
+  double total = 0;
+  index_t counted = 0;
+  std::vector<double> r;
+  for (index_t n = 0; n < images; ++n) {
+    r.clear();
+    for (index_t i = n * px; i < (n + 1) * px; ++i) {
+      if (mask && !mask[i]) continue;
+      const double p = static_cast<double>(pred[i]), g = static_cast<double>(gt[i]);
+      if (!(std::isfinite(p) && std::isfinite(g) && p > 0 && g > 0))
+        fail("depth shape loss: pixel ", i, ": depth ", p, ", ground truth ", g, " (finite positive values needed)");
+      r.push_back(std::log(p) - std::log(g));
+    }
+    if (static_cast<index_t>(r.size()) < std::max<index_t>(min_valid_pixels, 1)) continue;
+    double mean = 0;
+    for (const double x : r) mean += x;
+    mean /= static_cast<double>(r.size());
+    double l = 0;
+    for (const double x : r) l += std::abs(x - mean);
+    total += l / static_cast<double>(r.size());
+    ++counted;
+  }
+  return counted > 0 ? total / static_cast<double>(counted) : 0.0;
+}
+
+// Adds d_total * d(total)/d(pred) into d_pred.
+template <class T>
+void depth_shape_loss_backward(T* d_pred, double d_total, const T* pred, const T* gt, const std::uint8_t* mask,
+                               index_t images, index_t h, index_t w, index_t min_valid_pixels = 100) {
+  const index_t px = h * w, least = std::max<index_t>(min_valid_pixels, 1);
+  auto valid = [&](index_t n) {
+    index_t m = 0;
+    for (index_t i = n * px; i < (n + 1) * px; ++i) m += !mask || mask[i];
+    return m;
+  };
+  index_t counted = 0;
+  for (index_t n = 0; n < images; ++n) counted += valid(n) >= least;
+  if (counted == 0) return;
+  const double per_image = d_total / static_cast<double>(counted);
+  std::vector<double> r;
+  for (index_t n = 0; n < images; ++n) {
+    if (valid(n) < least) continue;
+    r.clear();
+    for (index_t i = n * px; i < (n + 1) * px; ++i)
+      if (!mask || mask[i]) r.push_back(std::log(static_cast<double>(pred[i])) - std::log(static_cast<double>(gt[i])));
+    const double m = static_cast<double>(r.size());
+    double mean = 0, mean_sign = 0;
+    for (const double x : r) mean += x;
+    mean /= m;
+    for (const double x : r) mean_sign += (x > mean) - (x < mean);
+    mean_sign /= m;
+    // dL/dr_i = (sign(r_i - mean) - mean_j sign(r_j - mean)) / m, dr_i/dd_i = 1 / d_i.
+    std::size_t j = 0;
+    for (index_t i = n * px; i < (n + 1) * px; ++i) {
+      if (mask && !mask[i]) continue;
+      const double x = r[j++], sg = (x > mean) - (x < mean);
+      d_pred[i] += static_cast<T>(per_image * (sg - mean_sign) / m / static_cast<double>(pred[i]));
+    }
+  }
+}
+
 // Point-map loss (VGGT's regression loss on its point head): per valid pixel e = |pred - gt| (Euclidean, 3-vectors),
 // conf = mean(gamma e c - alpha log c), reg = mean e; VGGT's normal-based gradient term is not reproduced. background:
 // weight of mean(c - 1) over the invalid pixels, which drives their confidence to its floor of 1 so that a camera

@@ -120,6 +120,7 @@ struct StepConfig {
   bool train_geometry = true;        // off: geometry frozen (no geometry backward)
   double camera_weight = 0.0;        // VGGT's supervised camera loss on the pose encodings
   double depth_weight = 0.0;         // VGGT's supervised depth loss
+  double depth_shape_weight = 0.0;   // the per-view scale-blind depth shape loss (loss::depth_shape_loss_forward)
   double point_weight = 0.0;         // VGGT's point-map loss (needs the point head)
   double match_weight = 0.0;         // the match head's correspondence and object-mask losses (needs the match head)
   // The correspondence loss again on descriptors averaged over cells of match_coarse_cell pixels (0: the trunk's
@@ -138,7 +139,7 @@ struct StepConfig {
 };
 
 struct StepReport {
-  double loss = 0, camera = 0, depth = 0, points = 0, match = 0, rgb_head = 0, render = 0, render_depth = 0, lpips = 0, psnr = 0;
+  double loss = 0, camera = 0, depth = 0, depth_shape = 0, points = 0, match = 0, rgb_head = 0, render = 0, render_depth = 0, lpips = 0, psnr = 0;
   double grad_norm = 0;
   index_t scenes = 0;
 };
@@ -188,7 +189,7 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
       loss::camera_loss_backward(d_stages, sc.camera_weight, stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss);
   }
   // Pixels with ground-truth depth: where the depth and point losses compare.
-  if (sc.depth_weight > 0 || sc.point_weight > 0) {
+  if (sc.depth_weight > 0 || sc.depth_shape_weight > 0 || sc.point_weight > 0) {
     ws.depth_mask.resize(static_cast<std::size_t>(V * px));
     for (index_t i = 0; i < V * px; ++i) ws.depth_mask[static_cast<std::size_t>(i)] = e.gt_depth[static_cast<std::size_t>(i)] > T(0);
   }
@@ -199,6 +200,14 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
       loss::depth_loss_backward(ws.d_geometry.depth.data(), ws.d_geometry.confidence.data(), sc.depth_weight,
                                 g.depth.data(), g.confidence.data(), e.gt_depth.data(), ws.depth_mask.data(), V, e.h,
                                 e.w, sc.depth_loss);
+  }
+  if (sc.depth_shape_weight > 0) {
+    const index_t least = sc.depth_loss.min_valid_pixels;
+    r.depth_shape = sc.depth_shape_weight * loss::depth_shape_loss_forward(g.depth.data(), e.gt_depth.data(),
+                                                                           ws.depth_mask.data(), V, e.h, e.w, least);
+    if (backward)
+      loss::depth_shape_loss_backward(ws.d_geometry.depth.data(), sc.depth_shape_weight, g.depth.data(),
+                                      e.gt_depth.data(), ws.depth_mask.data(), V, e.h, e.w, least);
   }
   if (sc.point_weight > 0) {
     require(c.geometry.point_head, "training: point_weight ", sc.point_weight, " needs a model with the point head");
@@ -298,7 +307,7 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
                             match ? ws.d_descriptors.data() : nullptr, match ? ws.d_foreground.data() : nullptr);
     clock.lap(&PhaseTimes::geometry_backward);
   }
-  r.loss = r.camera + r.depth + r.points + r.match + r.rgb_head + r.render + r.render_depth + r.lpips;
+  r.loss = r.camera + r.depth + r.depth_shape + r.points + r.match + r.rgb_head + r.render + r.render_depth + r.lpips;
   r.scenes = 1;
   return r;
 }
@@ -342,7 +351,7 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   const bool direct = comm.size() == 1 && local.size() == 1;
   ws.scene_grads.resize(direct ? 0 : local.size());
   if (direct) store.zero_grads();
-  constexpr std::size_t fields = 11;
+  constexpr std::size_t fields = 12;
   std::vector<double> values(local.size() * fields);
   for (std::size_t s = 0; s < local.size(); ++s) {
     T* g = direct ? store.grads() : nullptr;
@@ -351,7 +360,7 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
       g = ws.scene_grads[s].data();
     }
     const StepReport r = scene_gradient(ws.scene, w, g, local[s], sc, lpips, times);
-    const double v[fields] = {r.loss, r.camera, r.depth, r.rgb_head, r.render, r.render_depth, r.lpips, r.psnr, r.points, r.match, 1.0};
+    const double v[fields] = {r.loss, r.camera, r.depth, r.rgb_head, r.render, r.render_depth, r.lpips, r.psnr, r.points, r.match, r.depth_shape, 1.0};
     std::copy(v, v + fields, values.begin() + static_cast<std::ptrdiff_t>(fields * s));
   }
   PhaseClock clock(times);
@@ -362,7 +371,7 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   for (std::size_t s = 0; s < local.size(); ++s) vptrs.push_back(values.data() + fields * s);
   double totals[fields];
   train::ordered_sum<double>(comm, totals, fields, vptrs);
-  require(static_cast<index_t>(totals[10]) == global_batch, "train_step: the ranks hold ", totals[10],
+  require(static_cast<index_t>(totals[11]) == global_batch, "train_step: the ranks hold ", totals[11],
           " scenes, the global batch is ", global_batch);
   const T inv = static_cast<T>(1.0 / static_cast<double>(global_batch));
   T* grads = store.grads();
@@ -371,7 +380,7 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   const double ib = 1.0 / static_cast<double>(global_batch);
   r.loss = totals[0] * ib, r.camera = totals[1] * ib, r.depth = totals[2] * ib, r.rgb_head = totals[3] * ib;
   r.render = totals[4] * ib, r.render_depth = totals[5] * ib, r.lpips = totals[6] * ib, r.psnr = totals[7] * ib;
-  r.points = totals[8] * ib, r.match = totals[9] * ib;
+  r.points = totals[8] * ib, r.match = totals[9] * ib, r.depth_shape = totals[10] * ib;
   r.scenes = global_batch;
   r.grad_norm = sc.max_grad_norm > 0 ? train::clip_grad_norm(store, sc.max_grad_norm) : train::grad_norm(store);
   train::adamw_step(store, sc.adamw, lr, step + 1);

@@ -143,14 +143,14 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
   std::vector<image::GridCell> cells;
   const int inputs_shown = 4, targets_shown = 2, cols = inputs_shown + 2 * targets_shown;
   for (const auto& set : sets) {
-    double psnr = 0, ssim = 0, rot = 0, depth = 0, rra15 = 0, rra30 = 0, prot = 0, prra15 = 0, prra30 = 0, chance = 0, mrot = 0,
+    double psnr = 0, ssim = 0, rot = 0, depth = 0, depth_shape = 0, rra15 = 0, rra30 = 0, prot = 0, prra15 = 0, prra30 = 0, chance = 0, mrot = 0,
            mrra15 = 0, mrra30 = 0, macc = 0, mgt = 0, morc = 0, morc15 = 0, macc4 = 0;
     std::array<double, 4> bin_hits{}, bin_count{}, bin_pairs{}, bin_pairs15{};
     for (std::size_t i = 0; i < set.scenes.size(); ++i) {
       const auto& e = set.scenes[i];
       std::vector<Tensor<float, 3>> renders;
       const ValidationScore s = validate_scene(ws, w, e, &renders);
-      psnr += s.psnr, ssim += s.ssim, rot += s.rotation_deg, depth += s.depth_rel, rra15 += s.rra15, rra30 += s.rra30;
+      psnr += s.psnr, ssim += s.ssim, rot += s.rotation_deg, depth += s.depth_rel, depth_shape += s.depth_shape_rel, rra15 += s.rra15, rra30 += s.rra30;
       prot += s.points_rotation_deg, prra15 += s.points_rra15, prra30 += s.points_rra30, chance += s.chance_rotation_deg;
       mrot += s.matches_rotation_deg, mrra15 += s.matches_rra15, mrra30 += s.matches_rra30;
       macc += s.match_accuracy, mgt += s.matches_gt_depth_rotation_deg;
@@ -175,6 +175,7 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
     }
     const double n = static_cast<double>(std::max<std::size_t>(set.scenes.size(), 1));
     result[set.name] = {{"psnr", psnr / n}, {"ssim", ssim / n}, {"rotation_deg", rot / n}, {"depth_rel", depth / n},
+                        {"depth_shape_rel", depth_shape / n},
                         {"rra15", rra15 / n}, {"rra30", rra30 / n}, {"chance_rotation_deg", chance / n}};
     if (w.config().geometry.point_head)
       result[set.name].update({{"points_rotation_deg", prot / n}, {"points_rra15", prra15 / n}, {"points_rra30", prra30 / n}});
@@ -225,7 +226,7 @@ inline void write_training_curves(const std::filesystem::path& log_path, const s
       continue;
     }
     add(loss, "total", step, j.value("loss", 0.0));
-    for (const char* k : {"render", "camera", "depth", "points", "match", "rgb_head"})
+    for (const char* k : {"render", "camera", "depth", "depth_shape", "points", "match", "rgb_head"})
       if (j.value(k, 0.0) > 0) add(loss, k, step, j.value(k, 0.0));
     if (j.value("psnr", 0.0) > 0) add(psnr, "train", step, j.value("psnr", 0.0));
   }
@@ -383,7 +384,7 @@ inline TrainerResult run_training(const nlohmann::json& recipe, const TrainData&
                          std::max(now - last_log_time, 1e-9);
     if (done % cfg.log_every == 0 || done == stop_at) {
       const json line = {{"step", done}, {"stage", stage.name}, {"lr", at.lr}, {"loss", r.loss}, {"camera", r.camera},
-                         {"depth", r.depth}, {"points", r.points}, {"match", r.match}, {"rgb_head", r.rgb_head}, {"render", r.render},
+                         {"depth", r.depth}, {"depth_shape", r.depth_shape}, {"points", r.points}, {"match", r.match}, {"rgb_head", r.rgb_head}, {"render", r.render},
                          {"render_depth", r.render_depth}, {"lpips", r.lpips}, {"psnr", r.psnr},
                          {"grad_norm", r.grad_norm}, {"seconds", now}, {"scenes_per_s", speed},
                          {"cpu_seconds", cpu_offset + static_cast<double>(std::clock()) / CLOCKS_PER_SEC}};

@@ -58,6 +58,9 @@ struct ValidationScore {
   double matches_oracle_rotation_deg = 0, matches_oracle_rra15 = 0;
   double chance_rotation_deg = 0;  // rotation_deg of a constant guess (every camera the first one's orientation)
   double depth_rel = 0;         // mean |predicted - ground-truth depth| / ground-truth depth on object pixels
+  // The same after each view's depth is scaled by its median ratio to the ground truth: the shape alone (what
+  // geometry/orbit_search.hpp needs; a view's scale is absorbed by its distance), mean over views with object pixels.
+  double depth_shape_rel = 0;
   index_t targets = 0, views = 0;
 };
 
@@ -181,6 +184,25 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
       ++n;
     }
   s.depth_rel = n > 0 ? err / static_cast<double>(n) : 0.0;
+  index_t shaped = 0;
+  std::vector<double> ratio;
+  for (index_t v = 0; v < V; ++v) {
+    ratio.clear();
+    for (index_t i = v * px; i < (v + 1) * px; ++i)
+      if (e.gt_depth[static_cast<std::size_t>(i)] > T(0))
+        ratio.push_back(static_cast<double>(e.gt_depth[static_cast<std::size_t>(i)]) / static_cast<double>(p.geometry.depth[static_cast<std::size_t>(i)]));
+    if (ratio.empty()) continue;
+    std::nth_element(ratio.begin(), ratio.begin() + static_cast<std::ptrdiff_t>(ratio.size() / 2), ratio.end());
+    const double scale = ratio[ratio.size() / 2];
+    double view_err = 0;
+    for (index_t i = v * px; i < (v + 1) * px; ++i) {
+      const double g = static_cast<double>(e.gt_depth[static_cast<std::size_t>(i)]);
+      if (g > 0) view_err += std::abs(scale * static_cast<double>(p.geometry.depth[static_cast<std::size_t>(i)]) - g) / g;
+    }
+    s.depth_shape_rel += view_err / static_cast<double>(ratio.size());
+    ++shaped;
+  }
+  if (shaped > 0) s.depth_shape_rel /= static_cast<double>(shaped);
   return s;
 }
 
