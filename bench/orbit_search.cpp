@@ -3,8 +3,11 @@
 // inputs are the renderer's silhouettes, depth and intrinsics (the ceiling of the search: what it finds when the
 // model's predictions are exact). With --model the model's own predictions, then each of them swapped for the
 // renderer's in turn (which prediction limits the search), and the predictions' errors.
-// Usage: orbit_search [--size 56] [--sets 2] [--seed 7] [--counts 2,3,4,8] [--model M.safetensors] OBJECT_DIR...
+// Usage: orbit_search [--size 56] [--sets 2] [--seed 7] [--counts 2,3,4,8] [--model M.safetensors]
+//                     [--inputs mmm,rrr,...] [--depth-tolerance 0.03] [--silhouette-px 2] [--colour-weight 0.5] OBJECT_DIR...
 //   e.g. `build/bench/orbit_search ../shared/data/objects/*`
+// --inputs keeps only those input codes (silhouettes, depth, intrinsics from the renderer r or the model m); the other
+// options set the search's OrbitSearchConfig fields of the same names (how tolerant it is of the predictions' errors).
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -84,7 +87,8 @@ int main(int argc, char** argv) try {
   unsigned seed = 7;
   std::vector<int> counts{2, 3, 4, 8};
   std::vector<std::string> dirs;
-  std::string model_path;
+  std::string model_path, keep;
+  geometry::OrbitSearchConfig search;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     const bool more = i + 1 < argc;
@@ -92,6 +96,10 @@ int main(int argc, char** argv) try {
     else if (a == "--sets" && more) sets = std::stoi(argv[++i]);
     else if (a == "--seed" && more) seed = static_cast<unsigned>(std::stoul(argv[++i]));
     else if (a == "--model" && more) model_path = argv[++i];
+    else if (a == "--inputs" && more) keep = argv[++i];
+    else if (a == "--depth-tolerance" && more) search.depth_tolerance = std::stod(argv[++i]);
+    else if (a == "--silhouette-px" && more) search.silhouette_px = std::stod(argv[++i]);
+    else if (a == "--colour-weight" && more) search.colour_weight = std::stod(argv[++i]);
     else if (a == "--counts" && more) {
       counts.clear();
       std::string s = argv[++i];
@@ -103,7 +111,8 @@ int main(int argc, char** argv) try {
     } else dirs.push_back(a);
   }
   require(!dirs.empty() && size >= 8 && sets >= 1,
-          "usage: orbit_search [--size N] [--sets N] [--seed N] [--counts 2,3,4,8] [--model M.safetensors] OBJECT_DIR...");
+          "usage: orbit_search [--size N] [--sets N] [--seed N] [--counts 2,3,4,8] [--model M.safetensors] "
+          "[--inputs mmm,rrr,...] [--depth-tolerance X] [--silhouette-px X] [--colour-weight X] OBJECT_DIR...");
   std::unique_ptr<model::FlexSplatWeights<float>> w;
   if (!model_path.empty()) {
     w = model::load_flexsplat<float>(model_path);
@@ -115,11 +124,16 @@ int main(int argc, char** argv) try {
   std::vector<data::ObjectRecord> objects;
   for (const auto& d : dirs) objects.push_back(data::load_object(d));
   // Input sources: which maps come from the renderer (r) and which from the model (m): silhouettes, depth, intrinsics.
-  const std::vector<std::pair<std::string, std::string>> sources =
+  std::vector<std::pair<std::string, std::string>> sources =
       w ? std::vector<std::pair<std::string, std::string>>{{"model", "mmm"}, {"model, true silhouettes", "rmm"},
                                                             {"model, true depth", "mrm"}, {"model, true intrinsics", "mmr"},
                                                             {"renderer", "rrr"}}
         : std::vector<std::pair<std::string, std::string>>{{"renderer", "rrr"}};
+  if (!keep.empty()) {
+    std::erase_if(sources, [&](const auto& s) { return ("," + keep + ",").find("," + s.second + ",") == std::string::npos; });
+    require(!sources.empty(), "orbit_search: --inputs '", keep, "' names none of ", w ? "mmm, rmm, mrm, mmr, rrr" : "rrr",
+            " (the model's codes need --model)");
+  }
   std::mt19937 rng(seed);
   std::printf("| views | inputs | sets | median error | mean error | within 15° | seconds per set |\n|---|---|---|---|---|---|---|\n");
   std::vector<std::string> quality;
@@ -183,13 +197,14 @@ int main(int argc, char** argv) try {
             for (std::size_t i = v * px; i < (v + 1) * px; ++i)
               if (!(truth.foreground[i] > 0.5f)) filled[i] = static_cast<float>(sp[static_cast<std::size_t>(v)] * pred.depth[i]);
         }
-        for (const auto& [name, from] : sources) {
+        for (const auto& source : sources) {
+          const std::string &name = source.first, &from = source.second;  // a lambda cannot capture a binding (clang 14)
           auto pick = [&](int k) -> const Maps& { return from[static_cast<std::size_t>(k)] == 'r' ? truth : pred; };
           std::vector<float> E(12 * static_cast<std::size_t>(n));
           const auto t0 = std::chrono::steady_clock::now();
           const float* depth = from == "mrm" ? filled.data() : pick(1).depth.data();
           geometry::cameras_from_orbit_search<float>(E.data(), images.data(), pick(0).foreground.data(), depth,
-                                                     pick(2).K.data(), n, size, size);
+                                                     pick(2).K.data(), n, size, size, search);
           errors[name].seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
           const std::vector<double> p(E.begin(), E.end()), gt(pv.w2c.begin(), pv.w2c.end());
           double e = 0;
