@@ -4,10 +4,15 @@
 // model's predictions are exact). With --model the model's own predictions, then each of them swapped for the
 // renderer's in turn (which prediction limits the search), and the predictions' errors.
 // Usage: orbit_search [--size 56] [--sets 2] [--seed 7] [--counts 2,3,4,8] [--model M.safetensors]
-//                     [--inputs mmm,rrr,...] [--depth-tolerance 0.03] [--silhouette-px 2] [--colour-weight 0.5] OBJECT_DIR...
+//                     [--inputs mmm,rrr,...] [--depth-tolerance 0.03] [--silhouette-px 2] [--colour-weight 0.5]
+//                     [--depth-blend 0 | --depth-grid N] OBJECT_DIR...
 //   e.g. `build/bench/orbit_search ../shared/data/objects/*`
 // --inputs keeps only those input codes (silhouettes, depth, intrinsics from the renderer r or the model m); the other
 // options set the search's OrbitSearchConfig fields of the same names (how tolerant it is of the predictions' errors).
+// --depth-blend A (with --model, in [0, 1]): the renderer's depth given to the search is truth^(1-A) (s pred)^A, s each
+// view's scale, so that the inputs with true depth measure the rotation error against the depth's error.
+// --depth-grid N (with --model): the renderer's depth given to the search is its log averaged over each of N x N cells
+// of the view (object pixels), then bilinear between the cells' centres: the depth an N x N token grid could carry.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -22,6 +27,7 @@
 #include "flexsplat/geometry/orbit_search.hpp"
 #include "flexsplat/image/image_io.hpp"
 #include "flexsplat/image/layout.hpp"
+#include "flexsplat/loss/geometry.hpp"
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/model/evaluate.hpp"
 #include "flexsplat/model/frames.hpp"
@@ -62,17 +68,38 @@ double median(std::vector<double> v) {
   return v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]);
 }
 
-// Per view, the median ratio of b to a over the true object pixels (the view's scale).
-std::vector<double> view_scales(const std::vector<float>& a, const std::vector<float>& b, const std::vector<float>& fg,
-                                int n, std::size_t px) {
-  std::vector<double> s(static_cast<std::size_t>(n), 1.0);
+// Inside each view's true silhouette, depth becomes exp of the log depth averaged over each of g x g cells (object
+// pixels; a cell without any takes the view's mean), interpolated bilinearly between the cells' centres.
+void grid_depth(std::vector<float>& depth, const Maps& truth, int n, int size, int g) {
+  const std::size_t px = static_cast<std::size_t>(size) * static_cast<std::size_t>(size);
+  const double cell = static_cast<double>(size) / g;
   for (int v = 0; v < n; ++v) {
-    std::vector<double> r;
-    for (std::size_t i = v * px; i < (v + 1) * px; ++i)
-      if (fg[i] > 0.5f) r.push_back(static_cast<double>(b[i]) / static_cast<double>(a[i]));
-    if (!r.empty()) s[static_cast<std::size_t>(v)] = median(r);
+    const float* d = truth.depth.data() + v * px;
+    const float* fg = truth.foreground.data() + v * px;
+    std::vector<double> sum(static_cast<std::size_t>(g * g), 0), cnt(sum.size(), 0);
+    double all = 0, all_n = 0;
+    for (int y = 0; y < size; ++y)
+      for (int x = 0; x < size; ++x) {
+        const std::size_t i = static_cast<std::size_t>(y * size + x);
+        if (!(fg[i] > 0.5f)) continue;
+        const std::size_t c = static_cast<std::size_t>(std::min(g - 1, static_cast<int>(y / cell)) * g +
+                                                       std::min(g - 1, static_cast<int>(x / cell)));
+        sum[c] += std::log(static_cast<double>(d[i])), cnt[c] += 1, all += std::log(static_cast<double>(d[i])), all_n += 1;
+      }
+    if (all_n == 0) continue;
+    for (std::size_t c = 0; c < sum.size(); ++c) sum[c] = cnt[c] > 0 ? sum[c] / cnt[c] : all / all_n;
+    auto at = [&](int cy, int cx) { return sum[static_cast<std::size_t>(std::clamp(cy, 0, g - 1) * g + std::clamp(cx, 0, g - 1))]; };
+    for (int y = 0; y < size; ++y)
+      for (int x = 0; x < size; ++x) {
+        const std::size_t i = static_cast<std::size_t>(y * size + x);
+        if (!(fg[i] > 0.5f)) continue;
+        const double fy = (y + 0.5) / cell - 0.5, fx = (x + 0.5) / cell - 0.5;
+        const int y0 = static_cast<int>(std::floor(fy)), x0 = static_cast<int>(std::floor(fx));
+        const double ty = fy - y0, tx = fx - x0;
+        const double l = (1 - ty) * ((1 - tx) * at(y0, x0) + tx * at(y0, x0 + 1)) + ty * ((1 - tx) * at(y0 + 1, x0) + tx * at(y0 + 1, x0 + 1));
+        depth[v * px + i] = static_cast<float>(std::exp(l));
+      }
   }
-  return s;
 }
 
 struct Errors {
@@ -89,6 +116,8 @@ int main(int argc, char** argv) try {
   std::vector<std::string> dirs;
   std::string model_path, keep;
   geometry::OrbitSearchConfig search;
+  double blend = 0;
+  int grid = 0;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     const bool more = i + 1 < argc;
@@ -100,6 +129,8 @@ int main(int argc, char** argv) try {
     else if (a == "--depth-tolerance" && more) search.depth_tolerance = std::stod(argv[++i]);
     else if (a == "--silhouette-px" && more) search.silhouette_px = std::stod(argv[++i]);
     else if (a == "--colour-weight" && more) search.colour_weight = std::stod(argv[++i]);
+    else if (a == "--depth-blend" && more) blend = std::stod(argv[++i]);
+    else if (a == "--depth-grid" && more) grid = std::stoi(argv[++i]);
     else if (a == "--counts" && more) {
       counts.clear();
       std::string s = argv[++i];
@@ -112,7 +143,12 @@ int main(int argc, char** argv) try {
   }
   require(!dirs.empty() && size >= 8 && sets >= 1,
           "usage: orbit_search [--size N] [--sets N] [--seed N] [--counts 2,3,4,8] [--model M.safetensors] "
-          "[--inputs mmm,rrr,...] [--depth-tolerance X] [--silhouette-px X] [--colour-weight X] OBJECT_DIR...");
+          "[--inputs mmm,rrr,...] [--depth-tolerance X] [--silhouette-px X] [--colour-weight X] [--depth-blend A | "
+          "--depth-grid N] OBJECT_DIR...");
+  require(blend >= 0 && blend <= 1 && (blend == 0 || !model_path.empty()), "orbit_search: --depth-blend ", blend,
+          " must be in [0, 1] and needs --model");
+  require(grid >= 0 && (grid == 0 || (!model_path.empty() && blend == 0)), "orbit_search: --depth-grid ", grid,
+          " must be >= 0, needs --model and excludes --depth-blend");
   std::unique_ptr<model::FlexSplatWeights<float>> w;
   if (!model_path.empty()) {
     w = model::load_flexsplat<float>(model_path);
@@ -139,7 +175,7 @@ int main(int argc, char** argv) try {
   std::vector<std::string> quality;
   for (const int n : counts) {
     std::map<std::string, Errors> errors;
-    double iou = 0, shape = 0, flat = 0, focal = 0;
+    double iou = 0, shape = 0, flat = 0, focal = 0, searched = 0;
     int measured = 0;
     for (const auto& rec : objects) {
       const int frames = static_cast<int>(rec.frames.size());
@@ -158,7 +194,7 @@ int main(int argc, char** argv) try {
           image::hwc_to_chw(images.data() + v * 3 * px, pv.photos.images.data() + v * 3 * px, size, size);
         Maps pred;
         std::vector<double> sp;     // each view's predicted depth scale to the renderer's
-        std::vector<float> filled;  // the renderer's depth where it has one, else the prediction's (scaled to it)
+        std::vector<float> filled = truth.depth;  // the renderer's depth where it has one, else the prediction's scaled
         if (w) {
           std::vector<Tensor<float, 3>> rgba;
           for (int v : in) rgba.push_back(image::read_float<float>(rec.frames[static_cast<std::size_t>(v)].image, 4));
@@ -172,37 +208,39 @@ int main(int argc, char** argv) try {
           pred.K.assign(o.intrinsics.data(), o.intrinsics.data() + o.intrinsics.size());
           // The predictions' errors: silhouette IoU, depth after each view's median scale (its shape), the same for a
           // constant depth per view (no shape at all), focal length.
-          sp = view_scales(pred.depth, truth.depth, truth.foreground, n, px);
+          std::vector<float> gt(truth.depth.size()), constant(truth.depth.size(), 1.f);
+          for (std::size_t i = 0; i < gt.size(); ++i) gt[i] = truth.foreground[i] > 0.5f ? truth.depth[i] : 0.f;
+          sp.resize(static_cast<std::size_t>(n));
+          shape += n * loss::depth_scaled_error(pred.depth.data(), gt.data(), n, static_cast<index_t>(px), sp.data());
+          flat += n * loss::depth_scaled_error(constant.data(), gt.data(), n, static_cast<index_t>(px));
           for (int v = 0; v < n; ++v) {
-            double inter = 0, uni = 0, e = 0, ef = 0, cnt = 0;
-            std::vector<double> gd;
+            double inter = 0, uni = 0;
             for (std::size_t i = v * px; i < (v + 1) * px; ++i) {
               const bool p = pred.foreground[i] >= 0.5f, g = truth.foreground[i] > 0.5f;
               inter += p && g, uni += p || g;
-              if (g) gd.push_back(truth.depth[i]);
             }
-            const double mid = median(gd);
-            for (std::size_t i = v * px; i < (v + 1) * px; ++i)
-              if (truth.foreground[i] > 0.5f) {
-                const double g = truth.depth[i];
-                e += std::abs(sp[static_cast<std::size_t>(v)] * pred.depth[i] - g) / g, ef += std::abs(mid - g) / g, ++cnt;
-              }
-            iou += uni > 0 ? inter / uni : 1, shape += e / cnt, flat += ef / cnt;
+            iou += uni > 0 ? inter / uni : 1;
             focal += std::abs(pred.K[9 * static_cast<std::size_t>(v)] / truth.K[9 * static_cast<std::size_t>(v)] - 1);
             ++measured;
           }
-          // Renderer depth next to predicted silhouettes, whose pixels may have no true depth.
-          filled = truth.depth;
+          // Renderer depth next to predicted silhouettes, whose pixels may have no true depth (the search reads depth only
+          // inside a silhouette, so the renderer's silhouettes see the renderer's depth alone).
           for (int v = 0; v < n; ++v)
             for (std::size_t i = v * px; i < (v + 1) * px; ++i)
-              if (!(truth.foreground[i] > 0.5f)) filled[i] = static_cast<float>(sp[static_cast<std::size_t>(v)] * pred.depth[i]);
+              filled[i] = static_cast<float>(
+                  truth.foreground[i] > 0.5f
+                      ? std::pow(static_cast<double>(truth.depth[i]), 1 - blend) *
+                            std::pow(sp[static_cast<std::size_t>(v)] * pred.depth[i], blend)
+                      : sp[static_cast<std::size_t>(v)] * pred.depth[i]);
+          if (grid > 0) grid_depth(filled, truth, n, size, grid);
+          searched += n * loss::depth_scaled_error(filled.data(), gt.data(), n, static_cast<index_t>(px));
         }
         for (const auto& source : sources) {
           const std::string &name = source.first, &from = source.second;  // a lambda cannot capture a binding (clang 14)
           auto pick = [&](int k) -> const Maps& { return from[static_cast<std::size_t>(k)] == 'r' ? truth : pred; };
           std::vector<float> E(12 * static_cast<std::size_t>(n));
           const auto t0 = std::chrono::steady_clock::now();
-          const float* depth = from == "mrm" ? filled.data() : pick(1).depth.data();
+          const float* depth = from[1] == 'r' ? filled.data() : pred.depth.data();
           geometry::cameras_from_orbit_search<float>(E.data(), images.data(), pick(0).foreground.data(), depth,
                                                      pick(2).K.data(), n, size, size, search);
           errors[name].seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -224,14 +262,14 @@ int main(int argc, char** argv) try {
     std::fflush(stdout);
     if (measured > 0) {
       char line[256];
-      std::snprintf(line, sizeof line, "| %d | %.3f | %.3f | %.3f | %.3f |", n, iou / measured, shape / measured,
-                    flat / measured, focal / measured);
+      std::snprintf(line, sizeof line, "| %d | %.3f | %.3f | %.3f | %.3f | %.3f |", n, iou / measured, shape / measured,
+                    flat / measured, searched / measured, focal / measured);
       quality.push_back(line);
     }
   }
   if (!quality.empty()) {
-    std::printf("\n| views | silhouette IoU | depth error (each view scaled) | same for a constant depth | focal error |\n"
-                "|---|---|---|---|---|\n");
+    std::printf("\n| views | silhouette IoU | depth error (each view scaled) | same for a constant depth | same for the "
+                "renderer's depth searched | focal error |\n|---|---|---|---|---|---|\n");
     for (const auto& l : quality) std::printf("%s\n", l.c_str());
   }
   return 0;

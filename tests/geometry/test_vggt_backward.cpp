@@ -126,9 +126,12 @@ std::size_t block_cache_size(const BlockCache<T>& k) {
 using namespace vggt_backward_test;
 
 TEST_CASE("VGGT end to end: images -> cameras, depth, confidence, world points, depth features, backward matches "
-          "central differences for every parameter and the images",
+          "central differences for every parameter and the images (also through the depth head's image convolutions)",
           "[geometry][vggt][backward]") {
-  const VggtConfig c = tiny_vggt();
+  VggtConfig c = tiny_vggt();
+  const index_t depth_image_convs = GENERATE(0, 2);  // 2: the depth head also reads the pixels through two convolutions
+  c.set_depth_image(depth_image_convs, 4);
+  INFO("depth_image_convs " << depth_image_convs);
   FlatVggt<double> m(c, 3);
   const index_t S = 2, H = 4, W = 6;  // 2 x 3 patches: DINO's 3 x 3 position grid resized
   auto images = random_doubles(static_cast<std::size_t>(S * 3 * H * W), 4, 0.5);

@@ -1,6 +1,7 @@
 #include <catch2/catch.hpp>
 
 #include <cmath>
+#include <limits>
 #include <random>
 #include <vector>
 
@@ -119,6 +120,23 @@ TEST_CASE("depth shape loss: by hand, blind to each view's scale, zero below min
   std::vector<double> bad = pred;
   bad[4] = 0;
   CHECK_THROWS_WITH(loss::depth_shape_loss_forward(bad.data(), gt.data(), nullptr, 2, 1, 3, 1), Catch::Contains("pixel 4"));
+}
+
+TEST_CASE("depth error after each view's scale: by hand, views without ground truth left out, bad depth named",
+          "[loss][depth]") {
+  // Four 1x3 views. 0: a constant against gt 1, 2, 4 -> scale 2, errors 1, 0, 1/2. 1: 3 gt -> scale 1/3, error 0.
+  // 2: no ground truth -> left out, scale 1. 3: two valid pixels, ratios 1 and 3 -> the upper middle 3, errors 2, 0.
+  const std::vector<double> gt{1, 2, 4, 1, 2, 3, 0, 0, 0, 1, 0, 3}, pred{1, 1, 1, 3, 6, 9, 5, 5, 5, 1, 5, 1};
+  std::vector<double> scales(4, 0.0);
+  CHECK(loss::depth_scaled_error(pred.data(), gt.data(), 4, 3, scales.data()) == Approx((0.5 + 0 + 1) / 3).epsilon(1e-14));
+  CHECK(scales == std::vector<double>{2, 1.0 / 3, 1, 3});
+  CHECK(loss::depth_scaled_error(pred.data(), gt.data(), 2, 3) == Approx(0.25).epsilon(1e-14));
+  CHECK(loss::depth_scaled_error(pred.data() + 6, gt.data() + 6, 1, 3) == 0.0);  // nothing to measure
+  std::vector<double> bad = pred;
+  bad[5] = std::numeric_limits<double>::quiet_NaN();
+  CHECK_THROWS_WITH(loss::depth_scaled_error(bad.data(), gt.data(), 4, 3), Catch::Contains("pixel 5 (view 1)"));
+  bad[5] = 9, bad[11] = 0;
+  CHECK_THROWS_WITH(loss::depth_scaled_error(bad.data(), gt.data(), 4, 3), Catch::Contains("pixel 11 (view 3)"));
 }
 
 TEST_CASE("depth shape loss: gradient check with a mask", "[loss][depth][gradcheck]") {

@@ -70,6 +70,26 @@ TEST_CASE("the point head is a config switch: its tensors appear under VGGT's na
   j["geometry"]["match_image"] = false;
   CHECK_THROWS_WITH(model::flexsplat_config_from_json(j.dump()),
                     Catch::Contains("match_image_convs 2 needs match_image"));
+  // The depth head's image convolutions: its own tensors under depth_head.*, none for the point head; kept by the JSON.
+  c.geometry.set_depth_image(3, 8);
+  shapes.clear();
+  for (const auto& s : geometry::vggt_parameter_specs(c.geometry)) shapes[s.name] = s.shape;
+  CHECK(shapes["depth_head.scratch.image_conv.0.weight"] == std::vector<index_t>{8, 3, 3, 3});
+  CHECK(shapes["depth_head.scratch.image_conv.2.weight"] == std::vector<index_t>{8, 8, 3, 3});
+  CHECK(shapes.count("depth_head.scratch.image_conv.3.weight") == 0);
+  CHECK(shapes["depth_head.scratch.output_conv2.0.weight"][1] == 8 + c.geometry.depth.head_features());
+  CHECK(shapes.count("point_head.scratch.image_conv.0.weight") == 0);
+  CHECK(shapes["point_head.scratch.output_conv2.0.weight"][1] == c.geometry.depth.head_features());
+  CHECK(shapes["match_head.scratch.image_conv.1.weight"] == std::vector<index_t>{8, 8, 3, 3});
+  const auto depth_convs = model::flexsplat_config_from_json(model::to_json(c).dump()).geometry;
+  CHECK(depth_convs.depth_image_convs == 3);
+  CHECK(depth_convs.depth.image_convs == 3);
+  CHECK(depth_convs.depth.image_width == 8);
+  j = model::to_json(c);
+  j["geometry"]["depth_image_convs"] = 5;
+  CHECK_THROWS_WITH(model::flexsplat_config_from_json(j.dump()), Catch::Contains("'depth_image_convs' = 5"));
+  c.geometry.depth_image_convs = 1;  // a field changed without set_depth_image
+  CHECK_THROWS_WITH(c.validate(), Catch::Contains("set_depth_image"));
 }
 
 TEST_CASE("FlexSplat config errors name the offending setting", "[model][config]") {

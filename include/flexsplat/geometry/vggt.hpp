@@ -239,10 +239,10 @@ VggtOutputs<T> vggt_forward_impl(const T* images, index_t frames, index_t image_
   if (cache)
     dpt_head_forward_train<T>(dpt_out, cache->depth, c.depth, w.depth, layer_span, frames, N,
                               out.aggregator.patch_start_idx, image_h, image_w,
-                              std::span<T>(ws.head.data(), ws.head.size()));
+                              std::span<T>(ws.head.data(), ws.head.size()), images);
   else
     dpt_head_forward<T>(dpt_out, c.depth, w.depth, layer_span, frames, N, out.aggregator.patch_start_idx, image_h,
-                        image_w, std::span<T>(ws.head.data(), ws.head.size()));
+                        image_w, std::span<T>(ws.head.data(), ws.head.size()), images);
   report("depth_head", 1, 1);
 
   // The optional heads read the same layers: preds [frames, H, W, channels] and a per-pixel map.
@@ -350,7 +350,7 @@ void vggt_backward(T* d_images, const VggtGrads<T>& g, const VggtOutputGrads<T>&
   d_dpt.conf = d_out.depth_conf;
   d_dpt.features = d_out.depth_features;
   dpt_head_backward<T>(std::span<T* const>(d_layers.data(), d_layers.size()), g.depth, d_dpt, cache.depth, c.depth,
-                       w.depth, std::span<const T* const>(layers.data(), layers.size()));
+                       w.depth, std::span<const T* const>(layers.data(), layers.size()), d_images);
   auto extra_head = [&](const DptHeadGrads<T>& hg, const T* d_preds, const T* d_map, DptHeadCache<T>& hk,
                         const DptHeadConfig& hc, const DptHeadWeights<T>& hw) {
     DptHeadOutputGrads<T> d;

@@ -228,6 +228,37 @@ void depth_loss_backward(T* d_pred, T* d_conf, double d_total, const T* pred, co
   }
 }
 
+// Depth error after each view's scale (a metric, no gradient): per view, the median (the upper of two middles) of
+// gt / pred over the pixels with gt > 0 scales pred, then mean |scale pred - gt| / gt over them; the mean over views with such pixels (0 without one).
+// scales (may be null, [views]): each view's scale, 1 for a view without. A constant pred gives a flat depth's error.
+template <class T>
+double depth_scaled_error(const T* pred, const T* gt, index_t views, index_t pixels, double* scales = nullptr) {
+  double total = 0;
+  index_t counted = 0;
+  std::vector<double> ratio;
+  for (index_t v = 0; v < views; ++v) {
+    const T *p = pred + v * pixels, *g = gt + v * pixels;
+    ratio.clear();
+    for (index_t i = 0; i < pixels; ++i)
+      if (g[i] > T(0)) {
+        require(p[i] > T(0) && std::isfinite(static_cast<double>(p[i])), "depth_scaled_error: predicted depth ",
+                static_cast<double>(p[i]), " at pixel ", v * pixels + i, " (view ", v, ") is not a positive number");
+        ratio.push_back(static_cast<double>(g[i]) / static_cast<double>(p[i]));
+      }
+    if (scales) scales[v] = 1;
+    if (ratio.empty()) continue;
+    std::nth_element(ratio.begin(), ratio.begin() + static_cast<std::ptrdiff_t>(ratio.size() / 2), ratio.end());
+    const double scale = ratio[ratio.size() / 2];
+    if (scales) scales[v] = scale;
+    double err = 0;
+    for (index_t i = 0; i < pixels; ++i)
+      if (g[i] > T(0)) err += std::abs(scale * static_cast<double>(p[i]) - static_cast<double>(g[i])) / static_cast<double>(g[i]);
+    total += err / static_cast<double>(ratio.size());
+    ++counted;
+  }
+  return counted > 0 ? total / static_cast<double>(counted) : 0.0;
+}
+
 // Depth shape loss: the per-view relative shape of the depth map, blind to each view's scale (which the view's
 // distance absorbs when cameras are solved from depth: geometry/orbit_search.hpp). Per image with at least
 // min_valid_pixels valid pixels, r = log d - log d_gt, L = mean |r - mean r| over its valid pixels; total = mean of L

@@ -12,6 +12,7 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/geometry/procrustes.hpp"
+#include "flexsplat/loss/geometry.hpp"
 #include "flexsplat/loss/image.hpp"
 #include "flexsplat/loss/match.hpp"
 #include "flexsplat/loss/ssim.hpp"
@@ -184,25 +185,7 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
       ++n;
     }
   s.depth_rel = n > 0 ? err / static_cast<double>(n) : 0.0;
-  index_t shaped = 0;
-  std::vector<double> ratio;
-  for (index_t v = 0; v < V; ++v) {
-    ratio.clear();
-    for (index_t i = v * px; i < (v + 1) * px; ++i)
-      if (e.gt_depth[static_cast<std::size_t>(i)] > T(0))
-        ratio.push_back(static_cast<double>(e.gt_depth[static_cast<std::size_t>(i)]) / static_cast<double>(p.geometry.depth[static_cast<std::size_t>(i)]));
-    if (ratio.empty()) continue;
-    std::nth_element(ratio.begin(), ratio.begin() + static_cast<std::ptrdiff_t>(ratio.size() / 2), ratio.end());
-    const double scale = ratio[ratio.size() / 2];
-    double view_err = 0;
-    for (index_t i = v * px; i < (v + 1) * px; ++i) {
-      const double g = static_cast<double>(e.gt_depth[static_cast<std::size_t>(i)]);
-      if (g > 0) view_err += std::abs(scale * static_cast<double>(p.geometry.depth[static_cast<std::size_t>(i)]) - g) / g;
-    }
-    s.depth_shape_rel += view_err / static_cast<double>(ratio.size());
-    ++shaped;
-  }
-  if (shaped > 0) s.depth_shape_rel /= static_cast<double>(shaped);
+  s.depth_shape_rel = loss::depth_scaled_error(p.geometry.depth.data(), e.gt_depth.data(), V, px);
   return s;
 }
 
