@@ -11,7 +11,7 @@ set(flexsplat_test_costs
     "consumer_add_subdirectory|60"
     "geometry:aggregator backward matches central differences (frame/global alternation, camera/register tokens, RoPE)|38"
     "nn:attention over several key blocks, fused q|k|v rows: scalar and SIMD paths match the dense definition|28"
-    "geometry:VGGT end to end: images -> cameras, depth, confidence, world points, depth features, backward matches central differences for every parameter and the images|28"
+    "geometry:VGGT end to end: images -> cameras, depth, confidence, world points, depth features, backward matches central differences for every parameter and the images (also through the depth head's image convolutions)|56"
     "model:appearance objective passes the float64 gradient check into parameters and geometry outputs|28"
     "cli: reconstruct and eval refuse bad inputs with a message|25"
     "nn:attention over several key blocks: float64 gradient check, 1 and 2 threads bit-identical on every path|22"
