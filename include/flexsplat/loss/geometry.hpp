@@ -229,8 +229,9 @@ void depth_loss_backward(T* d_pred, T* d_conf, double d_total, const T* pred, co
 }
 
 // Depth error after each view's scale (a metric, no gradient): per view, the median (the upper of two middles) of
-// gt / pred over the pixels with gt > 0 scales pred, then mean |scale pred - gt| / gt over them; the mean over views with such pixels (0 without one).
-// scales (may be null, [views]): each view's scale, 1 for a view without. A constant pred gives a flat depth's error.
+// gt / pred over the pixels with gt > 0 scales pred, then mean |scale pred - gt| / gt over them; the mean over the
+// views with such pixels (0 without one). scales (may be null, [views]): each view's scale, 1 for a view without.
+// A constant pred gives a flat depth's error.
 template <class T>
 double depth_scaled_error(const T* pred, const T* gt, index_t views, index_t pixels, double* scales = nullptr) {
   double total = 0;
