@@ -120,6 +120,9 @@ TEST_CASE("depth shape loss: by hand, blind to each view's scale, zero below min
   std::vector<double> bad = pred;
   bad[4] = 0;
   CHECK_THROWS_WITH(loss::depth_shape_loss_forward(bad.data(), gt.data(), nullptr, 2, 1, 3, 1), Catch::Contains("pixel 4"));
+  std::vector<double> d_bad(6, 0.0);
+  CHECK_THROWS_WITH(loss::depth_shape_loss_backward(d_bad.data(), 1.0, bad.data(), gt.data(), nullptr, 2, 1, 3, 1),
+                    Catch::Contains("pixel 4"));
 }
 
 TEST_CASE("depth error after each view's scale: by hand, views without ground truth left out, bad depth named",

@@ -33,6 +33,12 @@ struct OrbitSearchConfig {
   double depth_tolerance = 0.03;    // relative depth within which two views see the same surface point
   double occluded_cost = 0.1;       // a point hidden behind another view's surface (explains nothing)
   double colour_weight = 0.5;       // cost of a colour difference of 1 (per channel mean) on a shared surface point
+  // > 0: every sampled point may lie anywhere within this relative range of its depth along its ray (depth_candidates
+  // evenly spaced depths, the cheapest counts) and the other view's surface is as uncertain (its tolerance grows by
+  // the range): predicted depth is trusted to a range, the views' silhouettes, surfaces and colours choose within it
+  // (a plane sweep per point). 0: the depth as given.
+  double depth_range = 0;
+  index_t depth_candidates = 5;
   // The rim's median depth lies in front of the orbit centre (by 5-15 % on the shared objects): the coarse search tries
   // these multiples of it for every view.
   std::vector<double> distance_scales{1.0, 1.05, 1.1, 1.15, 1.2};
@@ -127,41 +133,39 @@ inline double pair_cost(const View& a, const Placed& pa, const View& b, const Pl
   const glm::dmat3 M = pb.R * glm::transpose(pa.R);
   const glm::dvec3 m = pb.t - M * pa.t;
   const bool colours = !a.point_colour.empty() && !b.colour.empty() && cfg.colour_weight > 0;
+  // Cost of view a's point i placed at Y in view b's frame.
+  auto point_cost = [&](index_t i, const glm::dvec3& Y) -> double {
+    if (!(Y.z > 1e-9)) return 1;
+    const double u = b.fx * Y.x / Y.z + b.cx, v = b.fy * Y.y / Y.z + b.cy;
+    const double ur = std::round(u), vr = std::round(v);
+    if (!(ur >= 0 && vr >= 0 && ur < static_cast<double>(b.w) && vr < static_cast<double>(b.h))) return 1;
+    const std::size_t pix = static_cast<std::size_t>(static_cast<index_t>(vr) * b.w + static_cast<index_t>(ur));
+    const double out = static_cast<double>(b.outside[pix]);
+    if (out > 0) return std::min(out / cfg.silhouette_px, 1.0);
+    // View b's depth is trusted to the same range as view a's.
+    const double z = static_cast<double>(b.depth[pix]), tol = (cfg.depth_tolerance + cfg.depth_range) * z;
+    if (Y.z < z - tol) return std::min((z - tol - Y.z) / tol, 1.0);  // free space of view b holds a surface point
+    if (Y.z > z + tol) return cfg.occluded_cost;
+    if (!colours) return 0;
+    double diff = 0;
+    for (int k = 0; k < 3; ++k)
+      diff += std::abs(static_cast<double>(a.point_colour[static_cast<std::size_t>(3 * i + k)]) -
+                       static_cast<double>(b.colour[3 * pix + static_cast<std::size_t>(k)]));
+    return cfg.colour_weight * diff / 3;
+  };
+  const index_t candidates = cfg.depth_range > 0 ? cfg.depth_candidates : 1;
   double sum = 0;
   for (index_t i = 0; i < n; ++i) {
     const glm::dvec3 X(a.point[static_cast<std::size_t>(3 * i)], a.point[static_cast<std::size_t>(3 * i + 1)],
                        a.point[static_cast<std::size_t>(3 * i + 2)]);
-    const glm::dvec3 Y = M * X + m;
-    if (!(Y.z > 1e-9)) {
-      sum += 1;
-      continue;
+    double best = std::numeric_limits<double>::infinity();
+    for (index_t k = 0; k < candidates && best > 0; ++k) {
+      const double along = candidates == 1 ? 1.0
+                                           : 1.0 + cfg.depth_range * (2.0 * static_cast<double>(k) /
+                                                                          static_cast<double>(candidates - 1) - 1.0);
+      best = std::min(best, point_cost(i, M * (along * X) + m));
     }
-    const double u = b.fx * Y.x / Y.z + b.cx, v = b.fy * Y.y / Y.z + b.cy;
-    const double ur = std::round(u), vr = std::round(v);
-    if (!(ur >= 0 && vr >= 0 && ur < static_cast<double>(b.w) && vr < static_cast<double>(b.h))) {
-      sum += 1;
-      continue;
-    }
-    const std::size_t pix = static_cast<std::size_t>(static_cast<index_t>(vr) * b.w + static_cast<index_t>(ur));
-    const double out = static_cast<double>(b.outside[pix]);
-    if (out > 0) {
-      sum += std::min(out / cfg.silhouette_px, 1.0);
-      continue;
-    }
-    const double z = static_cast<double>(b.depth[pix]), tol = cfg.depth_tolerance * z;
-    if (Y.z < z - tol) {
-      sum += std::min((z - tol - Y.z) / tol, 1.0);  // free space of view b holds a surface point
-    } else if (Y.z <= z + tol) {
-      if (colours) {
-        double diff = 0;
-        for (int k = 0; k < 3; ++k)
-          diff += std::abs(static_cast<double>(a.point_colour[static_cast<std::size_t>(3 * i + k)]) -
-                           static_cast<double>(b.colour[3 * pix + static_cast<std::size_t>(k)]));
-        sum += cfg.colour_weight * diff / 3;
-      }
-    } else {
-      sum += cfg.occluded_cost;
-    }
+    sum += best;
   }
   return sum / static_cast<double>(n);
 }
@@ -258,10 +262,12 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
   require(frames >= 1 && height >= 1 && width >= 1, "cameras_from_orbit_search: empty maps (", frames, " x ", height,
           " x ", width, ")");
   require(cfg.samples >= 1 && cfg.elevation_step_deg > 0 && cfg.azimuth_step_deg > 0 && cfg.silhouette_px > 0 &&
-              cfg.depth_tolerance > 0 && cfg.elevation_max_deg >= cfg.elevation_min_deg &&
+              cfg.depth_tolerance > 0 && cfg.depth_range >= 0 && cfg.depth_range < 0.5 && cfg.depth_candidates >= 2 &&
+              cfg.elevation_max_deg >= cfg.elevation_min_deg &&
               cfg.elevation_max_deg < 89 && cfg.elevation_min_deg > -89,
           "cameras_from_orbit_search: invalid config (samples ", cfg.samples, ", steps ", cfg.elevation_step_deg, " / ",
-          cfg.azimuth_step_deg, " deg, elevations ", cfg.elevation_min_deg, " .. ", cfg.elevation_max_deg, ")");
+          cfg.azimuth_step_deg, " deg, elevations ", cfg.elevation_min_deg, " .. ", cfg.elevation_max_deg,
+          ", depth range ", cfg.depth_range, " in [0, 0.5) with ", cfg.depth_candidates, " >= 2 candidates)");
   const double deg = std::numbers::pi / 180;
   std::vector<View> views(static_cast<std::size_t>(frames));
   std::vector<bool> usable(static_cast<std::size_t>(frames), false);

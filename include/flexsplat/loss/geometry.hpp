@@ -265,6 +265,22 @@ double depth_scaled_error(const T* pred, const T* gt, index_t views, index_t pix
 // min_valid_pixels valid pixels, r = log d - log d_gt, L = mean |r - mean r| over its valid pixels; total = mean of L
 // over those images (0 without one). The absolute depth loss's L1 gradient is sign(d - d_gt): while a view's scale is
 // off, every pixel has the same sign and the shape gets no signal from it; this term's gradient is the shape's alone.
+namespace detail {
+// Image n's residuals r = log d - log d_gt over its valid pixels, in pixel order (the forward and backward share them).
+template <class T>
+void depth_shape_residuals(std::vector<double>& r, const T* pred, const T* gt, const std::uint8_t* mask, index_t n,
+                           index_t px) {
+  r.clear();
+  for (index_t i = n * px; i < (n + 1) * px; ++i) {
+    if (mask && !mask[i]) continue;
+    const double p = static_cast<double>(pred[i]), g = static_cast<double>(gt[i]);
+    if (!(std::isfinite(p) && std::isfinite(g) && p > 0 && g > 0))
+      fail("depth shape loss: pixel ", i, ": depth ", p, ", ground truth ", g, " (finite positive values needed)");
+    r.push_back(std::log(p) - std::log(g));
+  }
+}
+}  // namespace detail
+
 template <class T>
 double depth_shape_loss_forward(const T* pred, const T* gt, const std::uint8_t* mask, index_t images, index_t h,
                                 index_t w, index_t min_valid_pixels = 100) {
@@ -274,14 +290,7 @@ double depth_shape_loss_forward(const T* pred, const T* gt, const std::uint8_t* 
   index_t counted = 0;
   std::vector<double> r;
   for (index_t n = 0; n < images; ++n) {
-    r.clear();
-    for (index_t i = n * px; i < (n + 1) * px; ++i) {
-      if (mask && !mask[i]) continue;
-      const double p = static_cast<double>(pred[i]), g = static_cast<double>(gt[i]);
-      if (!(std::isfinite(p) && std::isfinite(g) && p > 0 && g > 0))
-        fail("depth shape loss: pixel ", i, ": depth ", p, ", ground truth ", g, " (finite positive values needed)");
-      r.push_back(std::log(p) - std::log(g));
-    }
+    detail::depth_shape_residuals(r, pred, gt, mask, n, px);
     if (static_cast<index_t>(r.size()) < std::max<index_t>(min_valid_pixels, 1)) continue;
     double mean = 0;
     for (const double x : r) mean += x;
@@ -298,22 +307,19 @@ double depth_shape_loss_forward(const T* pred, const T* gt, const std::uint8_t* 
 template <class T>
 void depth_shape_loss_backward(T* d_pred, double d_total, const T* pred, const T* gt, const std::uint8_t* mask,
                                index_t images, index_t h, index_t w, index_t min_valid_pixels = 100) {
+  require(d_pred && pred && gt && images >= 1 && h >= 1 && w >= 1, "depth shape loss backward: null or empty maps");
   const index_t px = h * w, least = std::max<index_t>(min_valid_pixels, 1);
-  auto valid = [&](index_t n) {
-    index_t m = 0;
-    for (index_t i = n * px; i < (n + 1) * px; ++i) m += !mask || mask[i];
-    return m;
-  };
+  std::vector<std::vector<double>> residuals(static_cast<std::size_t>(images));
   index_t counted = 0;
-  for (index_t n = 0; n < images; ++n) counted += valid(n) >= least;
+  for (index_t n = 0; n < images; ++n) {
+    detail::depth_shape_residuals(residuals[static_cast<std::size_t>(n)], pred, gt, mask, n, px);
+    counted += static_cast<index_t>(residuals[static_cast<std::size_t>(n)].size()) >= least;
+  }
   if (counted == 0) return;
   const double per_image = d_total / static_cast<double>(counted);
-  std::vector<double> r;
   for (index_t n = 0; n < images; ++n) {
-    if (valid(n) < least) continue;
-    r.clear();
-    for (index_t i = n * px; i < (n + 1) * px; ++i)
-      if (!mask || mask[i]) r.push_back(std::log(static_cast<double>(pred[i])) - std::log(static_cast<double>(gt[i])));
+    const std::vector<double>& r = residuals[static_cast<std::size_t>(n)];
+    if (static_cast<index_t>(r.size()) < least) continue;
     const double m = static_cast<double>(r.size());
     double mean = 0, mean_sign = 0;
     for (const double x : r) mean += x;
