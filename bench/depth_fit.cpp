@@ -132,12 +132,15 @@ int main(int argc, char** argv) try {
   const model::TrainData data = model::train_data_from(o.data, cfg);
   const auto sets = model::make_validation_sets(data, cfg);
   DepthNet net(o.base, o.levels, cfg.seed);
-  std::printf("UNet base %lld, levels %lld, %lld parameters, lr %g, %lld x %lld, batch %lld\n",
+  std::printf("depth_fit: UNet base %lld, levels %lld, %lld parameters, lr %g, %lld x %lld, batch %lld\n",
               static_cast<long long>(o.base), static_cast<long long>(o.levels),
               static_cast<long long>(net.store.tensor_elements()), o.lr, static_cast<long long>(cfg.model.image_h),
               static_cast<long long>(cfg.model.image_w), static_cast<long long>(cfg.batch));
   std::ofstream log;
-  if (!o.log.empty()) log.open(o.log);
+  if (!o.log.empty()) {
+    log.open(o.log);
+    require(log.good(), "cannot write --log '", o.log, "'");
+  }
   const double start = cpu_seconds();
   double loss_sum = 0;
   index_t loss_n = 0;

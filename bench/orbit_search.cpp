@@ -147,8 +147,8 @@ int main(int argc, char** argv) try {
   }
   require(!dirs.empty() && size >= 8 && sets >= 1,
           "usage: orbit_search [--size N] [--sets N] [--seed N] [--counts 2,3,4,8] [--model M.safetensors] "
-          "[--inputs mmm,rrr,...] [--depth-tolerance X] [--silhouette-px X] [--colour-weight X] [--depth-range X] [--depth-candidates N] [--depth-blend A | "
-          "--depth-grid N] OBJECT_DIR...");
+          "[--inputs mmm,rrr,...] [--depth-tolerance X] [--silhouette-px X] [--colour-weight X] [--depth-range X] "
+          "[--depth-candidates N] [--depth-blend A | --depth-grid N] OBJECT_DIR...");
   require(blend >= 0 && blend <= 1 && (blend == 0 || !model_path.empty()), "orbit_search: --depth-blend ", blend,
           " must be in [0, 1] and needs --model");
   require(grid >= 0 && (grid == 0 || (!model_path.empty() && blend == 0)), "orbit_search: --depth-grid ", grid,
