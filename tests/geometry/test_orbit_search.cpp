@@ -99,40 +99,70 @@ TEST_CASE("orbit search: a view without object pixels stays at the first camera,
                     Catch::Contains("view 0 has intrinsics fx -1"));
 }
 
-TEST_CASE("orbit search with a depth range: depth off by up to 8 % in smooth waves, the range finds the cameras",
+TEST_CASE("orbit search with a depth range: a point may lie anywhere within the range along its ray",
           "[geometry][orbit]") {
-  const std::vector<std::pair<double, double>> orbit{{20, 0}, {35, 97}, {12, 183}};
-  for (std::uint64_t seed : {3u, 11u}) {
-    const Views v = render_views(seed, orbit, 64);
-    // Each view's depth times a factor in [0.92, 1.08] that varies smoothly over the image (a learned depth's errors
-    // are in its shape, not per pixel), in a different phase per view.
-    std::vector<float> noisy = v.depth;
-    const index_t px = v.size * v.size;
-    for (index_t f = 0; f < v.n; ++f)
-      for (index_t p = 0; p < px; ++p) {
-        const double x = static_cast<double>(p % v.size) / static_cast<double>(v.size);
-        const double y = static_cast<double>(p / v.size) / static_cast<double>(v.size);
-        const double phase = static_cast<double>(f);
-        noisy[static_cast<std::size_t>(f * px + p)] *=
-            static_cast<float>(1 + 0.08 * std::sin(9.4 * x + phase) * std::cos(7.5 * y + 2 * phase));
-      }
-    auto error = [&](double range) {
-      geometry::OrbitSearchConfig cfg;
-      cfg.depth_range = range;
-      std::vector<float> E(static_cast<std::size_t>(12 * v.n));
-      geometry::cameras_from_orbit_search<float>(E.data(), v.images.data(), v.foreground.data(), noisy.data(),
-                                                 v.K.data(), v.n, v.size, v.size, cfg);
-      return mean_relative_error(E, v.w2c, v.n);
-    };
-    const double given = error(0), ranged = error(0.1);
-    INFO("seed " << seed << ": mean relative rotation error, depth as given " << given << " deg, within a 10 % range "
-                 << ranged << " deg");
-    CHECK(given > 60);  // the waves throw the search off
-    CHECK(ranged < 20);
+  // Two views at their true cameras; the first view's depth scaled by 1 / 0.95, so that one of the five candidate
+  // depths of a 10 % range (0.9, 0.95, 1, 1.05, 1.1 of it) is the true depth.
+  const Views v = render_views(3, {{20, 0}, {35, 97}}, 48);
+  const index_t px = v.size * v.size;
+  std::vector<float> scaled = v.depth;
+  for (index_t p = 0; p < px; ++p) scaled[static_cast<std::size_t>(p)] /= 0.95f;
+  using geometry::orbit_detail::View;
+  using geometry::orbit_detail::Placed;
+  auto prepare = [&](const std::vector<float>& depth, index_t f, const geometry::OrbitSearchConfig& cfg) {
+    View view;
+    REQUIRE(geometry::orbit_detail::prepare_view(view, v.images.data(), v.foreground.data(), depth.data(), v.K.data(),
+                                                 f, v.size, v.size, cfg));
+    return view;
+  };
+  Placed placed[2];
+  for (int f = 0; f < 2; ++f)
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) placed[f].R[c][r] = v.w2c[static_cast<std::size_t>(12 * f + 4 * r + c)];
+      placed[f].t[r] = v.w2c[static_cast<std::size_t>(12 * f + 4 * r + 3)];
+    }
+  geometry::OrbitSearchConfig given, ranged, wide;
+  ranged.depth_range = 0.1;
+  wide.depth_tolerance = given.depth_tolerance + ranged.depth_range;  // the other view's tolerance under the range
+  const View b = prepare(v.depth, 1, given);
+  auto cost = [&](const std::vector<float>& depth, const geometry::OrbitSearchConfig& cfg) {
+    return geometry::orbit_detail::pair_cost(prepare(depth, 0, cfg), placed[0], b, placed[1], cfg);
+  };
+  const double exact_wide = cost(v.depth, wide), off_ranged = cost(scaled, ranged);
+  // The ranged cost from its definition: each point's cheapest candidate, each candidate costed as a point of its own.
+  const View a = prepare(scaled, 0, ranged);
+  const index_t n = static_cast<index_t>(a.point.size() / 3);
+  REQUIRE(n >= 100);
+  double expected = 0;
+  index_t elsewhere = 0;  // points whose cheapest depth is not the one given
+  for (index_t i = 0; i < n; ++i) {
+    double best = 1e9, as_given = 0;
+    for (index_t k = 0; k < ranged.depth_candidates; ++k) {
+      const double along = 0.9 + 0.05 * static_cast<double>(k);
+      View one = a;
+      one.point.assign(3, 0.0);
+      for (int c = 0; c < 3; ++c) one.point[static_cast<std::size_t>(c)] = along * a.point[static_cast<std::size_t>(3 * i + c)];
+      one.point_colour.assign(a.point_colour.begin() + 3 * i, a.point_colour.begin() + 3 * i + 3);
+      const double c = geometry::orbit_detail::pair_cost(one, placed[0], b, placed[1], wide);
+      if (c < best) best = c;
+      if (k == 2) as_given = c;
+    }
+    if (best < as_given) ++elsewhere;
+    expected += best;
   }
+  expected /= static_cast<double>(n);
+  INFO("true depth " << exact_wide << ", 5 % off within a 10 % range " << off_ranged << " (from the definition "
+                     << expected << "); " << elsewhere << " of " << n << " points cheapest at another depth");
+  CHECK(off_ranged == Approx(expected).epsilon(1e-12));
+  CHECK(off_ranged <= exact_wide + 1e-3);  // the candidate at 0.95 is the true point
+  CHECK(elsewhere * 10 >= n);
+  // Without a range the candidates are not used.
+  geometry::OrbitSearchConfig more = given;
+  more.depth_candidates = 9;
+  CHECK(cost(scaled, more) == cost(scaled, given));
+
   geometry::OrbitSearchConfig bad;
   bad.depth_range = 0.6;
-  const Views v = render_views(3, orbit, 32);
   std::vector<float> E(static_cast<std::size_t>(12 * v.n));
   CHECK_THROWS_WITH(geometry::cameras_from_orbit_search<float>(E.data(), nullptr, v.foreground.data(), v.depth.data(),
                                                                v.K.data(), v.n, v.size, v.size, bad),
