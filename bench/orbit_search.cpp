@@ -6,7 +6,7 @@
 // Usage: orbit_search [--size 56] [--sets 2] [--seed 7] [--counts 2,3,4,8] [--model M.safetensors]
 //                     [--inputs mmm,rrr,...] [--depth-tolerance 0.03] [--silhouette-px 2] [--colour-weight 0.5]
 //                     [--depth-range 0] [--depth-candidates 5]
-//                     [--depth-blend 0 | --depth-grid N] OBJECT_DIR...
+//                     [--depth-blend 0 | --depth-grid N] [--depth-waves 0] OBJECT_DIR...
 //   e.g. `build/bench/orbit_search ../shared/data/objects/*`
 // --inputs keeps only those input codes (silhouettes, depth, intrinsics from the renderer r or the model m); the other
 // options set the search's OrbitSearchConfig fields of the same names (how tolerant it is of the predictions' errors).
@@ -14,6 +14,8 @@
 // view's scale, so that the inputs with true depth measure the rotation error against the depth's error.
 // --depth-grid N (with --model): the renderer's depth given to the search is its log averaged over each of N x N cells
 // of the view (object pixels), then bilinear between the cells' centres: the depth an N x N token grid could carry.
+// --depth-waves A: the renderer's depth given to the search is then multiplied by 1 + A sin(9.4 x + v) cos(7.5 y + 2 v)
+// (x, y in [0, 1) across view v): smooth relative errors of up to A, as a learned depth's shape errors, known exactly.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -120,6 +122,7 @@ int main(int argc, char** argv) try {
   geometry::OrbitSearchConfig search;
   double blend = 0;
   int grid = 0;
+  double waves = 0;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     const bool more = i + 1 < argc;
@@ -135,6 +138,7 @@ int main(int argc, char** argv) try {
     else if (a == "--colour-weight" && more) search.colour_weight = std::stod(argv[++i]);
     else if (a == "--depth-blend" && more) blend = std::stod(argv[++i]);
     else if (a == "--depth-grid" && more) grid = std::stoi(argv[++i]);
+    else if (a == "--depth-waves" && more) waves = std::stod(argv[++i]);
     else if (a == "--counts" && more) {
       counts.clear();
       std::string s = argv[++i];
@@ -148,11 +152,12 @@ int main(int argc, char** argv) try {
   require(!dirs.empty() && size >= 8 && sets >= 1,
           "usage: orbit_search [--size N] [--sets N] [--seed N] [--counts 2,3,4,8] [--model M.safetensors] "
           "[--inputs mmm,rrr,...] [--depth-tolerance X] [--silhouette-px X] [--colour-weight X] [--depth-range X] "
-          "[--depth-candidates N] [--depth-blend A | --depth-grid N] OBJECT_DIR...");
+          "[--depth-candidates N] [--depth-blend A | --depth-grid N] [--depth-waves A] OBJECT_DIR...");
   require(blend >= 0 && blend <= 1 && (blend == 0 || !model_path.empty()), "orbit_search: --depth-blend ", blend,
           " must be in [0, 1] and needs --model");
   require(grid >= 0 && (grid == 0 || (!model_path.empty() && blend == 0)), "orbit_search: --depth-grid ", grid,
           " must be >= 0, needs --model and excludes --depth-blend");
+  require(waves >= 0 && waves < 1, "orbit_search: --depth-waves ", waves, " must be in [0, 1)");
   std::unique_ptr<model::FlexSplatWeights<float>> w;
   if (!model_path.empty()) {
     w = model::load_flexsplat<float>(model_path);
@@ -175,7 +180,7 @@ int main(int argc, char** argv) try {
             " (the model's codes need --model)");
   }
   std::mt19937 rng(seed);
-  const bool altered = blend > 0 || grid > 0;  // the renderer's depth searched is not the renderer's own
+  const bool altered = blend > 0 || grid > 0 || waves > 0;  // the renderer's depth searched is not the renderer's own
   std::printf("| views | inputs | sets | median error | mean error | within 15° | seconds per set |\n|---|---|---|---|---|---|---|\n");
   std::vector<std::string> quality;
   for (const int n : counts) {
@@ -200,6 +205,8 @@ int main(int argc, char** argv) try {
         Maps pred;
         std::vector<double> sp;     // each view's predicted depth scale to the renderer's
         std::vector<float> filled = truth.depth;  // the renderer's depth where it has one, else the prediction's scaled
+        std::vector<float> gt(truth.depth.size());  // the renderer's depth inside its silhouettes
+        for (std::size_t i = 0; i < gt.size(); ++i) gt[i] = truth.foreground[i] > 0.5f ? truth.depth[i] : 0.f;
         if (w) {
           std::vector<Tensor<float, 3>> rgba;
           for (int v : in) rgba.push_back(image::read_float<float>(rec.frames[static_cast<std::size_t>(v)].image, 4));
@@ -213,8 +220,7 @@ int main(int argc, char** argv) try {
           pred.K.assign(o.intrinsics.data(), o.intrinsics.data() + o.intrinsics.size());
           // The predictions' errors: silhouette IoU, depth after each view's median scale (its shape), the same for a
           // constant depth per view (no shape at all), focal length.
-          std::vector<float> gt(truth.depth.size()), constant(truth.depth.size(), 1.f);
-          for (std::size_t i = 0; i < gt.size(); ++i) gt[i] = truth.foreground[i] > 0.5f ? truth.depth[i] : 0.f;
+          std::vector<float> constant(truth.depth.size(), 1.f);
           sp.resize(static_cast<std::size_t>(n));
           shape += n * loss::depth_scaled_error(pred.depth.data(), gt.data(), n, static_cast<index_t>(px), sp.data());
           flat += n * loss::depth_scaled_error(constant.data(), gt.data(), n, static_cast<index_t>(px));
@@ -238,8 +244,15 @@ int main(int argc, char** argv) try {
                             std::pow(sp[static_cast<std::size_t>(v)] * pred.depth[i], blend)
                       : sp[static_cast<std::size_t>(v)] * pred.depth[i]);
           if (grid > 0) grid_depth(filled, truth, n, size, grid);
-          searched += n * loss::depth_scaled_error(filled.data(), gt.data(), n, static_cast<index_t>(px));
         }
+        if (waves > 0)
+          for (int v = 0; v < n; ++v)
+            for (std::size_t i = v * px; i < (v + 1) * px; ++i) {
+              const double x = static_cast<double>((i - v * px) % static_cast<std::size_t>(size)) / size;
+              const double y = static_cast<double>((i - v * px) / static_cast<std::size_t>(size)) / size;
+              filled[i] *= static_cast<float>(1 + waves * std::sin(9.4 * x + v) * std::cos(7.5 * y + 2 * v));
+            }
+        if (w) searched += n * loss::depth_scaled_error(filled.data(), gt.data(), n, static_cast<index_t>(px));
         for (const auto& source : sources) {
           const std::string &name = source.first, &from = source.second;  // a lambda cannot capture a binding (clang 14)
           auto pick = [&](int k) -> const Maps& { return from[static_cast<std::size_t>(k)] == 'r' ? truth : pred; };
