@@ -82,13 +82,12 @@ TEST_CASE("the point head is a config switch: its tensors appear under VGGT's na
   CHECK(shapes["point_head.scratch.output_conv2.0.weight"][1] == c.geometry.depth.head_features());
   CHECK(shapes["match_head.scratch.image_conv.1.weight"] == std::vector<index_t>{8, 8, 3, 3});
   const auto depth_convs = model::flexsplat_config_from_json(model::to_json(c).dump()).geometry;
-  CHECK(depth_convs.depth_image_convs == 3);
   CHECK(depth_convs.depth.image_convs == 3);
   CHECK(depth_convs.depth.image_width == 8);
   j = model::to_json(c);
   j["geometry"]["depth_image_convs"] = 5;
   CHECK_THROWS_WITH(model::flexsplat_config_from_json(j.dump()), Catch::Contains("'depth_image_convs' = 5"));
-  c.geometry.depth_image_convs = 1;  // a field changed without set_depth_image
+  c.geometry.depth.image_convs = 0;  // the pixels without convolutions: not a head the JSON can name
   CHECK_THROWS_WITH(c.validate(), Catch::Contains("set_depth_image"));
 }
 

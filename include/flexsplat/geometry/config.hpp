@@ -190,14 +190,10 @@ struct VggtConfig {
   // > 0: the pixels pass that many 3x3 convolutions of match_image_width channels first (DptHeadConfig::image_convs).
   index_t match_image_convs = 0;
   index_t match_image_width = 16;
-  // > 0: the depth head also reads the pixels through that many 3x3 convolutions of depth_image_width channels
+  // convs > 0: the depth head also reads the pixels through that many 3x3 convolutions of `width` channels
   // (DptHeadConfig::image_convs): a small model's 8 x 8 tokens leave the depth's shape within a patch to the pixels.
-  // Set into `depth` by set_depth_image(); 0 is VGGT's head.
-  index_t depth_image_convs = 0;
-  index_t depth_image_width = 16;
-
+  // 0 is VGGT's head.
   void set_depth_image(index_t convs, index_t width) {
-    depth_image_convs = convs, depth_image_width = width;
     depth.image_channels = convs > 0 ? 3 : 0;
     depth.image_convs = convs;
     depth.image_width = width;
@@ -240,10 +236,9 @@ struct VggtConfig {
     require(!match_image || match_dim > 0, "VGGT config: match_image needs the match head (match_dim > 0)");
     require(match_image_convs == 0 || match_image, "VGGT config: match_image_convs ", match_image_convs,
             " needs match_image");
-    require(depth.image_convs == depth_image_convs && depth.image_channels == (depth_image_convs > 0 ? 3 : 0) &&
-                (depth_image_convs == 0 || depth.image_width == depth_image_width),
-            "VGGT config: the depth head's image path (", depth.image_channels, " channels, ", depth.image_convs,
-            " convs) differs from depth_image_convs ", depth_image_convs, " (set both with set_depth_image)");
+    require(depth.image_channels == (depth.image_convs > 0 ? 3 : 0),
+            "VGGT config: the depth head reads the pixels only through its convolutions (", depth.image_channels,
+            " channels, ", depth.image_convs, " convs; set both with set_depth_image)");
     if (match_dim > 0) match().validate();
     for (index_t i : depth.intermediate_layer_idx)
       require(i < aggregator.depth, "VGGT config: depth head reads aggregator output ", i, ", depth is ",

@@ -88,9 +88,9 @@ inline nlohmann::json to_json(const geometry::VggtConfig& c) {
     j["match_image_convs"] = c.match_image_convs;
     j["match_image_width"] = c.match_image_width;
   }
-  if (c.depth_image_convs > 0) {
-    j["depth_image_convs"] = c.depth_image_convs;
-    j["depth_image_width"] = c.depth_image_width;
+  if (c.depth.image_convs > 0) {
+    j["depth_image_convs"] = c.depth.image_convs;
+    j["depth_image_width"] = c.depth.image_width;
   }
   return j;
 }
