@@ -415,6 +415,47 @@ TEST_CASE("with the match head, predict takes each view's camera from the view p
   for (int i = 0; i < 12; ++i) CHECK(p.geometry.extrinsics[static_cast<std::size_t>(i)] == o.extrinsics.data()[i]);
 }
 
+TEST_CASE("with camera source orbit, predict places the views by the orbit search on its own silhouettes, depth, "
+          "intrinsics and pixels, the depth trusted to predicted_depth_search's range", "[model][predict]") {
+  auto c = model::flexsplat_tiny_config();
+  c.geometry.match_dim = 4;
+  auto w = model::FlexSplatWeights<float>::create(c, false);
+  w->init(8);
+  const auto e = model::make_train_example<float>(predict_scene(3, 0, 4), c);
+  model::PredictWorkspace<float> ws;
+  ws.cameras = model::CameraSource::orbit_search;
+  CHECK(ws.orbit.depth_range == model::predicted_depth_search().depth_range);
+  CHECK(ws.orbit.depth_range > 0);
+  const auto p = model::predict<float>(ws, *w, e.images.data(), 3);
+  // The same search, by hand, from the geometry stage's outputs.
+  const auto& o = ws.geometry.outputs;
+  std::vector<float> solved(36);
+  bool ok[3];
+  geometry::cameras_from_orbit_search<float>(solved.data(), e.images.data(), o.foreground.data(), o.depth.data(),
+                                             o.intrinsics.data(), 3, c.image_h, c.image_w, model::predicted_depth_search(),
+                                             ok);
+  index_t placed = 0, moved = 0;
+  for (index_t v = 0; v < 3; ++v) {
+    placed += v > 0 && ok[v];
+    for (int i = 0; i < 12; ++i) {
+      CHECK(p.geometry.extrinsics[static_cast<std::size_t>(12 * v + i)] == solved[static_cast<std::size_t>(12 * v + i)]);
+      moved += v > 0 && solved[static_cast<std::size_t>(12 * v + i)] != o.extrinsics.data()[12 * v + i];
+    }
+  }
+  index_t object = 0;
+  for (std::size_t i = 0; i < static_cast<std::size_t>(o.foreground.size()); ++i) object += o.foreground.data()[i] >= 0.5f;
+  INFO("views placed by the search on random weights: " << placed << " (object pixels " << object << " of "
+       << o.foreground.size() << "), entries unlike the camera head's: " << moved);
+  CHECK(placed == 2);
+  CHECK(moved > 0);
+  // A model without the match head has no object probability to search with.
+  auto plain = model::FlexSplatWeights<float>::create(model::flexsplat_tiny_config(), false);
+  plain->init(8);
+  model::PredictWorkspace<float> ws2;
+  ws2.cameras = model::CameraSource::orbit_search;
+  CHECK_THROWS_WITH(model::predict<float>(ws2, *plain, e.images.data(), 3), Catch::Contains("match_dim 0"));
+}
+
 TEST_CASE("input_cameras gives each predicted view's camera at the model's size, named", "[model][predict]") {
   model::Prediction<float> p;
   p.views = 2, p.h = 24, p.w = 32;
