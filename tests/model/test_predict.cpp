@@ -4,6 +4,7 @@
 #include <cstring>
 #include <filesystem>
 #include <limits>
+#include <memory>
 
 #include "flexsplat/data/dataset.hpp"
 #include "flexsplat/model/evaluate.hpp"
@@ -25,6 +26,18 @@ data::SceneSample predict_scene(int inputs, int targets, std::uint64_t seed) {
   o.structured_inputs = false;
   return data::generate_batch(g, 1, seed, 0, o)[0];
 }
+
+// The tiny model with a 4-channel match head on random weights, and a 3-view example at its size.
+struct MatchHeadCase {
+  model::FlexSplatConfig c = [] {
+    auto cfg = model::flexsplat_tiny_config();
+    cfg.geometry.match_dim = 4;
+    return cfg;
+  }();
+  std::unique_ptr<model::FlexSplatWeights<float>> w = model::FlexSplatWeights<float>::create(c, false);
+  model::TrainExample<float> e = model::make_train_example<float>(predict_scene(3, 0, 4), c);
+  MatchHeadCase() { w->init(8); }
+};
 
 template <class A, class B>
 double max_rel_diff(const A* a, const B* b, std::size_t n) {
@@ -388,11 +401,8 @@ TEST_CASE("with VGGT's two frame-token sets and two decoder view slots, reorderi
 
 TEST_CASE("with the match head, predict takes each view's camera from the view pairs' matches when placed and the "
           "camera head's otherwise", "[model][predict]") {
-  auto c = model::flexsplat_tiny_config();
-  c.geometry.match_dim = 4;
-  auto w = model::FlexSplatWeights<float>::create(c, false);
-  w->init(8);
-  const auto e = model::make_train_example<float>(predict_scene(3, 0, 4), c);
+  const MatchHeadCase m;
+  const auto& [c, w, e] = m;
   model::PredictWorkspace<float> ws;
   const auto p = model::predict<float>(ws, *w, e.images.data(), 3);
   REQUIRE(p.camera_matches.size() == 3);
@@ -417,11 +427,8 @@ TEST_CASE("with the match head, predict takes each view's camera from the view p
 
 TEST_CASE("with camera source orbit, predict places the views by the orbit search on its own silhouettes, depth, "
           "intrinsics and pixels, the depth trusted to predicted_depth_search's range", "[model][predict]") {
-  auto c = model::flexsplat_tiny_config();
-  c.geometry.match_dim = 4;
-  auto w = model::FlexSplatWeights<float>::create(c, false);
-  w->init(8);
-  const auto e = model::make_train_example<float>(predict_scene(3, 0, 4), c);
+  const MatchHeadCase m;
+  const auto& [c, w, e] = m;
   model::PredictWorkspace<float> ws;
   ws.cameras = model::CameraSource::orbit_search;
   CHECK(ws.orbit.depth_range == model::predicted_depth_search().depth_range);
