@@ -88,6 +88,8 @@ const RegisterCommand registered_cmd_train(
               "  CFG.json keys (all optional): model (\"tiny\" | \"paper\" | FlexSplat config object), seed, batch (global),\n"
               "  inputs [min, max] views per scene, structured_inputs (false: random views and order, no fixed rig),\n"
               "  curriculum {baseline_deg [start, end], steps}: procedural views within a growing angle of the first,\n"
+              "  procedural {min_primitives, max_primitives, blob_fraction, attached}: the procedural objects (blobs:\n"
+              "  spheres bent by smooth waves; attached: parts on the first part's surface)\n"
               "  targets, gaussians (0: tied to the view count), max_grad_norm, lpips_weights, checkpoint_every,\n"
               "  log_every, validation, stages [{name, steps, lr, warmup, appearance, train_geometry, camera_weight,\n"
               "  depth_weight, point_weight (model.geometry.point_head), match_weight (model.geometry.match_dim),\n"

@@ -74,3 +74,24 @@ TEST_CASE("train config: a count is read from a signed or an unsigned JSON integ
   j["seed"] = 1.5;
   CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("'seed' is 1.5"));
 }
+
+TEST_CASE("train config: procedural sets the procedural objects' family, checked and named in errors", "[train][config]") {
+  const auto plain = model::parse_train_config({{"model", "tiny"}});
+  CHECK(plain.procedural.blob_fraction == 0.0f);  // the defaults keep old recipes' scenes
+  CHECK_FALSE(plain.procedural.attached);
+  nlohmann::json j = {{"model", "tiny"},
+                      {"procedural", {{"blob_fraction", 0.5}, {"attached", true}, {"min_primitives", 2u}, {"max_primitives", 5u}}}};
+  const auto c = model::parse_train_config(j);
+  CHECK(c.procedural.blob_fraction == 0.5f);
+  CHECK(c.procedural.attached);
+  CHECK(c.procedural.min_primitives == 2);
+  CHECK(c.procedural.max_primitives == 5);
+  j["procedural"]["blob_fraction"] = 2;
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("'procedural.blob_fraction' is 2"));
+  j["procedural"]["blob_fraction"] = 0.5;
+  j["procedural"]["min_primitives"] = 7u;
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("'procedural.min_primitives' 7 exceeds"));
+  j["procedural"]["min_primitives"] = 1u;
+  j["procedural"]["limbs"] = 3u;
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("unknown key 'procedural.limbs'"));
+}

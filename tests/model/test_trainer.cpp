@@ -69,4 +69,11 @@ TEST_CASE("run_training resumes exactly and reports its steps", "[model][trainer
   other["seed"] = 12;
   CHECK_THROWS_WITH(model::run_training(other, data, solo, parts), Catch::Contains("holds a run with a different config"));
   CHECK_THROWS_WITH(model::train_data_from({}, cfg), Catch::Contains("no training data"));
+  // The recipe's procedural family reaches the generator (training and validation scenes).
+  model::TrainRunConfig organic = cfg;
+  organic.procedural.blob_fraction = 0.25f;
+  organic.procedural.attached = true;
+  const model::TrainData organic_data = model::train_data_from({"procedural"}, organic);
+  CHECK(organic_data.generator.object.blob_fraction == 0.25f);
+  CHECK(organic_data.generator.object.attached);
 }

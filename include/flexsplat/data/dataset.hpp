@@ -241,9 +241,12 @@ inline MakeDataReport make_dataset(const std::filesystem::path& out, const MakeD
   fs::create_directories(out, ec);
   require(!ec, "make-data: cannot create '", out.string(), "': ", ec.message());
   const GeneratorConfig& g = options.generator;
-  const nlohmann::json settings = {{"seed", options.seed}, {"views", g.views}, {"size", g.size},
-                                   {"structured", g.structured}, {"supersample", g.supersample},
-                                   {"segments", g.object.segments}, {"format", 1}};
+  nlohmann::json settings = {{"seed", options.seed}, {"views", g.views}, {"size", g.size},
+                             {"structured", g.structured}, {"supersample", g.supersample},
+                             {"segments", g.object.segments}, {"format", 1}};
+  // Recorded only when set, so that folders made before these options existed still match.
+  if (g.object.blob_fraction > 0) settings["blob_fraction"] = g.object.blob_fraction;
+  if (g.object.attached) settings["attached"] = true;
   const fs::path manifest = out / "make_data.json";
   if (fs::exists(manifest)) {
     std::ifstream in(manifest);

@@ -20,24 +20,29 @@ namespace flexsplat {
 inline namespace v0 {
 namespace data {
 
-enum class PrimitiveKind : std::uint8_t { box, sphere, cylinder, cone, torus, capsule, plate, swept_tube };
-inline constexpr int kPrimitiveKinds = 8;
+enum class PrimitiveKind : std::uint8_t { box, sphere, cylinder, cone, torus, capsule, plate, swept_tube, blob };
+inline constexpr int kPrimitiveKinds = 9;
+// make_object draws its kinds uniformly from these (box .. swept_tube); blobs come from ObjectConfig::blob_fraction.
+inline constexpr int kSolidKinds = 8;
 
 inline const char* primitive_name(PrimitiveKind kind) {
-  constexpr const char* names[] = {"box", "sphere", "cylinder", "cone", "torus", "capsule", "plate", "swept_tube"};
+  constexpr const char* names[] = {"box",     "sphere", "cylinder", "cone", "torus",
+                                   "capsule", "plate",  "swept_tube", "blob"};
   return names[static_cast<int>(kind)];
 }
 
 // One placed primitive: world = linear * canonical + translation. Canonical shapes fit in [-1, 1]^3:
 // box and plate are [-1, 1]^2 x [-1, 1] / [-t, t]; sphere radius 1; cylinder and cone radius 1 over z in [-1, 1]
 // (cone apex at z = 1); torus and swept tube have tube radius `shape` and reach radius 1; capsule has half-length
-// `shape` between its hemispheres, scaled to fit.
+// `shape` between its hemispheres, scaled to fit; blob is the unit sphere with its radius bent by smooth waves of
+// total amplitude `shape` (drawn from `waves`), scaled to fit.
 struct Primitive {
   PrimitiveKind kind = PrimitiveKind::sphere;
   glm::mat3 linear{1.0f};
   glm::vec3 translation{0.0f};
   float shape = 0.0f;  // torus/tube radius, capsule half-length, plate half-thickness
   float arc = 0.0f;    // swept tube: swept angle in radians
+  std::uint64_t waves = 0;  // blob: seed of its radius waves
   Material material;
 };
 
@@ -46,6 +51,10 @@ struct ObjectConfig {
   int segments = 32;                      // around a circle; meridians get segments / 2
   float min_extent = 0.2f, max_extent = 0.7f;  // per-axis half-size before normalisation
   float placement = 0.55f;                // primitive centres uniform in [-placement, placement]^3
+  // Organic objects, nearer the real meshes than loose unions: the share of primitives that are blobs, and parts
+  // after the first centred near the first one's surface (a body with limbs) instead of anywhere in the cube.
+  float blob_fraction = 0.0f;
+  bool attached = false;
 };
 
 struct ProceduralObject {
@@ -162,6 +171,37 @@ inline Material random_material(Rng& rng, float base_hue) {
   return m;
 }
 
+// A blob's radius over the unit sphere: 1 + sum_k a_k sin(f_k w_k . n + phase_k), the a_k summing to `amplitude`.
+struct BlobWaves {
+  static constexpr int count = 6;
+  std::array<glm::vec3, count> direction{};  // f_k w_k
+  std::array<float, count> amplitude{}, phase{};
+
+  BlobWaves(std::uint64_t seed, float total) {
+    Rng rng(seed);
+    float sum = 0.0f;
+    for (int k = 0; k < count; ++k) {
+      direction[k] = random_unit(rng) * static_cast<float>(rng.uniform(1.0, 3.0));
+      phase[k] = static_cast<float>(rng.uniform(0.0, 2.0 * std::numbers::pi));
+      amplitude[k] = static_cast<float>(rng.uniform(0.2, 1.0));
+      sum += amplitude[k];
+    }
+    for (float& a : amplitude) a *= total / sum;
+  }
+  // The radius at unit direction n and its surface normal (n minus the radius' tangential gradient over the radius).
+  float radius(glm::vec3 n, glm::vec3& normal) const {
+    float r = 1.0f;
+    glm::vec3 grad(0.0f);
+    for (int k = 0; k < count; ++k) {
+      const float x = glm::dot(direction[k], n) + phase[k];
+      r += amplitude[k] * std::sin(x);
+      grad += amplitude[k] * std::cos(x) * direction[k];
+    }
+    normal = glm::normalize(n - (grad - glm::dot(grad, n) * n) / r);
+    return r;
+  }
+};
+
 }  // namespace detail
 
 // Appends one primitive's triangles (canonical shape mapped by prim.linear / prim.translation) with material index
@@ -179,6 +219,16 @@ inline void append_primitive(Mesh& mesh, const Primitive& prim, std::uint32_t ma
         p = n = {std::sin(theta) * std::cos(phi), std::sin(theta) * std::sin(phi), std::cos(theta)};
       });
       break;
+    case PrimitiveKind::blob: {
+      const detail::BlobWaves waves(prim.waves, prim.shape);
+      const float fit = 1.0f / (1.0f + prim.shape);
+      detail::add_grid(mesh, prim, material, rings, segments, [&](float u, float v, glm::vec3& p, glm::vec3& n) {
+        const float phi = 2 * pi * u, theta = pi * v;
+        const glm::vec3 dir(std::sin(theta) * std::cos(phi), std::sin(theta) * std::sin(phi), std::cos(theta));
+        p = fit * waves.radius(dir, n) * dir;
+      });
+      break;
+    }
     case PrimitiveKind::cylinder:
       detail::add_grid(mesh, prim, material, 1, segments, [&](float u, float v, glm::vec3& p, glm::vec3& n) {
         const float phi = 2 * pi * u;
@@ -249,6 +299,8 @@ inline ProceduralObject make_object(std::uint64_t seed, const ObjectConfig& conf
   require(config.min_extent > 0 && config.max_extent >= config.min_extent && config.placement >= 0,
           "ObjectConfig: extents [", config.min_extent, ", ", config.max_extent, "] and placement ", config.placement,
           " must be positive and ordered");
+  require(config.blob_fraction >= 0 && config.blob_fraction <= 1, "ObjectConfig: blob_fraction ", config.blob_fraction,
+          " outside [0, 1]");
   ProceduralObject object;
   object.seed = seed;
   Rng rng(stream_seed(seed, Stream::shape));
@@ -256,16 +308,25 @@ inline ProceduralObject make_object(std::uint64_t seed, const ObjectConfig& conf
   const auto base_hue = static_cast<float>(rng.uniform());
   for (int i = 0; i < count; ++i) {
     Primitive prim;
-    prim.kind = static_cast<PrimitiveKind>(rng.integer(0, kPrimitiveKinds - 1));
+    // Draws only what the config asks for, so that the default objects stay those of earlier releases.
+    const bool blob = config.blob_fraction > 0 && rng.uniform() < config.blob_fraction;
+    prim.kind = blob ? PrimitiveKind::blob : static_cast<PrimitiveKind>(rng.integer(0, kSolidKinds - 1));
     glm::vec3 extent(static_cast<float>(rng.uniform(config.min_extent, config.max_extent)));
     for (int a = 0; a < 3; ++a) extent[a] *= static_cast<float>(rng.uniform(0.6, 1.4));
     if (prim.kind == PrimitiveKind::plate) extent.z = extent.x;  // thickness comes from `shape`
+    if (i > 0 && config.attached) extent *= 0.6f;                  // limbs smaller than the body
     prim.linear = detail::random_rotation(rng) * glm::mat3(glm::vec3(extent.x, 0, 0), glm::vec3(0, extent.y, 0),
                                                           glm::vec3(0, 0, extent.z));
     const float p = config.placement;
-    if (i > 0)
+    if (i > 0 && config.attached)
+      prim.translation = object.primitives[0].linear * (detail::random_unit(rng) * static_cast<float>(rng.uniform(0.6, 1.0)));
+    else if (i > 0)
       prim.translation = {rng.uniform(-p, p), rng.uniform(-p, p), rng.uniform(-p, p)};
     switch (prim.kind) {
+      case PrimitiveKind::blob:
+        prim.shape = static_cast<float>(rng.uniform(0.1, 0.35));
+        prim.waves = rng.next();
+        break;
       case PrimitiveKind::torus: prim.shape = static_cast<float>(rng.uniform(0.12, 0.35)); break;
       case PrimitiveKind::swept_tube:
         prim.shape = static_cast<float>(rng.uniform(0.1, 0.3));

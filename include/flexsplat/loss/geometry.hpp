@@ -309,17 +309,19 @@ void depth_shape_loss_backward(T* d_pred, double d_total, const T* pred, const T
                                index_t images, index_t h, index_t w, index_t min_valid_pixels = 100) {
   require(d_pred && pred && gt && images >= 1 && h >= 1 && w >= 1, "depth shape loss backward: null or empty maps");
   const index_t px = h * w, least = std::max<index_t>(min_valid_pixels, 1);
-  std::vector<std::vector<double>> residuals(static_cast<std::size_t>(images));
+  // An image's residual count is its mask's count (every masked-in pixel is one or an error).
+  auto valid = [&](index_t n) {
+    if (!mask) return px;
+    return static_cast<index_t>(std::count_if(mask + n * px, mask + (n + 1) * px, [](std::uint8_t m) { return m != 0; }));
+  };
   index_t counted = 0;
-  for (index_t n = 0; n < images; ++n) {
-    detail::depth_shape_residuals(residuals[static_cast<std::size_t>(n)], pred, gt, mask, n, px);
-    counted += static_cast<index_t>(residuals[static_cast<std::size_t>(n)].size()) >= least;
-  }
+  for (index_t n = 0; n < images; ++n) counted += valid(n) >= least;
   if (counted == 0) return;
   const double per_image = d_total / static_cast<double>(counted);
+  std::vector<double> r;
   for (index_t n = 0; n < images; ++n) {
-    const std::vector<double>& r = residuals[static_cast<std::size_t>(n)];
-    if (static_cast<index_t>(r.size()) < least) continue;
+    if (valid(n) < least) continue;
+    detail::depth_shape_residuals(r, pred, gt, mask, n, px);
     const double m = static_cast<double>(r.size());
     double mean = 0, mean_sign = 0;
     for (const double x : r) mean += x;

@@ -16,6 +16,7 @@
 #include <nlohmann/json.hpp>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/data/procedural.hpp"
 #include "flexsplat/model/config.hpp"
 #include "flexsplat/model/train.hpp"
 #include "flexsplat/train/optimizer.hpp"
@@ -67,6 +68,7 @@ struct TrainRunConfig {
     const double f = std::min(1.0, static_cast<double>(step) / static_cast<double>(baseline_steps));
     return baseline_deg[0] + f * (baseline_deg[1] - baseline_deg[0]);
   }
+  data::ObjectConfig procedural;  // the procedural objects' family (defaults: the loose unions of earlier recipes)
   index_t gaussians = 0;  // 0: tied to the view count (the model's budget)
   double max_grad_norm = 1.0;
   std::string lpips_weights;
@@ -234,6 +236,17 @@ inline TrainRunConfig parse_train_config(const nlohmann::json& j) {
     for (double d : c.baseline_deg)
       require(d > 0 && d <= 360, "train config: 'curriculum.baseline_deg' entry ", d, " must be in (0, 360]");
     require(!c.structured_inputs, "train config: 'curriculum' needs structured_inputs false (the rig has fixed views)");
+  }
+  if (const nlohmann::json* pr = k.find("procedural")) {
+    detail::Keys pk(*pr, "procedural");
+    data::ObjectConfig& o = c.procedural;
+    o.min_primitives = static_cast<int>(pk.integer("min_primitives", static_cast<std::uint64_t>(o.min_primitives), 1, 64));
+    o.max_primitives = static_cast<int>(pk.integer("max_primitives", static_cast<std::uint64_t>(o.max_primitives), 1, 64));
+    o.blob_fraction = static_cast<float>(pk.number("blob_fraction", o.blob_fraction, 0, 1));
+    o.attached = pk.boolean("attached", o.attached);
+    pk.finish();
+    require(o.min_primitives <= o.max_primitives, "train config: 'procedural.min_primitives' ", o.min_primitives,
+            " exceeds 'procedural.max_primitives' ", o.max_primitives);
   }
   c.gaussians = static_cast<index_t>(k.integer("gaussians", 0, 0, 100000000));
   c.max_grad_norm = k.number("max_grad_norm", 1.0, 0, 1e12);

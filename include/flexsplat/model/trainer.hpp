@@ -72,6 +72,7 @@ inline nlohmann::json read_train_recipe(const std::filesystem::path& path) {
 inline TrainData train_data_from(const std::vector<std::string>& sources, const TrainRunConfig& cfg) {
   require(!sources.empty(), "train: no training data (procedural or object folders)");
   TrainData data;
+  data.generator.object = cfg.procedural;  // also the validation's procedural scenes
   if (sources.size() == 1 && sources[0] == "procedural") {
     data.generator.size = static_cast<int>(cfg.model.image_h);
     data::check_generator(data.generator);
