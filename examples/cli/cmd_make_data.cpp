@@ -81,6 +81,7 @@ int make_data_command(Args args) {
   std::string blobs = "0";
   take_option(args, "--blobs", blobs);
   const bool attached = take_flag(args, "--attached");
+  const bool soft = take_flag(args, "--soft-textures");
   const bool unstructured = take_flag(args, "--no-structured");
   const bool quiet = take_flag(args, "--quiet");
   require(args.empty(), "make-data: unexpected argument '", args.empty() ? "" : args[0], "'");
@@ -94,6 +95,7 @@ int make_data_command(Args args) {
   require(blob_fraction <= 1, "--blobs '", blobs, "' must be at most 1 (the share of parts that are blobs)");
   opt.generator.object.blob_fraction = static_cast<float>(blob_fraction);
   opt.generator.object.attached = attached;
+  opt.generator.object.soft_textures = soft;
   opt.generator.structured = !unstructured;
   opt.seed = parse_seed(seed, "--seed");
 
@@ -128,9 +130,11 @@ int make_data_command(Args args) {
 const RegisterCommand registered_cmd_make_data(
     "make-data", {"render procedural training objects into folders like ../shared/data/objects (resumable)",
                   "--out DIR [--count N=100] [--views V=32] [--size S=256] [--seed X=0] [--supersample 2] "
-                  "[--segments 32] [--blobs F=0] [--attached] [--no-structured] [--quiet] [--grid PNG [--shared DIR]]\n"
+                  "[--segments 32] [--blobs F=0] [--attached] [--soft-textures] [--no-structured] [--quiet]\n"
+                  "  [--grid PNG [--shared DIR]]\n"
                   "  --blobs F: each part is a blob (a sphere bent by smooth waves) with probability F; --attached:\n"
-                  "  parts after the first sit on its surface (organic objects; both off: loose unions of primitives)\n"
+                  "  parts after the first sit on its surface (organic objects; both off: loose unions of primitives);\n"
+                  "  --soft-textures: solid, noise and gradient materials only, without forced contrast\n"
                   "  writes DIR/obj_NNNNNN/{images/NNN.png, depth/NNN.png, cameras.json}; views 0-3 are the structured\n"
                   "  set (elevation 20, azimuth 0/90/180/270) unless --no-structured; existing objects are skipped, each\n"
                   "  object appears atomically; DIR/make_data.json pins the settings a rerun must repeat\n"

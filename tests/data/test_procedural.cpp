@@ -84,3 +84,21 @@ TEST_CASE("procedural objects: blob_fraction and attached draw organic objects, 
   all.blob_fraction = 1.5f;
   CHECK_THROWS_WITH(make_object(5, all), Catch::Contains("blob_fraction 1.5"));
 }
+
+TEST_CASE("procedural objects: soft_textures changes the materials alone", "[data][procedural]") {
+  ObjectConfig soft;
+  soft.soft_textures = true;
+  int noise = 0;
+  for (std::uint64_t seed = 1; seed <= 40; ++seed) {
+    const ProceduralObject a = make_object(seed), b = make_object(seed, soft);
+    REQUIRE(a.primitives.size() == b.primitives.size());
+    CHECK(a.mesh.positions == b.mesh.positions);  // the same draws, so the same shapes and light
+    CHECK(a.light_direction == b.light_direction);
+    for (const Primitive& p : b.primitives) {
+      CHECK(p.material.kind != TextureKind::checker);
+      CHECK(p.material.kind != TextureKind::stripes);
+      noise += p.material.kind == TextureKind::noise;
+    }
+  }
+  CHECK(noise > 20);
+}

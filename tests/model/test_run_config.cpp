@@ -80,10 +80,13 @@ TEST_CASE("train config: procedural sets the procedural objects' family, checked
   CHECK(plain.procedural.blob_fraction == 0.0f);  // the defaults keep old recipes' scenes
   CHECK_FALSE(plain.procedural.attached);
   nlohmann::json j = {{"model", "tiny"},
-                      {"procedural", {{"blob_fraction", 0.5}, {"attached", true}, {"min_primitives", 2u}, {"max_primitives", 5u}}}};
+                      {"procedural", {{"blob_fraction", 0.5}, {"attached", true}, {"soft_textures", true},
+                                      {"min_primitives", 2u}, {"max_primitives", 5u}}}};
   const auto c = model::parse_train_config(j);
   CHECK(c.procedural.blob_fraction == 0.5f);
   CHECK(c.procedural.attached);
+  CHECK(c.procedural.soft_textures);
+  CHECK_FALSE(plain.procedural.soft_textures);
   CHECK(c.procedural.min_primitives == 2);
   CHECK(c.procedural.max_primitives == 5);
   j["procedural"]["blob_fraction"] = 2;

@@ -247,6 +247,7 @@ inline MakeDataReport make_dataset(const std::filesystem::path& out, const MakeD
   // Recorded only when set, so that folders made before these options existed still match.
   if (g.object.blob_fraction > 0) settings["blob_fraction"] = g.object.blob_fraction;
   if (g.object.attached) settings["attached"] = true;
+  if (g.object.soft_textures) settings["soft_textures"] = true;
   const fs::path manifest = out / "make_data.json";
   if (fs::exists(manifest)) {
     std::ifstream in(manifest);

@@ -55,6 +55,7 @@ struct ObjectConfig {
   // after the first centred near the first one's surface (a body with limbs) instead of anywhere in the cube.
   float blob_fraction = 0.0f;
   bool attached = false;
+  bool soft_textures = false;  // no checkers or stripes and no forced contrast, like the real meshes' mottled materials
 };
 
 struct ProceduralObject {
@@ -153,12 +154,17 @@ inline glm::vec3 palette_color(Rng& rng, float base_hue) {
   return hsv_to_rgb(hue, static_cast<float>(rng.uniform(0.2, 0.9)), static_cast<float>(rng.uniform(0.3, 0.95)));
 }
 
-inline Material random_material(Rng& rng, float base_hue) {
+// soft: solid, noise or gradient, with the palette's own contrast (shading, not pattern edges, shows the shape); the
+// same draws as the default, so only the mapping changes.
+inline Material random_material(Rng& rng, float base_hue, bool soft = false) {
   Material m;
-  m.kind = static_cast<TextureKind>(rng.integer(0, 4));
+  const int kind = rng.integer(0, 4);
+  constexpr TextureKind soft_kinds[] = {TextureKind::solid, TextureKind::noise, TextureKind::gradient,
+                                        TextureKind::noise, TextureKind::solid};
+  m.kind = static_cast<TextureKind>(kind);
   m.color0 = palette_color(rng, base_hue);
   m.color1 = palette_color(rng, base_hue);
-  if (glm::length(m.color0 - m.color1) < 0.25f) m.color1 = glm::vec3(1.0f) - 0.8f * m.color0;  // keep patterns visible
+  if (!soft && glm::length(m.color0 - m.color1) < 0.25f) m.color1 = glm::vec3(1.0f) - 0.8f * m.color0;  // keep patterns visible
   m.direction = random_unit(rng);
   m.offset = glm::vec3(rng.uniform(), rng.uniform(), rng.uniform());
   m.noise_seed = static_cast<std::uint32_t>(rng.next());
@@ -167,6 +173,10 @@ inline Material random_material(Rng& rng, float base_hue) {
     case TextureKind::stripes: m.frequency = static_cast<float>(rng.uniform(1.5, 6.0)); break;
     case TextureKind::noise: m.frequency = static_cast<float>(rng.uniform(1.5, 5.0)); break;
     default: m.frequency = 1.0f;
+  }
+  if (soft) {
+    m.kind = soft_kinds[kind];
+    if (m.kind != TextureKind::noise) m.frequency = 1.0f;
   }
   return m;
 }
@@ -336,7 +346,7 @@ inline ProceduralObject make_object(std::uint64_t seed, const ObjectConfig& conf
       case PrimitiveKind::plate: prim.shape = static_cast<float>(rng.uniform(0.03, 0.08)); break;
       default: break;
     }
-    prim.material = detail::random_material(rng, base_hue);
+    prim.material = detail::random_material(rng, base_hue, config.soft_textures);
     object.primitives.push_back(prim);
   }
   for (std::size_t i = 0; i < object.primitives.size(); ++i) {

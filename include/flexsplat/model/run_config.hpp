@@ -244,6 +244,7 @@ inline TrainRunConfig parse_train_config(const nlohmann::json& j) {
     o.max_primitives = static_cast<int>(pk.integer("max_primitives", static_cast<std::uint64_t>(o.max_primitives), 1, 64));
     o.blob_fraction = static_cast<float>(pk.number("blob_fraction", o.blob_fraction, 0, 1));
     o.attached = pk.boolean("attached", o.attached);
+    o.soft_textures = pk.boolean("soft_textures", o.soft_textures);
     pk.finish();
     require(o.min_primitives <= o.max_primitives, "train config: 'procedural.min_primitives' ", o.min_primitives,
             " exceeds 'procedural.max_primitives' ", o.max_primitives);
