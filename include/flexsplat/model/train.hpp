@@ -10,6 +10,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <iterator>
 #include <span>
 #include <vector>
 
@@ -143,6 +144,12 @@ struct StepReport {
   double grad_norm = 0;
   index_t scenes = 0;
 };
+
+// The per-scene parts a step averages over the global batch (summed across ranks in this order).
+inline constexpr double StepReport::*step_report_means[] = {
+    &StepReport::loss,   &StepReport::camera, &StepReport::depth,        &StepReport::rgb_head,
+    &StepReport::render, &StepReport::render_depth, &StepReport::lpips, &StepReport::psnr,
+    &StepReport::points, &StepReport::match,  &StepReport::depth_shape};
 
 template <class T>
 struct SceneWorkspace {
@@ -351,7 +358,7 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   const bool direct = comm.size() == 1 && local.size() == 1;
   ws.scene_grads.resize(direct ? 0 : local.size());
   if (direct) store.zero_grads();
-  constexpr std::size_t fields = 12;
+  constexpr std::size_t means = std::size(step_report_means), fields = means + 1;  // + the scene count
   std::vector<double> values(local.size() * fields);
   for (std::size_t s = 0; s < local.size(); ++s) {
     T* g = direct ? store.grads() : nullptr;
@@ -360,8 +367,9 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
       g = ws.scene_grads[s].data();
     }
     const StepReport r = scene_gradient(ws.scene, w, g, local[s], sc, lpips, times);
-    const double v[fields] = {r.loss, r.camera, r.depth, r.rgb_head, r.render, r.render_depth, r.lpips, r.psnr, r.points, r.match, r.depth_shape, 1.0};
-    std::copy(v, v + fields, values.begin() + static_cast<std::ptrdiff_t>(fields * s));
+    double* v = values.data() + fields * s;
+    for (std::size_t i = 0; i < means; ++i) v[i] = r.*step_report_means[i];
+    v[means] = 1.0;
   }
   PhaseClock clock(times);
   std::vector<const T*> ptrs;
@@ -371,16 +379,14 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   for (std::size_t s = 0; s < local.size(); ++s) vptrs.push_back(values.data() + fields * s);
   double totals[fields];
   train::ordered_sum<double>(comm, totals, fields, vptrs);
-  require(static_cast<index_t>(totals[11]) == global_batch, "train_step: the ranks hold ", totals[11],
+  require(static_cast<index_t>(totals[means]) == global_batch, "train_step: the ranks hold ", totals[means],
           " scenes, the global batch is ", global_batch);
   const T inv = static_cast<T>(1.0 / static_cast<double>(global_batch));
   T* grads = store.grads();
   for (index_t i = 0; i < n; ++i) grads[i] *= inv;
   StepReport r;
   const double ib = 1.0 / static_cast<double>(global_batch);
-  r.loss = totals[0] * ib, r.camera = totals[1] * ib, r.depth = totals[2] * ib, r.rgb_head = totals[3] * ib;
-  r.render = totals[4] * ib, r.render_depth = totals[5] * ib, r.lpips = totals[6] * ib, r.psnr = totals[7] * ib;
-  r.points = totals[8] * ib, r.match = totals[9] * ib, r.depth_shape = totals[10] * ib;
+  for (std::size_t i = 0; i < means; ++i) r.*step_report_means[i] = totals[i] * ib;
   r.scenes = global_batch;
   r.grad_norm = sc.max_grad_norm > 0 ? train::clip_grad_norm(store, sc.max_grad_norm) : train::grad_norm(store);
   train::adamw_step(store, sc.adamw, lr, step + 1);
