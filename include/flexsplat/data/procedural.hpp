@@ -21,8 +21,8 @@ inline namespace v0 {
 namespace data {
 
 enum class PrimitiveKind : std::uint8_t { box, sphere, cylinder, cone, torus, capsule, plate, swept_tube, blob };
-inline constexpr int kPrimitiveKinds = 9;
-// make_object draws its kinds uniformly from these (box .. swept_tube); blobs come from ObjectConfig::blob_fraction.
+// make_object draws its kinds uniformly from the first 8 (box .. swept_tube); blobs come from
+// ObjectConfig::blob_fraction.
 inline constexpr int kSolidKinds = 8;
 
 inline const char* primitive_name(PrimitiveKind kind) {
@@ -181,7 +181,7 @@ inline Material random_material(Rng& rng, float base_hue, bool soft = false) {
   return m;
 }
 
-// A blob's radius over the unit sphere: 1 + sum_k a_k sin(f_k w_k . n + phase_k), the a_k summing to `amplitude`.
+// A blob's radius over the unit sphere: 1 + sum_k a_k sin(f_k w_k . n + phase_k), the a_k summing to `total`.
 struct BlobWaves {
   static constexpr int count = 6;
   std::array<glm::vec3, count> direction{};  // f_k w_k
