@@ -147,6 +147,16 @@ TEST_CASE("make_dataset writes folders the reader loads back, and resumes", "[da
   CHECK_THROWS_WITH(make_dataset(dir.path, opt), Catch::Contains("make_data.json") && Catch::Contains("different settings"));
 }
 
+TEST_CASE("make_dataset refuses an object config make_object cannot follow before it writes anything", "[data]") {
+  TempDir dir("make_bad");
+  MakeDataOptions opt;
+  opt.count = 1;
+  opt.generator = tiny_config(5);
+  opt.generator.object.blob_fraction = 2.0f;
+  CHECK_THROWS_WITH(make_dataset(dir.path / "out", opt), Catch::Contains("blob_fraction 2 outside [0, 1]"));
+  CHECK_FALSE(fs::exists(dir.path / "out"));
+}
+
 TEST_CASE("the reader rejects each kind of corrupted folder and names the file", "[data]") {
   TempDir dir("corrupt");
   const fs::path good = make_one_object(dir.path / "src");

@@ -66,6 +66,7 @@ inline void check_generator(const GeneratorConfig& cfg) {
   require(cfg.size >= 8 && cfg.size <= 4096, "generator: size ", cfg.size, " outside [8, 4096]");
   require(cfg.views >= 1 && cfg.views <= 1000, "generator: views ", cfg.views, " outside [1, 1000]");
   check_ranges(cfg.orbit);
+  check_object_config(cfg.object);
 }
 
 // Seed of object `index` of the dataset with seed `seed`.

@@ -181,6 +181,12 @@ inline Material random_material(Rng& rng, float base_hue, bool soft = false) {
   return m;
 }
 
+// The unit sphere's point at grid coordinates (u, v) in [0, 1]^2: longitude 2 pi u, colatitude pi v.
+inline glm::vec3 unit_sphere_point(float u, float v) {
+  const float phi = 2 * std::numbers::pi_v<float> * u, theta = std::numbers::pi_v<float> * v;
+  return {std::sin(theta) * std::cos(phi), std::sin(theta) * std::sin(phi), std::cos(theta)};
+}
+
 // A blob's radius over the unit sphere: 1 + sum_k a_k sin(f_k w_k . n + phase_k), the a_k summing to `total`.
 struct BlobWaves {
   static constexpr int count = 6;
@@ -225,16 +231,14 @@ inline void append_primitive(Mesh& mesh, const Primitive& prim, std::uint32_t ma
     case PrimitiveKind::plate: detail::add_box(mesh, prim, material, glm::vec3(1.0f, 1.0f, prim.shape)); break;
     case PrimitiveKind::sphere:
       detail::add_grid(mesh, prim, material, rings, segments, [&](float u, float v, glm::vec3& p, glm::vec3& n) {
-        const float phi = 2 * pi * u, theta = pi * v;
-        p = n = {std::sin(theta) * std::cos(phi), std::sin(theta) * std::sin(phi), std::cos(theta)};
+        p = n = detail::unit_sphere_point(u, v);
       });
       break;
     case PrimitiveKind::blob: {
       const detail::BlobWaves waves(prim.waves, prim.shape);
       const float fit = 1.0f / (1.0f + prim.shape);
       detail::add_grid(mesh, prim, material, rings, segments, [&](float u, float v, glm::vec3& p, glm::vec3& n) {
-        const float phi = 2 * pi * u, theta = pi * v;
-        const glm::vec3 dir(std::sin(theta) * std::cos(phi), std::sin(theta) * std::sin(phi), std::cos(theta));
+        const glm::vec3 dir = detail::unit_sphere_point(u, v);
         p = fit * waves.radius(dir, n) * dir;
       });
       break;
@@ -300,9 +304,8 @@ inline void append_primitive(Mesh& mesh, const Primitive& prim, std::uint32_t ma
   }
 }
 
-// The object for `seed`: primitives, their mesh (normalised so the bounding sphere about the bounding-box centre has
-// radius 1) and the object's light.
-inline ProceduralObject make_object(std::uint64_t seed, const ObjectConfig& config = {}) {
+// Refuses an ObjectConfig make_object cannot follow, naming the field and value.
+inline void check_object_config(const ObjectConfig& config) {
   require(config.min_primitives >= 1 && config.max_primitives >= config.min_primitives && config.max_primitives <= 64,
           "ObjectConfig: primitive count range [", config.min_primitives, ", ", config.max_primitives,
           "] must satisfy 1 <= min <= max <= 64");
@@ -311,6 +314,12 @@ inline ProceduralObject make_object(std::uint64_t seed, const ObjectConfig& conf
           " must be positive and ordered");
   require(config.blob_fraction >= 0 && config.blob_fraction <= 1, "ObjectConfig: blob_fraction ", config.blob_fraction,
           " outside [0, 1]");
+}
+
+// The object for `seed`: primitives, their mesh (normalised so the bounding sphere about the bounding-box centre has
+// radius 1) and the object's light.
+inline ProceduralObject make_object(std::uint64_t seed, const ObjectConfig& config = {}) {
+  check_object_config(config);
   ProceduralObject object;
   object.seed = seed;
   Rng rng(stream_seed(seed, Stream::shape));
