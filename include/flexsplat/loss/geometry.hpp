@@ -320,8 +320,8 @@ void depth_shape_loss_backward(T* d_pred, double d_total, const T* pred, const T
   const double per_image = d_total / static_cast<double>(counted);
   std::vector<double> r;
   for (index_t n = 0; n < images; ++n) {
-    if (valid(n) < least) continue;
     detail::depth_shape_residuals(r, pred, gt, mask, n, px);
+    if (static_cast<index_t>(r.size()) < least) continue;
     const double m = static_cast<double>(r.size());
     double mean = 0, mean_sign = 0;
     for (const double x : r) mean += x;
