@@ -5,7 +5,7 @@
 // renderer's in turn (which prediction limits the search), and the predictions' errors.
 // Usage: orbit_search [--size 56] [--sets 2] [--seed 7] [--counts 2,3,4,8] [--model M.safetensors]
 //                     [--inputs mmm,rrr,...] [--depth-tolerance 0.03] [--silhouette-px 2] [--colour-weight 0.5]
-//                     [--depth-range 0] [--depth-candidates 5]
+//                     [--descriptor-weight 0 (with --model: its match head's descriptors)] [--depth-range 0] [--depth-candidates 5]
 //                     [--depth-blend 0 | --depth-grid N] [--depth-waves 0] OBJECT_DIR...
 //   e.g. `build/bench/orbit_search ../shared/data/objects/*`
 // --inputs keeps only those input codes (silhouettes, depth, intrinsics from the renderer r or the model m); the other
@@ -136,6 +136,7 @@ int main(int argc, char** argv) try {
     else if (a == "--depth-candidates" && more) search.depth_candidates = std::stoll(argv[++i]);
     else if (a == "--silhouette-px" && more) search.silhouette_px = std::stod(argv[++i]);
     else if (a == "--colour-weight" && more) search.colour_weight = std::stod(argv[++i]);
+    else if (a == "--descriptor-weight" && more) search.descriptor_weight = std::stod(argv[++i]);
     else if (a == "--depth-blend" && more) blend = std::stod(argv[++i]);
     else if (a == "--depth-grid" && more) grid = std::stoi(argv[++i]);
     else if (a == "--depth-waves" && more) waves = std::stod(argv[++i]);
@@ -151,7 +152,8 @@ int main(int argc, char** argv) try {
   }
   require(!dirs.empty() && size >= 8 && sets >= 1,
           "usage: orbit_search [--size N] [--sets N] [--seed N] [--counts 2,3,4,8] [--model M.safetensors] "
-          "[--inputs mmm,rrr,...] [--depth-tolerance X] [--silhouette-px X] [--colour-weight X] [--depth-range X] "
+          "[--inputs mmm,rrr,...] [--depth-tolerance X] [--silhouette-px X] [--colour-weight X] [--descriptor-weight X] "
+          "[--depth-range X] "
           "[--depth-candidates N] [--depth-blend A | --depth-grid N] [--depth-waves A] OBJECT_DIR...");
   require(blend >= 0 && blend <= 1 && (blend == 0 || !model_path.empty()), "orbit_search: --depth-blend ", blend,
           " must be in [0, 1] and needs --model");
@@ -203,6 +205,7 @@ int main(int argc, char** argv) try {
         for (std::size_t v = 0; v < static_cast<std::size_t>(n); ++v)
           image::hwc_to_chw(images.data() + v * 3 * px, pv.photos.images.data() + v * 3 * px, size, size);
         Maps pred;
+        std::vector<float> descriptors;  // the model's [n, size, size, match_dim]
         std::vector<double> sp;     // each view's predicted depth scale to the renderer's
         std::vector<float> filled = truth.depth;  // the renderer's depth where it has one, else the prediction's scaled
         std::vector<float> gt(truth.depth.size());  // the renderer's depth inside its silhouettes
@@ -218,6 +221,7 @@ int main(int argc, char** argv) try {
           pred.foreground.assign(o.foreground.data(), o.foreground.data() + o.foreground.size());
           pred.depth.assign(o.depth.data(), o.depth.data() + o.depth.size());
           pred.K.assign(o.intrinsics.data(), o.intrinsics.data() + o.intrinsics.size());
+          descriptors.assign(o.descriptors.data(), o.descriptors.data() + o.descriptors.size());
           // The predictions' errors: silhouette IoU, depth after each view's median scale (its shape), the same for a
           // constant depth per view (no shape at all), focal length.
           std::vector<float> constant(truth.depth.size(), 1.f);
@@ -260,7 +264,9 @@ int main(int argc, char** argv) try {
           const auto t0 = std::chrono::steady_clock::now();
           const float* depth = from[1] == 'r' ? filled.data() : pred.depth.data();
           geometry::cameras_from_orbit_search<float>(E.data(), images.data(), pick(0).foreground.data(), depth,
-                                                     pick(2).K.data(), n, size, size, search);
+                                                     pick(2).K.data(), n, size, size, search, nullptr, nullptr,
+                                                     {descriptors.empty() ? nullptr : descriptors.data(),
+                                                      w ? w->config().geometry.match_dim : 0});
           errors[name].seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
           const std::vector<double> p(E.begin(), E.end()), gt(pv.w2c.begin(), pv.w2c.end());
           double e = 0;

@@ -440,7 +440,7 @@ TEST_CASE("with camera source orbit, predict places the views by the orbit searc
   bool ok[3];
   geometry::cameras_from_orbit_search<float>(solved.data(), e.images.data(), o.foreground.data(), o.depth.data(),
                                              o.intrinsics.data(), 3, c.image_h, c.image_w, model::predicted_depth_search(),
-                                             ok);
+                                             ok, nullptr, {o.descriptors.data(), c.geometry.match_dim});
   index_t placed = 0, moved = 0;
   for (index_t v = 0; v < 3; ++v) {
     placed += v > 0 && ok[v];

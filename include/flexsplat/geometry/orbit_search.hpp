@@ -33,6 +33,11 @@ struct OrbitSearchConfig {
   double depth_tolerance = 0.03;    // relative depth within which two views see the same surface point
   double occluded_cost = 0.1;       // a point hidden behind another view's surface (explains nothing)
   double colour_weight = 0.5;       // cost of a colour difference of 1 (per channel mean) on a shared surface point
+  // With OrbitDescriptors given, a shared surface point earns this times log(N p) / log N clamped to [-1, 1], p the
+  // softmax over the other view's N object pixels of cos / descriptor_temperature at the pixel it lands on: a match
+  // head's own likelihood against a uniform guess, evidence for a placement and against it.
+  double descriptor_weight = 0;
+  double descriptor_temperature = 0.1;  // loss/match.hpp's default
   // > 0: every sampled point may lie anywhere within this relative range of its depth along its ray (depth_candidates
   // evenly spaced depths, the cheapest counts) and the other view's surface is as uncertain (its tolerance grows by
   // the range): predicted depth is trusted to a range, the views' silhouettes, surfaces and colours choose within it
@@ -51,6 +56,13 @@ struct OrbitSearchConfig {
   double refine_step_distance = 0.04;  // its first relative distance step
 };
 
+// Per-pixel descriptors [S, H, W, dim] (a match head's): shared surface points should have similar ones.
+template <class T>
+struct OrbitDescriptors {
+  const T* data = nullptr;
+  index_t dim = 0;
+};
+
 // One view's orbit parameters (radians; distance in depth units).
 struct OrbitPose {
   double elevation = 0, azimuth = 0, roll = 0, distance = 1;
@@ -67,6 +79,11 @@ struct View {
   std::vector<float> colour;        // [h * w * 3] (empty without images)
   std::vector<double> point;        // sampled object pixels in the camera frame [n, 3]
   std::vector<float> point_colour;  // [n, 3] (empty without images)
+  index_t dim = 0;                  // descriptor width (0: none)
+  std::vector<float> descriptor;    // [h * w, dim] unit length (zero where a descriptor is zero or not finite)
+  std::vector<float> point_descriptor;  // [n, dim]
+  index_t slot = 0;                 // position among the searched views
+  std::vector<std::vector<float>> reward;  // [other view's slot][n * its h * w] (empty without descriptors)
   double distance = 1;              // from the camera to the orbit centre along the optical axis
 };
 
@@ -133,6 +150,10 @@ inline double pair_cost(const View& a, const Placed& pa, const View& b, const Pl
   const glm::dmat3 M = pb.R * glm::transpose(pa.R);
   const glm::dvec3 m = pb.t - M * pa.t;
   const bool colours = !a.point_colour.empty() && !b.colour.empty() && cfg.colour_weight > 0;
+  const float* reward = static_cast<std::size_t>(b.slot) < a.reward.size() && !a.reward[static_cast<std::size_t>(b.slot)].empty()
+                           ? a.reward[static_cast<std::size_t>(b.slot)].data()
+                           : nullptr;
+  const double floor = reward ? -cfg.descriptor_weight : 0;  // the cheapest a point can be
   // Cost of view a's point i placed at Y in view b's frame.
   auto point_cost = [&](index_t i, const glm::dvec3& Y) -> double {
     if (!(Y.z > 1e-9)) return 1;
@@ -146,12 +167,16 @@ inline double pair_cost(const View& a, const Placed& pa, const View& b, const Pl
     const double z = static_cast<double>(b.depth[pix]), tol = (cfg.depth_tolerance + cfg.depth_range) * z;
     if (Y.z < z - tol) return std::min((z - tol - Y.z) / tol, 1.0);  // free space of view b holds a surface point
     if (Y.z > z + tol) return cfg.occluded_cost;
-    if (!colours) return 0;
-    double diff = 0;
-    for (int k = 0; k < 3; ++k)
-      diff += std::abs(static_cast<double>(a.point_colour[static_cast<std::size_t>(3 * i + k)]) -
-                       static_cast<double>(b.colour[3 * pix + static_cast<std::size_t>(k)]));
-    return cfg.colour_weight * diff / 3;
+    double c = 0;
+    if (colours) {
+      double diff = 0;
+      for (int k = 0; k < 3; ++k)
+        diff += std::abs(static_cast<double>(a.point_colour[static_cast<std::size_t>(3 * i + k)]) -
+                         static_cast<double>(b.colour[3 * pix + static_cast<std::size_t>(k)]));
+      c += cfg.colour_weight * diff / 3;
+    }
+    if (reward) c -= cfg.descriptor_weight * static_cast<double>(reward[static_cast<std::size_t>(i * b.h * b.w) + pix]);
+    return c;
   };
   const index_t candidates = cfg.depth_range > 0 ? cfg.depth_candidates : 1;
   double sum = 0;
@@ -159,7 +184,7 @@ inline double pair_cost(const View& a, const Placed& pa, const View& b, const Pl
     const glm::dvec3 X(a.point[static_cast<std::size_t>(3 * i)], a.point[static_cast<std::size_t>(3 * i + 1)],
                        a.point[static_cast<std::size_t>(3 * i + 2)]);
     double best = std::numeric_limits<double>::infinity();
-    for (index_t k = 0; k < candidates && best > 0; ++k) {
+    for (index_t k = 0; k < candidates && best > floor; ++k) {
       const double along = candidates == 1 ? 1.0
                                            : 1.0 + cfg.depth_range * (2.0 * static_cast<double>(k) /
                                                                           static_cast<double>(candidates - 1) - 1.0);
@@ -186,7 +211,7 @@ inline double view_cost(const std::vector<View>& views, const std::vector<Placed
 // pixels.
 template <class T>
 bool prepare_view(View& v, const T* images, const T* foreground, const T* depth, const T* intrinsics, index_t f,
-                  index_t height, index_t width, const OrbitSearchConfig& cfg) {
+                  index_t height, index_t width, const OrbitSearchConfig& cfg, const OrbitDescriptors<T>& desc = {}) {
   const index_t px = height * width;
   v.h = height, v.w = width;
   const T* K = intrinsics + 9 * f;
@@ -207,6 +232,20 @@ bool prepare_view(View& v, const T* images, const T* foreground, const T* depth,
     for (index_t p = 0; p < px; ++p)
       for (index_t k = 0; k < 3; ++k)
         v.colour[static_cast<std::size_t>(3 * p + k)] = static_cast<float>(images[(f * 3 + k) * px + p]);
+  }
+  if (desc.data && desc.dim > 0) {
+    const std::size_t D = static_cast<std::size_t>(desc.dim);
+    v.dim = desc.dim;
+    v.descriptor.assign(static_cast<std::size_t>(px) * D, 0.f);
+    for (index_t p = 0; p < px; ++p) {
+      const T* d = desc.data + static_cast<std::size_t>(f * px + p) * D;
+      double n2 = 0;
+      for (std::size_t k = 0; k < D; ++k) n2 += static_cast<double>(d[k]) * static_cast<double>(d[k]);
+      if (!(n2 > 0) || !std::isfinite(n2)) continue;
+      const double inv = 1 / std::sqrt(n2);
+      for (std::size_t k = 0; k < D; ++k)
+        v.descriptor[static_cast<std::size_t>(p) * D + k] = static_cast<float>(static_cast<double>(d[k]) * inv);
+    }
   }
   if (count == 0) return false;
   chamfer_outside(v);
@@ -235,8 +274,40 @@ bool prepare_view(View& v, const T* images, const T* foreground, const T* depth,
     v.point.insert(v.point.end(), {(u - v.cx) / v.fx * z, (vv - v.cy) / v.fy * z, z});
     if (images)
       for (index_t k = 0; k < 3; ++k) v.point_colour.push_back(v.colour[static_cast<std::size_t>(3 * p + k)]);
+    if (v.dim > 0)
+      v.point_descriptor.insert(v.point_descriptor.end(), v.descriptor.begin() + static_cast<std::ptrdiff_t>(p * v.dim),
+                                v.descriptor.begin() + static_cast<std::ptrdiff_t>((p + 1) * v.dim));
   }
   return true;
+}
+
+// out [n_a * h_b * w_b]: for each of view a's sampled points and each object pixel of view b, log(N p) / log N clamped
+// to [-1, 1], p the softmax of the unit descriptors' cosines / temperature over b's N object pixels (0 elsewhere).
+inline void descriptor_rewards(const View& a, const View& b, double temperature, std::vector<float>& out) {
+  const index_t n = static_cast<index_t>(a.point.size() / 3), px = b.h * b.w, D = a.dim;
+  out.assign(static_cast<std::size_t>(n * px), 0.f);
+  std::vector<index_t> object;
+  for (index_t p = 0; p < px; ++p)
+    if (b.mask[static_cast<std::size_t>(p)]) object.push_back(p);
+  if (object.size() < 2) return;
+  const double log_n = std::log(static_cast<double>(object.size()));
+  std::vector<double> s(object.size());
+  for (index_t i = 0; i < n; ++i) {
+    const float* da = a.point_descriptor.data() + static_cast<std::size_t>(i * D);
+    double top = -std::numeric_limits<double>::infinity();
+    for (std::size_t k = 0; k < object.size(); ++k) {
+      const float* db = b.descriptor.data() + static_cast<std::size_t>(object[k] * D);
+      double dot = 0;
+      for (index_t d = 0; d < D; ++d) dot += static_cast<double>(da[d]) * static_cast<double>(db[d]);
+      s[k] = dot / temperature, top = std::max(top, s[k]);
+    }
+    double sum = 0;
+    for (double x : s) sum += std::exp(x - top);
+    const double lse = top + std::log(sum);
+    float* row = out.data() + static_cast<std::size_t>(i * px);
+    for (std::size_t k = 0; k < object.size(); ++k)
+      row[object[k]] = static_cast<float>(std::clamp((s[k] - lse + log_n) / log_n, -1.0, 1.0));
+  }
 }
 
 // Sum of every ordered pair's cost.
@@ -254,26 +325,32 @@ inline double total_cost(const std::vector<View>& views, const std::vector<Place
 // colour. images [S, 3, H, W] in [0, 1] (may be null: no colour term); foreground, depth [S, H, W]; intrinsics
 // [S, 3, 3] with pixel (u, v) at integer coordinates (geometry/unproject.hpp). Views without object pixels keep
 // [I | 0] and a false entry in `solved` (may be null, [S]). cost_out (may be null): the final total cost.
+// descriptors (optional): a descriptor term beside the colour's.
 template <class T>
 void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foreground, const T* depth, const T* intrinsics,
                                index_t frames, index_t height, index_t width, const OrbitSearchConfig& cfg = {},
-                               bool* solved = nullptr, double* cost_out = nullptr) {
+                               bool* solved = nullptr, double* cost_out = nullptr,
+                               const OrbitDescriptors<T>& descriptors = {}) {
   using namespace orbit_detail;
   require(frames >= 1 && height >= 1 && width >= 1, "cameras_from_orbit_search: empty maps (", frames, " x ", height,
           " x ", width, ")");
   require(cfg.samples >= 1 && cfg.elevation_step_deg > 0 && cfg.azimuth_step_deg > 0 && cfg.silhouette_px > 0 &&
               cfg.depth_tolerance > 0 && cfg.depth_range >= 0 && cfg.depth_range < 0.5 && cfg.depth_candidates >= 2 &&
+              cfg.colour_weight >= 0 && cfg.descriptor_weight >= 0 && cfg.descriptor_temperature > 0 &&
+              descriptors.dim >= 0 &&
               cfg.elevation_max_deg >= cfg.elevation_min_deg &&
               cfg.elevation_max_deg < 89 && cfg.elevation_min_deg > -89,
           "cameras_from_orbit_search: invalid config (samples ", cfg.samples, ", steps ", cfg.elevation_step_deg, " / ",
           cfg.azimuth_step_deg, " deg, elevations ", cfg.elevation_min_deg, " .. ", cfg.elevation_max_deg,
-          ", depth range ", cfg.depth_range, " in [0, 0.5) with ", cfg.depth_candidates, " >= 2 candidates)");
+          ", depth range ", cfg.depth_range, " in [0, 0.5) with ", cfg.depth_candidates, " >= 2 candidates, colour and "
+          "descriptor weights ", cfg.colour_weight, ", ", cfg.descriptor_weight, " >= 0, descriptor temperature ",
+          cfg.descriptor_temperature, " > 0, descriptor width ", descriptors.dim, ")");
   const double deg = std::numbers::pi / 180;
   std::vector<View> views(static_cast<std::size_t>(frames));
   std::vector<bool> usable(static_cast<std::size_t>(frames), false);
   for (index_t f = 0; f < frames; ++f)
     usable[static_cast<std::size_t>(f)] = prepare_view(views[static_cast<std::size_t>(f)], images, foreground, depth,
-                                                       intrinsics, f, height, width, cfg);
+                                                       intrinsics, f, height, width, cfg, descriptors);
   if (solved)
     for (index_t f = 0; f < frames; ++f) solved[f] = f == 0 || (usable[0] && usable[static_cast<std::size_t>(f)]);
   for (index_t f = 0; f < frames; ++f)
@@ -289,6 +366,13 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
   std::vector<View> act;
   for (index_t f : active) act.push_back(views[static_cast<std::size_t>(f)]);
   const index_t A = static_cast<index_t>(act.size());
+  for (index_t a = 0; a < A; ++a) act[static_cast<std::size_t>(a)].slot = a;
+  if (descriptors.data && descriptors.dim > 0 && cfg.descriptor_weight > 0)
+    for (View& a : act) {
+      a.reward.resize(static_cast<std::size_t>(A));
+      for (const View& b : act)
+        if (&a != &b) descriptor_rewards(a, b, cfg.descriptor_temperature, a.reward[static_cast<std::size_t>(b.slot)]);
+    }
   std::vector<double> elevations, azimuths;
   for (double e = cfg.elevation_min_deg; e <= cfg.elevation_max_deg + 1e-9; e += cfg.elevation_step_deg) elevations.push_back(e * deg);
   for (double a = 0; a < 360 - 1e-9; a += cfg.azimuth_step_deg) azimuths.push_back(a * deg);

@@ -69,10 +69,11 @@ inline CameraSource parse_camera_source(const std::string& s) {
 }
 
 // The orbit search on a model's predicted depth, whose shape is off by about 6 % (docs/evaluation.md): each point is
-// placed within 10 % of its predicted depth.
+// placed within 10 % of its predicted depth, and the match head's descriptors weigh each placement.
 inline geometry::OrbitSearchConfig predicted_depth_search() {
   geometry::OrbitSearchConfig c;
   c.depth_range = 0.1;
+  c.descriptor_weight = 0.5;
   return c;
 }
 
@@ -164,7 +165,8 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
     const auto& o = ws.geometry.outputs;
     std::vector<T> solved(static_cast<std::size_t>(12 * views));
     geometry::cameras_from_orbit_search<T>(solved.data(), images, o.foreground.data(), o.depth.data(), o.intrinsics.data(),
-                                           views, h, wd, ws.orbit);
+                                           views, h, wd, ws.orbit, nullptr, nullptr,
+                                           {o.descriptors.data(), c.geometry.match_dim});
     std::copy(solved.begin(), solved.end(), ws.geometry.result.extrinsics.begin());
   }
   if (before_decoder) before_decoder(ws.geometry.result);
