@@ -6,7 +6,7 @@
 // Usage: orbit_search [--size 56] [--sets 2] [--seed 7] [--counts 2,3,4,8] [--model M.safetensors]
 //                     [--inputs mmm,rrr,...] [--depth-tolerance 0.03] [--silhouette-px 2] [--colour-weight 0.5]
 //                     [--descriptor-weight 0 (with --model: its match head's descriptors)]
-//                     [--descriptor-temperature 0.1] [--depth-range 0] [--depth-candidates 5]
+//                     [--descriptor-temperature 0.1] [--occluded-cost 0.1] [--samples 256] [--depth-range 0] [--depth-candidates 5]
 //                     [--depth-blend 0 | --depth-grid N] [--depth-waves 0] OBJECT_DIR...
 //   e.g. `build/bench/orbit_search ../shared/data/objects/*`
 // --inputs keeps only those input codes (silhouettes, depth, intrinsics from the renderer r or the model m); the other
@@ -139,6 +139,8 @@ int main(int argc, char** argv) try {
     else if (a == "--colour-weight" && more) search.colour_weight = std::stod(argv[++i]);
     else if (a == "--descriptor-weight" && more) search.descriptor_weight = std::stod(argv[++i]);
     else if (a == "--descriptor-temperature" && more) search.descriptor_temperature = std::stod(argv[++i]);
+    else if (a == "--occluded-cost" && more) search.occluded_cost = std::stod(argv[++i]);
+    else if (a == "--samples" && more) search.samples = std::stoll(argv[++i]);
     else if (a == "--depth-blend" && more) blend = std::stod(argv[++i]);
     else if (a == "--depth-grid" && more) grid = std::stoi(argv[++i]);
     else if (a == "--depth-waves" && more) waves = std::stod(argv[++i]);
@@ -155,7 +157,7 @@ int main(int argc, char** argv) try {
   require(!dirs.empty() && size >= 8 && sets >= 1,
           "usage: orbit_search [--size N] [--sets N] [--seed N] [--counts 2,3,4,8] [--model M.safetensors] "
           "[--inputs mmm,rrr,...] [--depth-tolerance X] [--silhouette-px X] [--colour-weight X] [--descriptor-weight X] "
-          "[--descriptor-temperature X] [--depth-range X] "
+          "[--descriptor-temperature X] [--occluded-cost X] [--samples N] [--depth-range X] "
           "[--depth-candidates N] [--depth-blend A | --depth-grid N] [--depth-waves A] OBJECT_DIR...");
   require(blend >= 0 && blend <= 1 && (blend == 0 || !model_path.empty()), "orbit_search: --depth-blend ", blend,
           " must be in [0, 1] and needs --model");
