@@ -83,7 +83,10 @@ struct View {
   std::vector<float> descriptor;    // [h * w, dim] unit length (zero where a descriptor is zero or not finite)
   std::vector<float> point_descriptor;  // [n, dim]
   index_t slot = 0;                 // position among the searched views
-  std::vector<std::vector<float>> reward;  // [other view's slot][n * its h * w] (empty without descriptors)
+  // [other view's slot][n]: log of the sum over its object pixels of exp(cos / temperature), per sampled point (empty
+  // without descriptors)
+  std::vector<std::vector<double>> log_sum;
+  double log_objects = 0;           // log of the number of object pixels
   double distance = 1;              // from the camera to the orbit centre along the optical axis
 };
 
@@ -143,6 +146,40 @@ inline Placed place(const OrbitPose& p) {
   return q;
 }
 
+// Cosine / temperature of view a's sampled point i and view b's pixel.
+inline double descriptor_logit(const View& a, index_t i, const View& b, std::size_t pix, double temperature) {
+  const float* da = a.point_descriptor.data() + static_cast<std::size_t>(i * a.dim);
+  const float* db = b.descriptor.data() + pix * static_cast<std::size_t>(b.dim);
+  double dot = 0;
+  for (index_t d = 0; d < a.dim; ++d) dot += static_cast<double>(da[d]) * static_cast<double>(db[d]);
+  return dot / temperature;
+}
+
+// a.log_sum[b.slot]: for each of view a's sampled points, the log-sum-exp of its logits over view b's object pixels.
+inline void descriptor_log_sums(View& a, const View& b, double temperature) {
+  const index_t n = static_cast<index_t>(a.point.size() / 3);
+  std::vector<double>& out = a.log_sum[static_cast<std::size_t>(b.slot)];
+  out.assign(static_cast<std::size_t>(n), 0.0);
+  std::vector<double> s;
+  for (index_t i = 0; i < n; ++i) {
+    s.clear();
+    double top = -std::numeric_limits<double>::infinity();
+    for (std::size_t p = 0; p < b.mask.size(); ++p)
+      if (b.mask[p]) s.push_back(descriptor_logit(a, i, b, p, temperature)), top = std::max(top, s.back());
+    double sum = 0;
+    for (double x : s) sum += std::exp(x - top);
+    out[static_cast<std::size_t>(i)] = top + std::log(sum);
+  }
+}
+
+// log(N p) / log N clamped to [-1, 1] (in float, as stored once): p the softmax over view b's N object pixels of view
+// a's point i's logits, at pixel pix.
+inline double descriptor_reward(const View& a, index_t i, const View& b, std::size_t pix, double log_sum,
+                                double temperature) {
+  const double r = (descriptor_logit(a, i, b, pix, temperature) - log_sum + b.log_objects) / b.log_objects;
+  return static_cast<double>(static_cast<float>(std::clamp(r, -1.0, 1.0)));
+}
+
 // Mean cost of view a's sampled points seen from view b.
 inline double pair_cost(const View& a, const Placed& pa, const View& b, const Placed& pb, const OrbitSearchConfig& cfg) {
   const index_t n = static_cast<index_t>(a.point.size() / 3);
@@ -150,10 +187,10 @@ inline double pair_cost(const View& a, const Placed& pa, const View& b, const Pl
   const glm::dmat3 M = pb.R * glm::transpose(pa.R);
   const glm::dvec3 m = pb.t - M * pa.t;
   const bool colours = !a.point_colour.empty() && !b.colour.empty() && cfg.colour_weight > 0;
-  const float* reward = static_cast<std::size_t>(b.slot) < a.reward.size() && !a.reward[static_cast<std::size_t>(b.slot)].empty()
-                           ? a.reward[static_cast<std::size_t>(b.slot)].data()
-                           : nullptr;
-  const double floor = reward ? -cfg.descriptor_weight : 0;  // the cheapest a point can be
+  const double* log_sum = static_cast<std::size_t>(b.slot) < a.log_sum.size() && !a.log_sum[static_cast<std::size_t>(b.slot)].empty()
+                              ? a.log_sum[static_cast<std::size_t>(b.slot)].data()
+                              : nullptr;
+  const double floor = log_sum ? -cfg.descriptor_weight : 0;  // the cheapest a point can be
   // Cost of view a's point i placed at Y in view b's frame.
   auto point_cost = [&](index_t i, const glm::dvec3& Y) -> double {
     if (!(Y.z > 1e-9)) return 1;
@@ -175,7 +212,8 @@ inline double pair_cost(const View& a, const Placed& pa, const View& b, const Pl
                          static_cast<double>(b.colour[3 * pix + static_cast<std::size_t>(k)]));
       c += cfg.colour_weight * diff / 3;
     }
-    if (reward) c -= cfg.descriptor_weight * static_cast<double>(reward[static_cast<std::size_t>(i * b.h * b.w) + pix]);
+    if (log_sum)
+      c -= cfg.descriptor_weight * descriptor_reward(a, i, b, pix, log_sum[static_cast<std::size_t>(i)], cfg.descriptor_temperature);
     return c;
   };
   const index_t candidates = cfg.depth_range > 0 ? cfg.depth_candidates : 1;
@@ -281,35 +319,6 @@ bool prepare_view(View& v, const T* images, const T* foreground, const T* depth,
   return true;
 }
 
-// out [n_a * h_b * w_b]: for each of view a's sampled points and each object pixel of view b, log(N p) / log N clamped
-// to [-1, 1], p the softmax of the unit descriptors' cosines / temperature over b's N object pixels (0 elsewhere).
-inline void descriptor_rewards(const View& a, const View& b, double temperature, std::vector<float>& out) {
-  const index_t n = static_cast<index_t>(a.point.size() / 3), px = b.h * b.w, D = a.dim;
-  out.assign(static_cast<std::size_t>(n * px), 0.f);
-  std::vector<index_t> object;
-  for (index_t p = 0; p < px; ++p)
-    if (b.mask[static_cast<std::size_t>(p)]) object.push_back(p);
-  if (object.size() < 2) return;
-  const double log_n = std::log(static_cast<double>(object.size()));
-  std::vector<double> s(object.size());
-  for (index_t i = 0; i < n; ++i) {
-    const float* da = a.point_descriptor.data() + static_cast<std::size_t>(i * D);
-    double top = -std::numeric_limits<double>::infinity();
-    for (std::size_t k = 0; k < object.size(); ++k) {
-      const float* db = b.descriptor.data() + static_cast<std::size_t>(object[k] * D);
-      double dot = 0;
-      for (index_t d = 0; d < D; ++d) dot += static_cast<double>(da[d]) * static_cast<double>(db[d]);
-      s[k] = dot / temperature, top = std::max(top, s[k]);
-    }
-    double sum = 0;
-    for (double x : s) sum += std::exp(x - top);
-    const double lse = top + std::log(sum);
-    float* row = out.data() + static_cast<std::size_t>(i * px);
-    for (std::size_t k = 0; k < object.size(); ++k)
-      row[object[k]] = static_cast<float>(std::clamp((s[k] - lse + log_n) / log_n, -1.0, 1.0));
-  }
-}
-
 // Sum of every ordered pair's cost.
 inline double total_cost(const std::vector<View>& views, const std::vector<Placed>& placed, const OrbitSearchConfig& cfg) {
   double c = 0;
@@ -367,12 +376,15 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
   for (index_t f : active) act.push_back(views[static_cast<std::size_t>(f)]);
   const index_t A = static_cast<index_t>(act.size());
   for (index_t a = 0; a < A; ++a) act[static_cast<std::size_t>(a)].slot = a;
-  if (descriptors.data && descriptors.dim > 0 && cfg.descriptor_weight > 0)
+  if (descriptors.data && descriptors.dim > 0 && cfg.descriptor_weight > 0) {
+    for (View& b : act)
+      b.log_objects = std::log(static_cast<double>(std::count(b.mask.begin(), b.mask.end(), static_cast<unsigned char>(1))));
     for (View& a : act) {
-      a.reward.resize(static_cast<std::size_t>(A));
+      a.log_sum.resize(static_cast<std::size_t>(A));
       for (const View& b : act)
-        if (&a != &b) descriptor_rewards(a, b, cfg.descriptor_temperature, a.reward[static_cast<std::size_t>(b.slot)]);
+        if (&a != &b && b.log_objects > 0) descriptor_log_sums(a, b, cfg.descriptor_temperature);
     }
+  }
   std::vector<double> elevations, azimuths;
   for (double e = cfg.elevation_min_deg; e <= cfg.elevation_max_deg + 1e-9; e += cfg.elevation_step_deg) elevations.push_back(e * deg);
   for (double a = 0; a < 360 - 1e-9; a += cfg.azimuth_step_deg) azimuths.push_back(a * deg);
