@@ -86,7 +86,7 @@ struct View {
   // [other view's slot][n]: log of the sum over its object pixels of exp(cos / temperature), per sampled point (empty
   // without descriptors)
   std::vector<std::vector<double>> log_sum;
-  double log_objects = 0;           // log of the number of object pixels
+  double log_objects = 0;           // log of the number of object pixels (with descriptors)
   double distance = 1;              // from the camera to the orbit centre along the optical axis
 };
 
@@ -172,7 +172,7 @@ inline void descriptor_log_sums(View& a, const View& b, double temperature) {
   }
 }
 
-// log(N p) / log N clamped to [-1, 1] (in float, as stored once): p the softmax over view b's N object pixels of view
+// log(N p) / log N clamped to [-1, 1] and rounded to float (the descriptors' precision): p the softmax over view b's N object pixels of view
 // a's point i's logits, at pixel pix.
 inline double descriptor_reward(const View& a, index_t i, const View& b, std::size_t pix, double log_sum,
                                 double temperature) {
@@ -286,6 +286,7 @@ bool prepare_view(View& v, const T* images, const T* foreground, const T* depth,
     }
   }
   if (count == 0) return false;
+  if (v.dim > 0) v.log_objects = std::log(static_cast<double>(count));
   chamfer_outside(v);
   // The orbit centre's distance: the median depth of the silhouette's rim (a round object's rim lies at its centre's
   // depth).
@@ -376,15 +377,12 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
   for (index_t f : active) act.push_back(views[static_cast<std::size_t>(f)]);
   const index_t A = static_cast<index_t>(act.size());
   for (index_t a = 0; a < A; ++a) act[static_cast<std::size_t>(a)].slot = a;
-  if (descriptors.data && descriptors.dim > 0 && cfg.descriptor_weight > 0) {
-    for (View& b : act)
-      b.log_objects = std::log(static_cast<double>(std::count(b.mask.begin(), b.mask.end(), static_cast<unsigned char>(1))));
+  if (descriptors.data && descriptors.dim > 0 && cfg.descriptor_weight > 0)
     for (View& a : act) {
       a.log_sum.resize(static_cast<std::size_t>(A));
       for (const View& b : act)
         if (&a != &b && b.log_objects > 0) descriptor_log_sums(a, b, cfg.descriptor_temperature);
     }
-  }
   std::vector<double> elevations, azimuths;
   for (double e = cfg.elevation_min_deg; e <= cfg.elevation_max_deg + 1e-9; e += cfg.elevation_step_deg) elevations.push_back(e * deg);
   for (double a = 0; a < 360 - 1e-9; a += cfg.azimuth_step_deg) azimuths.push_back(a * deg);
