@@ -17,6 +17,7 @@
 #include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
+#include "flexsplat/geometry/descriptor.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -275,15 +276,9 @@ bool prepare_view(View& v, const T* images, const T* foreground, const T* depth,
     const std::size_t D = static_cast<std::size_t>(desc.dim);
     v.dim = desc.dim;
     v.descriptor.assign(static_cast<std::size_t>(px) * D, 0.f);
-    for (index_t p = 0; p < px; ++p) {
-      const T* d = desc.data + static_cast<std::size_t>(f * px + p) * D;
-      double n2 = 0;
-      for (std::size_t k = 0; k < D; ++k) n2 += static_cast<double>(d[k]) * static_cast<double>(d[k]);
-      if (!(n2 > 0) || !std::isfinite(n2)) continue;
-      const double inv = 1 / std::sqrt(n2);
-      for (std::size_t k = 0; k < D; ++k)
-        v.descriptor[static_cast<std::size_t>(p) * D + k] = static_cast<float>(static_cast<double>(d[k]) * inv);
-    }
+    for (index_t p = 0; p < px; ++p)  // blank or broken descriptors stay zero: no cosine, no reward
+      unit_descriptor(desc.data + static_cast<std::size_t>(f * px + p) * D, desc.dim,
+                      v.descriptor.data() + static_cast<std::size_t>(p) * D);
   }
   if (count == 0) return false;
   if (v.dim > 0) v.log_objects = std::log(static_cast<double>(count));

@@ -15,6 +15,7 @@
 #include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
+#include "flexsplat/geometry/descriptor.hpp"
 #include "flexsplat/geometry/unproject.hpp"
 
 namespace flexsplat {
@@ -276,12 +277,11 @@ void cameras_from_matches(T* extrinsics, const T* descriptors, const T* foregrou
     for (index_t p = 0; p < px; ++p) {
       const double fg = static_cast<double>(foreground[f * px + p]), z = static_cast<double>(depth[f * px + p]);
       if (!(fg >= cfg.min_foreground) || !(z > 0) || !std::isfinite(z)) continue;
-      const T* d = descriptors + (f * px + p) * D;
-      double n2 = 0;
-      for (index_t k = 0; k < D; ++k) n2 += static_cast<double>(d[k]) * static_cast<double>(d[k]);
-      if (!(n2 > 0) || !std::isfinite(n2)) continue;
-      const double inv = 1 / std::sqrt(n2);
-      for (index_t k = 0; k < D; ++k) unit.push_back(static_cast<float>(static_cast<double>(d[k]) * inv));
+      unit.resize(unit.size() + static_cast<std::size_t>(D));
+      if (!unit_descriptor(descriptors + (f * px + p) * D, D, unit.data() + unit.size() - static_cast<std::size_t>(D))) {
+        unit.resize(unit.size() - static_cast<std::size_t>(D));
+        continue;
+      }
       v.point.insert(v.point.end(), cam.begin() + 3 * p, cam.begin() + 3 * p + 3);
       v.pixel.push_back(p);
     }
