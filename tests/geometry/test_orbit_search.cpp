@@ -4,6 +4,7 @@
 #include <cmath>
 #include <vector>
 
+#include "flexsplat/core/parallel.hpp"
 #include "flexsplat/data/cameras.hpp"
 #include "flexsplat/data/mesh_render.hpp"
 #include "flexsplat/data/procedural.hpp"
@@ -218,6 +219,25 @@ TEST_CASE("orbit search with descriptors: a sphere's views are placed by what th
   // and the points one view hides from another (occluded_cost) pull them together (about 10 degrees here).
   CHECK(with < 15);
   CHECK(without > 60);  // the control: silhouettes and depth alone leave the sphere's views anywhere
+
+  // The search's parallel loops give the same cameras and cost as one thread (a nested region runs serially).
+  if (global_pool().size() < 2) {
+    WARN("one thread: the parallel search is not compared with the serial one (ctest runs 2)");
+  } else {
+    std::vector<float> serial(E.size()), parallel(E.size());
+    double cost_serial = 0, cost_parallel = 0;
+    ThreadPool one_region(2);
+    parallel_for(2, [&](index_t, index_t, int w) {
+      if (w == 0)
+        geometry::cameras_from_orbit_search<float>(serial.data(), nullptr, foreground.data(), depth.data(), K.data(), n,
+                                                   size, size, cfg, nullptr, &cost_serial, {descriptors.data(), D});
+    }, one_region);
+    geometry::cameras_from_orbit_search<float>(parallel.data(), nullptr, foreground.data(), depth.data(), K.data(), n,
+                                               size, size, cfg, nullptr, &cost_parallel, {descriptors.data(), D});
+    CHECK(serial == parallel);
+    CHECK(serial == E);
+    CHECK(cost_serial == cost_parallel);
+  }
 
   geometry::OrbitSearchConfig bad;
   bad.descriptor_weight = -1;

@@ -16,6 +16,7 @@
 
 #include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/geometry/descriptor.hpp"
 
@@ -161,16 +162,18 @@ inline void descriptor_log_sums(View& a, const View& b, double temperature) {
   const index_t n = static_cast<index_t>(a.point.size() / 3);
   std::vector<double>& out = a.log_sum[static_cast<std::size_t>(b.slot)];
   out.assign(static_cast<std::size_t>(n), 0.0);
-  std::vector<double> s;
-  for (index_t i = 0; i < n; ++i) {
-    s.clear();
-    double top = -std::numeric_limits<double>::infinity();
-    for (std::size_t p = 0; p < b.mask.size(); ++p)
-      if (b.mask[p]) s.push_back(descriptor_logit(a, i, b, p, temperature)), top = std::max(top, s.back());
-    double sum = 0;
-    for (double x : s) sum += std::exp(x - top);
-    out[static_cast<std::size_t>(i)] = top + std::log(sum);
-  }
+  parallel_for(n, [&](index_t i0, index_t i1, int) {
+    std::vector<double> s;
+    for (index_t i = i0; i < i1; ++i) {
+      s.clear();
+      double top = -std::numeric_limits<double>::infinity();
+      for (std::size_t p = 0; p < b.mask.size(); ++p)
+        if (b.mask[p]) s.push_back(descriptor_logit(a, i, b, p, temperature)), top = std::max(top, s.back());
+      double sum = 0;
+      for (double x : s) sum += std::exp(x - top);
+      out[static_cast<std::size_t>(i)] = top + std::log(sum);
+    }
+  });
 }
 
 // log(N p) / log N clamped to [-1, 1] and rounded to float (the descriptors' precision): p the softmax over view b's N object pixels of view
@@ -389,19 +392,26 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
   OrbitSearchConfig coarse = cfg;
   coarse.silhouette_px *= cfg.coarse_tolerance, coarse.depth_tolerance *= cfg.coarse_tolerance;
   // Grid search of view v's elevation and azimuth against all the other placed views.
+  // The cells' costs in parallel, the first cheapest in grid order chosen: the same at any thread count.
+  const index_t cells = static_cast<index_t>(elevations.size() * azimuths.size());
+  auto cell_pose = [&](OrbitPose p, index_t cell) {
+    p.elevation = elevations[static_cast<std::size_t>(cell) / azimuths.size()];
+    p.azimuth = azimuths[static_cast<std::size_t>(cell) % azimuths.size()], p.roll = 0;
+    return p;
+  };
+  std::vector<double> cell_cost(static_cast<std::size_t>(cells));
   auto grid_view = [&](index_t v) {
-    OrbitPose best = pose[static_cast<std::size_t>(v)];
+    parallel_for(cells, [&](index_t c0, index_t c1, int) {
+      for (index_t cell = c0; cell < c1; ++cell)
+        cell_cost[static_cast<std::size_t>(cell)] =
+            view_cost(act, placed, v, place(cell_pose(pose[static_cast<std::size_t>(v)], cell)), coarse);
+    });
+    index_t best = -1;
     double best_cost = std::numeric_limits<double>::infinity();
-    for (double e : elevations)
-      for (double a : azimuths) {
-        OrbitPose p = pose[static_cast<std::size_t>(v)];
-        p.elevation = e, p.azimuth = a, p.roll = 0;
-        const Placed q = place(p);
-        const double c = view_cost(act, placed, v, q, coarse);
-        if (c < best_cost) best_cost = c, best = p;
-      }
-    pose[static_cast<std::size_t>(v)] = best;
-    placed[static_cast<std::size_t>(v)] = place(best);
+    for (index_t cell = 0; cell < cells; ++cell)
+      if (cell_cost[static_cast<std::size_t>(cell)] < best_cost) best_cost = cell_cost[static_cast<std::size_t>(cell)], best = cell;
+    if (best >= 0) pose[static_cast<std::size_t>(v)] = cell_pose(pose[static_cast<std::size_t>(v)], best);
+    placed[static_cast<std::size_t>(v)] = place(pose[static_cast<std::size_t>(v)]);
   };
   // 1. Beam search: the views placed one by one on the grid, each placement scored against the views before it; the
   // first view's elevation and the distances' scale start the beams.
@@ -427,25 +437,27 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
     OrbitPose pose;
     Placed placed;
   };
+  // Candidates in the order beam, distance scale, cell, scored in parallel: the same at any thread count.
+  const index_t per_beam = static_cast<index_t>(cfg.distance_scales.size()) * cells;
   for (index_t v = 1; v < A; ++v) {
-    std::vector<Candidate> cand;
-    for (std::size_t bi = 0; bi < beams.size(); ++bi) {
-      const Beam& b = beams[bi];
-      for (double scale : cfg.distance_scales)
-      for (double e : elevations)
-        for (double a : azimuths) {
-          OrbitPose p = b.pose[static_cast<std::size_t>(v)];
-          p.elevation = e, p.azimuth = a, p.roll = 0, p.distance = scale * act[static_cast<std::size_t>(v)].distance;
-          const Placed q = place(p);
-          double c = b.cost;
-          for (index_t o = 0; o < v; ++o) {
-            const std::size_t so = static_cast<std::size_t>(o);
-            c += pair_cost(act[static_cast<std::size_t>(v)], q, act[so], b.placed[so], coarse) +
-                 pair_cost(act[so], b.placed[so], act[static_cast<std::size_t>(v)], q, coarse);
-          }
-          cand.push_back({c, bi, p, q});
+    std::vector<Candidate> cand(beams.size() * static_cast<std::size_t>(per_beam));
+    parallel_for(static_cast<index_t>(cand.size()), [&](index_t k0, index_t k1, int) {
+      for (index_t k = k0; k < k1; ++k) {
+        const std::size_t bi = static_cast<std::size_t>(k / per_beam);
+        const Beam& b = beams[bi];
+        OrbitPose p = cell_pose(b.pose[static_cast<std::size_t>(v)], k % cells);
+        p.distance = cfg.distance_scales[static_cast<std::size_t>(k % per_beam / cells)] *
+                     act[static_cast<std::size_t>(v)].distance;
+        const Placed q = place(p);
+        double c = b.cost;
+        for (index_t o = 0; o < v; ++o) {
+          const std::size_t so = static_cast<std::size_t>(o);
+          c += pair_cost(act[static_cast<std::size_t>(v)], q, act[so], b.placed[so], coarse) +
+               pair_cost(act[so], b.placed[so], act[static_cast<std::size_t>(v)], q, coarse);
         }
-    }
+        cand[static_cast<std::size_t>(k)] = {c, bi, p, q};
+      }
+    });
     const std::size_t keep = std::min(cand.size(), static_cast<std::size_t>(cfg.beam_width));
     std::partial_sort(cand.begin(), cand.begin() + static_cast<std::ptrdiff_t>(keep), cand.end(),
                       [](const Candidate& x, const Candidate& y) { return x.cost < y.cost; });
