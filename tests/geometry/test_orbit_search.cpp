@@ -226,12 +226,12 @@ TEST_CASE("orbit search with descriptors: a sphere's views are placed by what th
   } else {
     std::vector<float> serial(E.size()), parallel(E.size());
     double cost_serial = 0, cost_parallel = 0;
-    ThreadPool one_region(2);
+    ThreadPool outer(2);
     parallel_for(2, [&](index_t, index_t, int w) {
       if (w == 0)
         geometry::cameras_from_orbit_search<float>(serial.data(), nullptr, foreground.data(), depth.data(), K.data(), n,
                                                    size, size, cfg, nullptr, &cost_serial, {descriptors.data(), D});
-    }, one_region);
+    }, outer);
     geometry::cameras_from_orbit_search<float>(parallel.data(), nullptr, foreground.data(), depth.data(), K.data(), n,
                                                size, size, cfg, nullptr, &cost_parallel, {descriptors.data(), D});
     CHECK(serial == parallel);

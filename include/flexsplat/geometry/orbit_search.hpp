@@ -391,8 +391,7 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
   // depths with wider tolerances.
   OrbitSearchConfig coarse = cfg;
   coarse.silhouette_px *= cfg.coarse_tolerance, coarse.depth_tolerance *= cfg.coarse_tolerance;
-  // Grid search of view v's elevation and azimuth against all the other placed views.
-  // The cells' costs in parallel, the first cheapest in grid order chosen: the same at any thread count.
+  // The grid's cells, elevation-major.
   const index_t cells = static_cast<index_t>(elevations.size() * azimuths.size());
   auto cell_pose = [&](OrbitPose p, index_t cell) {
     p.elevation = elevations[static_cast<std::size_t>(cell) / azimuths.size()];
@@ -400,6 +399,8 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
     return p;
   };
   std::vector<double> cell_cost(static_cast<std::size_t>(cells));
+  // Grid search of view v's elevation and azimuth against all the other placed views: the cells' costs in parallel,
+  // the first cheapest in grid order chosen, so the same at any thread count.
   auto grid_view = [&](index_t v) {
     parallel_for(cells, [&](index_t c0, index_t c1, int) {
       for (index_t cell = c0; cell < c1; ++cell)
