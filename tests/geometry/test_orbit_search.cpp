@@ -2,7 +2,11 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
+#include <numbers>
 #include <vector>
+
+#include <glm/gtc/matrix_transform.hpp>
 
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/data/cameras.hpp"
@@ -74,6 +78,59 @@ TEST_CASE("orbit search finds the cameras of rendered orbit views from silhouett
     CHECK(std::all_of(solved, solved + 4, [](bool b) { return b; }));
     for (int i = 0; i < 12; ++i) CHECK(E[static_cast<std::size_t>(i)] == static_cast<float>(identity_w2c[i]));
   }
+}
+
+TEST_CASE("orbit search cost: what the search reports, in any world frame, and higher for a turned view", "[geometry][orbit]") {
+  const std::vector<std::pair<double, double>> orbit{{20, 0}, {35, 97}, {12, 183}, {41, 268}};
+  const Views v = render_views(3, orbit, 64);
+  std::vector<float> E(static_cast<std::size_t>(12 * v.n));
+  double cost = -1;
+  geometry::cameras_from_orbit_search<float>(E.data(), v.images.data(), v.foreground.data(), v.depth.data(), v.K.data(),
+                                             v.n, v.size, v.size, {}, nullptr, &cost);
+  auto cost_of = [&](const std::vector<float>& cams) {
+    return geometry::orbit_search_cost<float>(cams.data(), v.images.data(), v.foreground.data(), v.depth.data(),
+                                              v.K.data(), v.n, v.size, v.size);
+  };
+  const std::vector<float> truth(v.w2c.begin(), v.w2c.end());
+  const double found = cost_of(E), true_cost = cost_of(truth);
+  // Another world frame: every camera times the inverse of one rigid motion.
+  const glm::dmat3 Q = glm::dmat3(glm::rotate(glm::dmat4(1.0), 0.7, glm::dvec3(0.3, -0.5, 0.8)));
+  const glm::dvec3 q(0.4, -1.2, 0.3);
+  std::vector<float> moved(truth.size()), turned = truth;
+  for (index_t k = 0; k < v.n; ++k) {
+    const double* W = v.w2c.data() + 12 * k;
+    glm::dmat3 R;
+    glm::dvec3 t;
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) R[c][r] = W[4 * r + c];
+      t[r] = W[4 * r + 3];
+    }
+    const glm::dmat3 R2 = R * glm::transpose(Q);  // x_world' = Q x_world + q
+    const glm::dvec3 t2 = t - R2 * q;
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) moved[static_cast<std::size_t>(12 * k + 4 * r + c)] = static_cast<float>(R2[c][r]);
+      moved[static_cast<std::size_t>(12 * k + 4 * r + 3)] = static_cast<float>(t2[r]);
+    }
+  }
+  // View 2 turned by 30 degrees about its own vertical axis.
+  const glm::dmat3 Y = glm::dmat3(glm::rotate(glm::dmat4(1.0), 30 * std::numbers::pi / 180, glm::dvec3(0, 1, 0)));
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 4; ++c) {
+      double x = 0;
+      for (int j = 0; j < 3; ++j) x += Y[j][r] * v.w2c[static_cast<std::size_t>(24 + 4 * j + c)];
+      turned[static_cast<std::size_t>(24 + 4 * r + c)] = static_cast<float>(x);
+    }
+  const double turned_cost = cost_of(turned), moved_cost = cost_of(moved);
+  INFO("reported " << cost << ", found " << found << ", truth " << true_cost << ", moved " << moved_cost << ", turned "
+                   << turned_cost);
+  CHECK(found == Approx(cost).epsilon(0.02));  // the same placement, from float extrinsics
+  CHECK(moved_cost == Approx(true_cost).epsilon(1e-4));
+  CHECK(turned_cost > 2 * true_cost);
+  CHECK(geometry::orbit_search_cost<float>(truth.data(), v.images.data(), v.foreground.data(), v.depth.data(),
+                                           v.K.data(), 1, v.size, v.size) == 0);  // one view: nothing to compare
+  std::vector<float> broken = truth;
+  broken[12 + 3] = std::numeric_limits<float>::quiet_NaN();
+  CHECK_THROWS_WITH(cost_of(broken), Catch::Contains("orbit_search_cost: view 1 extrinsics[0,3] = nan is not finite"));
 }
 
 TEST_CASE("orbit search: a view without object pixels stays at the first camera, unsolved, and bad input is refused",

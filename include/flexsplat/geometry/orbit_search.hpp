@@ -327,6 +327,50 @@ inline double total_cost(const std::vector<View>& views, const std::vector<Place
   return c;
 }
 
+// Refuses maps and configs the search cannot use.
+inline void check_search_input(const char* who, index_t frames, index_t height, index_t width,
+                               const OrbitSearchConfig& cfg, index_t descriptor_dim) {
+  require(frames >= 1 && height >= 1 && width >= 1, who, ": empty maps (", frames, " x ", height, " x ", width, ")");
+  require(cfg.samples >= 1 && cfg.elevation_step_deg > 0 && cfg.azimuth_step_deg > 0 && cfg.silhouette_px > 0 &&
+              cfg.depth_tolerance > 0 && cfg.depth_range >= 0 && cfg.depth_range < 0.5 && cfg.depth_candidates >= 2 &&
+              cfg.colour_weight >= 0 && cfg.descriptor_weight >= 0 && cfg.descriptor_temperature > 0 &&
+              descriptor_dim >= 0 &&
+              cfg.elevation_max_deg >= cfg.elevation_min_deg &&
+              cfg.elevation_max_deg < 89 && cfg.elevation_min_deg > -89,
+          who, ": invalid config (samples ", cfg.samples, ", steps ", cfg.elevation_step_deg, " / ",
+          cfg.azimuth_step_deg, " deg, elevations ", cfg.elevation_min_deg, " .. ", cfg.elevation_max_deg,
+          ", depth range ", cfg.depth_range, " in [0, 0.5) with ", cfg.depth_candidates, " >= 2 candidates, colour and "
+          "descriptor weights ", cfg.colour_weight, ", ", cfg.descriptor_weight, " >= 0, descriptor temperature ",
+          cfg.descriptor_temperature, " > 0, descriptor width ", descriptor_dim, ")");
+}
+
+// Every view prepared; returns which have object pixels. With the first view usable, `act` holds the usable views
+// (their indices in `active`) with their slots and descriptor log-sums; an unusable view takes no part.
+template <class T>
+std::vector<bool> prepare_views(std::vector<View>& act, std::vector<index_t>& active, const T* images,
+                                const T* foreground, const T* depth, const T* intrinsics, index_t frames,
+                                index_t height, index_t width, const OrbitSearchConfig& cfg,
+                                const OrbitDescriptors<T>& descriptors) {
+  std::vector<View> views(static_cast<std::size_t>(frames));
+  std::vector<bool> usable(static_cast<std::size_t>(frames), false);
+  for (index_t f = 0; f < frames; ++f)
+    usable[static_cast<std::size_t>(f)] = prepare_view(views[static_cast<std::size_t>(f)], images, foreground, depth,
+                                                       intrinsics, f, height, width, cfg, descriptors);
+  act.clear(), active.clear();
+  if (frames == 1 || !usable[0]) return usable;
+  for (index_t f = 0; f < frames; ++f)
+    if (usable[static_cast<std::size_t>(f)]) active.push_back(f), act.push_back(std::move(views[static_cast<std::size_t>(f)]));
+  const index_t A = static_cast<index_t>(act.size());
+  for (index_t a = 0; a < A; ++a) act[static_cast<std::size_t>(a)].slot = a;
+  if (descriptors.data && descriptors.dim > 0 && cfg.descriptor_weight > 0)
+    for (View& a : act) {
+      a.log_sum.resize(static_cast<std::size_t>(A));
+      for (const View& b : act)
+        if (&a != &b && b.log_objects > 0) descriptor_log_sums(a, b, cfg.descriptor_temperature);
+    }
+  return usable;
+}
+
 }  // namespace orbit_detail
 
 // Each view's world-to-camera [S, 3, 4] (the first view's camera is the world, [I | 0]) from its silhouette, depth and
@@ -340,25 +384,12 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
                                bool* solved = nullptr, double* cost_out = nullptr,
                                const OrbitDescriptors<T>& descriptors = {}) {
   using namespace orbit_detail;
-  require(frames >= 1 && height >= 1 && width >= 1, "cameras_from_orbit_search: empty maps (", frames, " x ", height,
-          " x ", width, ")");
-  require(cfg.samples >= 1 && cfg.elevation_step_deg > 0 && cfg.azimuth_step_deg > 0 && cfg.silhouette_px > 0 &&
-              cfg.depth_tolerance > 0 && cfg.depth_range >= 0 && cfg.depth_range < 0.5 && cfg.depth_candidates >= 2 &&
-              cfg.colour_weight >= 0 && cfg.descriptor_weight >= 0 && cfg.descriptor_temperature > 0 &&
-              descriptors.dim >= 0 &&
-              cfg.elevation_max_deg >= cfg.elevation_min_deg &&
-              cfg.elevation_max_deg < 89 && cfg.elevation_min_deg > -89,
-          "cameras_from_orbit_search: invalid config (samples ", cfg.samples, ", steps ", cfg.elevation_step_deg, " / ",
-          cfg.azimuth_step_deg, " deg, elevations ", cfg.elevation_min_deg, " .. ", cfg.elevation_max_deg,
-          ", depth range ", cfg.depth_range, " in [0, 0.5) with ", cfg.depth_candidates, " >= 2 candidates, colour and "
-          "descriptor weights ", cfg.colour_weight, ", ", cfg.descriptor_weight, " >= 0, descriptor temperature ",
-          cfg.descriptor_temperature, " > 0, descriptor width ", descriptors.dim, ")");
+  check_search_input("cameras_from_orbit_search", frames, height, width, cfg, descriptors.dim);
   const double deg = std::numbers::pi / 180;
-  std::vector<View> views(static_cast<std::size_t>(frames));
-  std::vector<bool> usable(static_cast<std::size_t>(frames), false);
-  for (index_t f = 0; f < frames; ++f)
-    usable[static_cast<std::size_t>(f)] = prepare_view(views[static_cast<std::size_t>(f)], images, foreground, depth,
-                                                       intrinsics, f, height, width, cfg, descriptors);
+  std::vector<View> act;
+  std::vector<index_t> active;
+  const std::vector<bool> usable = prepare_views(act, active, images, foreground, depth, intrinsics, frames, height,
+                                                 width, cfg, descriptors);
   if (solved)
     for (index_t f = 0; f < frames; ++f) solved[f] = f == 0 || (usable[0] && usable[static_cast<std::size_t>(f)]);
   for (index_t f = 0; f < frames; ++f)
@@ -367,20 +398,7 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
     if (cost_out) *cost_out = 0;
     return;
   }
-  // The views that take part; an unusable view keeps [I | 0] and contributes nothing.
-  std::vector<index_t> active;
-  for (index_t f = 0; f < frames; ++f)
-    if (usable[static_cast<std::size_t>(f)]) active.push_back(f);
-  std::vector<View> act;
-  for (index_t f : active) act.push_back(views[static_cast<std::size_t>(f)]);
   const index_t A = static_cast<index_t>(act.size());
-  for (index_t a = 0; a < A; ++a) act[static_cast<std::size_t>(a)].slot = a;
-  if (descriptors.data && descriptors.dim > 0 && cfg.descriptor_weight > 0)
-    for (View& a : act) {
-      a.log_sum.resize(static_cast<std::size_t>(A));
-      for (const View& b : act)
-        if (&a != &b && b.log_objects > 0) descriptor_log_sums(a, b, cfg.descriptor_temperature);
-    }
   std::vector<double> elevations, azimuths;
   for (double e = cfg.elevation_min_deg; e <= cfg.elevation_max_deg + 1e-9; e += cfg.elevation_step_deg) elevations.push_back(e * deg);
   for (double a = 0; a < 360 - 1e-9; a += cfg.azimuth_step_deg) azimuths.push_back(a * deg);
@@ -537,6 +555,34 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
       E[4 * r + 3] = static_cast<T>(t[r]);
     }
   }
+}
+
+// The search's objective for given cameras: the sum of the pair costs over ordered pairs of the usable views, what
+// cameras_from_orbit_search minimises and reports through cost_out (0 for one view or an unusable first view).
+// extrinsics [S, 3, 4] world-to-camera, any world frame, translations in the depth's units; the other inputs as the
+// search's. To compare a found placement with another, e.g. the truth's.
+template <class T>
+double orbit_search_cost(const T* extrinsics, const T* images, const T* foreground, const T* depth, const T* intrinsics,
+                         index_t frames, index_t height, index_t width, const OrbitSearchConfig& cfg = {},
+                         const OrbitDescriptors<T>& descriptors = {}) {
+  using namespace orbit_detail;
+  check_search_input("orbit_search_cost", frames, height, width, cfg, descriptors.dim);
+  std::vector<View> act;
+  std::vector<index_t> active;
+  prepare_views(act, active, images, foreground, depth, intrinsics, frames, height, width, cfg, descriptors);
+  if (act.size() < 2) return 0;
+  std::vector<Placed> placed(act.size());
+  for (std::size_t a = 0; a < act.size(); ++a) {
+    const T* E = extrinsics + 12 * active[a];
+    for (int i = 0; i < 12; ++i)
+      require(std::isfinite(static_cast<double>(E[i])), "orbit_search_cost: view ", active[a], " extrinsics[", i / 4,
+              ",", i % 4, "] = ", static_cast<double>(E[i]), " is not finite");
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) placed[a].R[c][r] = static_cast<double>(E[4 * r + c]);
+      placed[a].t[r] = static_cast<double>(E[4 * r + 3]);
+    }
+  }
+  return total_cost(act, placed, cfg);
 }
 
 }  // namespace geometry
