@@ -98,28 +98,16 @@ TEST_CASE("orbit search cost: what the search reports, in any world frame, and h
   const glm::dvec3 q(0.4, -1.2, 0.3);
   std::vector<float> moved(truth.size()), turned = truth;
   for (index_t k = 0; k < v.n; ++k) {
-    const double* W = v.w2c.data() + 12 * k;
-    glm::dmat3 R;
-    glm::dvec3 t;
-    for (int r = 0; r < 3; ++r) {
-      for (int c = 0; c < 3; ++c) R[c][r] = W[4 * r + c];
-      t[r] = W[4 * r + 3];
-    }
-    const glm::dmat3 R2 = R * glm::transpose(Q);  // x_world' = Q x_world + q
-    const glm::dvec3 t2 = t - R2 * q;
-    for (int r = 0; r < 3; ++r) {
-      for (int c = 0; c < 3; ++c) moved[static_cast<std::size_t>(12 * k + 4 * r + c)] = static_cast<float>(R2[c][r]);
-      moved[static_cast<std::size_t>(12 * k + 4 * r + 3)] = static_cast<float>(t2[r]);
-    }
+    Camera cam = camera_from_arrays(v.K.data() + 9 * k, truth.data() + 12 * k, v.size, v.size);
+    cam.R = cam.R * glm::transpose(Q);  // x_world' = Q x_world + q
+    cam.t -= cam.R * q;
+    camera_arrays<float>(cam, nullptr, moved.data() + 12 * k);
   }
   // View 2 turned by 30 degrees about its own vertical axis.
   const glm::dmat3 Y = glm::dmat3(glm::rotate(glm::dmat4(1.0), 30 * std::numbers::pi / 180, glm::dvec3(0, 1, 0)));
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 4; ++c) {
-      double x = 0;
-      for (int j = 0; j < 3; ++j) x += Y[j][r] * v.w2c[static_cast<std::size_t>(24 + 4 * j + c)];
-      turned[static_cast<std::size_t>(24 + 4 * r + c)] = static_cast<float>(x);
-    }
+  Camera cam2 = camera_from_arrays(v.K.data() + 18, truth.data() + 24, v.size, v.size);
+  cam2.R = Y * cam2.R, cam2.t = Y * cam2.t;
+  camera_arrays<float>(cam2, nullptr, turned.data() + 24);
   const double turned_cost = cost_of(turned), moved_cost = cost_of(moved);
   INFO("reported " << cost << ", found " << found << ", truth " << true_cost << ", moved " << moved_cost << ", turned "
                    << turned_cost);

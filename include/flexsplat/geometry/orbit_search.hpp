@@ -547,13 +547,10 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
   const glm::dmat3 R0t = glm::transpose(p0.R);
   for (index_t i = 1; i < A; ++i) {  // the first view's entries stay exactly [I | 0]
     const Placed& p = placed[static_cast<std::size_t>(i)];
-    const glm::dmat3 R = p.R * R0t;
-    const glm::dvec3 t = p.t - R * p0.t;
-    T* E = extrinsics + 12 * active[static_cast<std::size_t>(i)];
-    for (int r = 0; r < 3; ++r) {
-      for (int c = 0; c < 3; ++c) E[4 * r + c] = static_cast<T>(R[c][r]);
-      E[4 * r + 3] = static_cast<T>(t[r]);
-    }
+    Camera cam;
+    cam.R = p.R * R0t;
+    cam.t = p.t - cam.R * p0.t;
+    camera_arrays<T>(cam, nullptr, extrinsics + 12 * active[static_cast<std::size_t>(i)]);
   }
 }
 
@@ -577,10 +574,8 @@ double orbit_search_cost(const T* extrinsics, const T* images, const T* foregrou
     for (int i = 0; i < 12; ++i)
       require(std::isfinite(static_cast<double>(E[i])), "orbit_search_cost: view ", active[a], " extrinsics[", i / 4,
               ",", i % 4, "] = ", static_cast<double>(E[i]), " is not finite");
-    for (int r = 0; r < 3; ++r) {
-      for (int c = 0; c < 3; ++c) placed[a].R[c][r] = static_cast<double>(E[4 * r + c]);
-      placed[a].t[r] = static_cast<double>(E[4 * r + 3]);
-    }
+    const Camera cam = camera_from_arrays(intrinsics + 9 * active[a], E, static_cast<int>(width), static_cast<int>(height));
+    placed[a].R = cam.R, placed[a].t = cam.t;
   }
   return total_cost(act, placed, cfg);
 }
