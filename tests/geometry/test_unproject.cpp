@@ -45,6 +45,23 @@ TEST_CASE("unprojection inverts projection", "[unproject]") {
     }
 }
 
+TEST_CASE("camera-frame points are view f's depth unprojected with its own intrinsics", "[unproject]") {
+  const index_t H = 3, W = 4, px = H * W;
+  const float K[18] = {10, 0, 1, 0, 10, 1, 0, 0, 1, 20, 0, 1.5f, 0, 25, 0.5f, 0, 0, 1};
+  std::vector<float> depth(2 * px);
+  for (index_t i = 0; i < 2 * px; ++i) depth[i] = 1.0f + 0.25f * static_cast<float>(i % 5);
+  const std::vector<double> cam = camera_frame_points(depth.data(), K, 1, H, W);
+  REQUIRE(cam.size() == static_cast<std::size_t>(3 * px));
+  for (index_t v = 0; v < H; ++v)
+    for (index_t u = 0; u < W; ++u) {
+      const double d = depth[px + v * W + u];
+      const double* X = cam.data() + 3 * (v * W + u);
+      CHECK(X[0] == Approx((static_cast<double>(u) - 1.5) / 20 * d).epsilon(1e-6));
+      CHECK(X[1] == Approx((static_cast<double>(v) - 0.5) / 25 * d).epsilon(1e-6));
+      CHECK(X[2] == d);
+    }
+}
+
 TEST_CASE("unprojection rejects bad cameras", "[unproject]") {
   const float E[12] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0};
   const float depth[4] = {1, 1, 1, 1};

@@ -19,6 +19,7 @@
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/geometry/descriptor.hpp"
+#include "flexsplat/geometry/unproject.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -301,14 +302,13 @@ bool prepare_view(View& v, const T* images, const T* foreground, const T* depth,
   std::nth_element(rim.begin(), rim.begin() + static_cast<std::ptrdiff_t>(rim.size() / 2), rim.end());
   v.distance = rim[rim.size() / 2];
   // Samples: every k-th object pixel.
+  const std::vector<double> cam = camera_frame_points(depth, intrinsics, f, height, width);
   const index_t stride = std::max<index_t>(1, (count + cfg.samples - 1) / cfg.samples);
   index_t seen = 0;
   for (index_t p = 0; p < px; ++p) {
     if (!v.mask[static_cast<std::size_t>(p)]) continue;
     if (seen++ % stride) continue;
-    const double z = static_cast<double>(v.depth[static_cast<std::size_t>(p)]);
-    const double u = static_cast<double>(p % width), vv = static_cast<double>(p / width);
-    v.point.insert(v.point.end(), {(u - v.cx) / v.fx * z, (vv - v.cy) / v.fy * z, z});
+    v.point.insert(v.point.end(), cam.begin() + 3 * p, cam.begin() + 3 * (p + 1));
     if (images)
       for (index_t k = 0; k < 3; ++k) v.point_colour.push_back(v.colour[static_cast<std::size_t>(3 * p + k)]);
     if (v.dim > 0)

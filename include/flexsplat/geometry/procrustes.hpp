@@ -68,17 +68,6 @@ bool rigid_fit(const T* src, const T* dst, const T* w, index_t n, double* R, dou
   return true;
 }
 
-// View f's pixels in its own camera frame ([H * W, 3], double): its depth unprojected with identity extrinsics.
-template <class T>
-std::vector<double> camera_frame_points(const T* depth, const T* intrinsics, index_t f, index_t height, index_t width) {
-  const index_t px = height * width;
-  T identity[12];
-  for (int i = 0; i < 12; ++i) identity[i] = static_cast<T>(identity_w2c[i]);
-  std::vector<T> points(static_cast<std::size_t>(3 * px));
-  unproject_depth_forward<T>(points.data(), depth + f * px, identity, intrinsics + 9 * f, 1, height, width);
-  return std::vector<double>(points.begin(), points.end());
-}
-
 // Solves each view's world-to-camera from its point map. extrinsics [S, 3, 4] out; points [S, H, W, 3];
 // points_conf [S, H, W] (weights conf - 1); depth [S, H, W]; intrinsics [S, 3, 3] with pixel (u, v) at integer
 // coordinates (VGGT's convention, as geometry/unproject.hpp). A view whose fit is undetermined gets [I | 0] and a
