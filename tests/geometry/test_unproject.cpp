@@ -56,8 +56,8 @@ TEST_CASE("camera-frame points are view f's depth unprojected with its own intri
     for (index_t u = 0; u < W; ++u) {
       const double d = depth[px + v * W + u];
       const double* X = cam.data() + 3 * (v * W + u);
-      CHECK(X[0] == Approx((static_cast<double>(u) - 1.5) / 20 * d).epsilon(1e-6));
-      CHECK(X[1] == Approx((static_cast<double>(v) - 0.5) / 25 * d).epsilon(1e-6));
+      CHECK(X[0] == Approx((static_cast<double>(u) - 1.5) / 20 * d).epsilon(1e-12));
+      CHECK(X[1] == Approx((static_cast<double>(v) - 0.5) / 25 * d).epsilon(1e-12));
       CHECK(X[2] == d);
     }
 }

@@ -56,15 +56,14 @@ void unproject_depth_forward(T* world_points, const T* depth, const T* extrinsic
   });
 }
 
-// View f's pixels in its own camera frame ([H * W, 3], double): its depth unprojected with identity extrinsics.
+// View f's pixels in its own camera frame ([H * W, 3]): its depth unprojected with identity extrinsics, in double.
 template <class T>
 std::vector<double> camera_frame_points(const T* depth, const T* intrinsics, index_t f, index_t height, index_t width) {
   const index_t px = height * width;
-  T identity[12];
-  for (int i = 0; i < 12; ++i) identity[i] = static_cast<T>(identity_w2c[i]);
-  std::vector<T> points(static_cast<std::size_t>(3 * px));
-  unproject_depth_forward<T>(points.data(), depth + f * px, identity, intrinsics + 9 * f, 1, height, width);
-  return std::vector<double>(points.begin(), points.end());
+  const std::vector<double> d(depth + f * px, depth + (f + 1) * px), K(intrinsics + 9 * f, intrinsics + 9 * (f + 1));
+  std::vector<double> points(static_cast<std::size_t>(3 * px));
+  unproject_depth_forward<double>(points.data(), d.data(), identity_w2c, K.data(), 1, height, width);
+  return points;
 }
 
 // Backward of unproject_depth_forward: adds into d_depth [frames, H, W], d_extrinsics [frames, 3, 4] and
