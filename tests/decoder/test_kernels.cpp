@@ -110,52 +110,58 @@ TEST_CASE("window attention: SIMD and scalar paths agree, and each window is ful
   }
 }
 
-TEST_CASE("deform_core: SIMD and scalar paths agree and the visiting order changes nothing", "[decoder][kernels][simd]") {
+TEST_CASE("deform_core: every lane set agrees with the scalar path and the visiting order changes nothing",
+          "[decoder][kernels][simd]") {
   std::vector<index_t> hw{9, 11, 6, 7};
-  const index_t heads = 2, D = 37, P = 3, Q = 13;  // D not a multiple of any batch width
-  const auto L = decoder::make_deform_core_layout(1, Q, heads, D, P, hw);
-  const auto value = random_normal(L.value_len() * heads * D, 101);
-  const auto loc = random_uniform(L.location_count() * 2, 102, -0.2, 1.2);
-  const auto w = random_uniform(L.location_count(), 103, 0.0, 1.0);
-  const auto g = random_normal(Q * heads * D, 104);
-  std::vector<index_t> reversed(Q);
-  std::iota(reversed.rbegin(), reversed.rend(), index_t{0});
-  auto run = [&](auto tag, bool simd, const index_t* order, auto& out, auto& dv, auto& dl, auto& dw) {
-    using T = decltype(tag);
-    const auto v = cast_vector<T>(value), l = cast_vector<T>(loc), ww = cast_vector<T>(w), gg = cast_vector<T>(g);
-    out.assign(Q * heads * D, T(0));
-    dv.assign(v.size(), T(0)), dl.assign(l.size(), T(0)), dw.assign(ww.size(), T(0));
-    if (simd) {
-      decoder::deform_core_forward_impl<T, true>(out.data(), v.data(), l.data(), ww.data(), L, global_pool(), order);
-      decoder::deform_core_backward_impl<T, true>(dv.data(), dl.data(), dw.data(), gg.data(), v.data(), l.data(), ww.data(),
-                                                  L, global_pool(), order);
-    } else {
-      decoder::deform_core_forward_impl<T, false>(out.data(), v.data(), l.data(), ww.data(), L, global_pool(), order);
-      decoder::deform_core_backward_impl<T, false>(dv.data(), dl.data(), dw.data(), gg.data(), v.data(), l.data(),
-                                                   ww.data(), L, global_pool(), order);
+  // 12: a head width with compile-time row kernels (the small model's); 37: not a multiple of any vector width.
+  for (const index_t D : {index_t(12), index_t(37)}) {
+    CAPTURE(D);
+    const index_t heads = 2, P = 3, Q = 13;
+    const auto L = decoder::make_deform_core_layout(1, Q, heads, D, P, hw);
+    const auto value = random_normal(L.value_len() * heads * D, 101);
+    const auto loc = random_uniform(L.location_count() * 2, 102, -0.2, 1.2);
+    auto w = random_uniform(L.location_count(), 103, 0.0, 1.0);
+    w[5] = 0;  // a zero weight: the forward skips its taps, the backward still gives its gradient
+    const auto g = random_normal(Q * heads * D, 104);
+    std::vector<index_t> reversed(Q);
+    std::iota(reversed.rbegin(), reversed.rend(), index_t{0});
+    auto run = [&](auto tag, simd::Lanes lanes, const index_t* order, auto& out, auto& dv, auto& dl, auto& dw) {
+      using T = decltype(tag);
+      const auto v = cast_vector<T>(value), l = cast_vector<T>(loc), ww = cast_vector<T>(w), gg = cast_vector<T>(g);
+      out.assign(Q * heads * D, T(0));
+      dv.assign(v.size(), T(0)), dl.assign(l.size(), T(0)), dw.assign(ww.size(), T(0));
+      decoder::deform_core_forward_impl<T>(out.data(), v.data(), l.data(), ww.data(), L, lanes, global_pool(), order);
+      decoder::deform_core_backward_impl<T>(dv.data(), dl.data(), dw.data(), gg.data(), v.data(), l.data(), ww.data(), L,
+                                            lanes, global_pool(), order);
+    };
+    std::vector<simd::Lanes> lanes{simd::Lanes::compiled};
+    if (simd::best_lanes<float>(simd::DispatchLevel::avx2) == simd::Lanes::avx2) lanes.push_back(simd::Lanes::avx2);
+    if (simd::best_lanes<float>() == simd::Lanes::avx512) lanes.push_back(simd::Lanes::avx512);
+    std::vector<float> o0, v0, l0, w0, o1, v1, l1, w1, o3, v3, l3, w3;
+    run(0.0f, simd::Lanes::scalar, nullptr, o0, v0, l0, w0);
+    for (const simd::Lanes lane : lanes) {
+      CAPTURE(simd::lanes_name(lane));
+      run(0.0f, lane, nullptr, o1, v1, l1, w1);
+      CHECK(rel_diff(o1, o0) < 1e-6);
+      CHECK(rel_diff(v1, v0) < 1e-6);
+      CHECK(rel_diff(l1, l0) < 1e-5);
+      CHECK(rel_diff(w1, w0) < 1e-6);
+      run(0.0f, lane, reversed.data(), o3, v3, l3, w3);
+      CHECK(o3 == o1);  // each query's output is computed alone: bit-identical in any order
+      CHECK(l3 == l1);
+      CHECK(w3 == w1);
+      CHECK(rel_diff(v3, v1) < 1e-6);  // d_value sums over queries in the visiting order
     }
-  };
-  std::vector<float> o1, v1, l1, w1, o2, v2, l2, w2, o3, v3, l3, w3;
-  run(0.0f, true, nullptr, o1, v1, l1, w1);
-  run(0.0f, false, nullptr, o2, v2, l2, w2);
-  CHECK(rel_diff(o1, o2) < 1e-6);
-  CHECK(rel_diff(v1, v2) < 1e-6);
-  CHECK(rel_diff(l1, l2) < 1e-5);
-  CHECK(rel_diff(w1, w2) < 1e-6);
-  run(0.0f, true, reversed.data(), o3, v3, l3, w3);
-  CHECK(o3 == o1);  // each query's output is computed alone: bit-identical in any order
-  CHECK(l3 == l1);
-  CHECK(w3 == w1);
-  CHECK(rel_diff(v3, v1) < 1e-6);  // d_value sums over queries in the visiting order
-  std::vector<double> od1, vd1, ld1, wd1, od2, vd2, ld2, wd2;
-  run(0.0, true, nullptr, od1, vd1, ld1, wd1);
-  run(0.0, false, nullptr, od2, vd2, ld2, wd2);
-  CHECK(rel_diff(od1, od2) < 1e-14);
-  CHECK(rel_diff(vd1, vd2) < 1e-14);
-  CHECK(rel_diff(ld1, ld2) < 1e-13);
-  CHECK(rel_diff(wd1, wd2) < 1e-14);
-  // Sanity: the float path follows the double one.
-  CHECK(rel_diff(o1, cast_vector<float>(od2)) < 1e-5);
+    std::vector<double> od1, vd1, ld1, wd1, od2, vd2, ld2, wd2;
+    run(0.0, simd::Lanes::compiled, nullptr, od1, vd1, ld1, wd1);
+    run(0.0, simd::Lanes::scalar, nullptr, od2, vd2, ld2, wd2);
+    CHECK(rel_diff(od1, od2) < 1e-14);
+    CHECK(rel_diff(vd1, vd2) < 1e-14);
+    CHECK(rel_diff(ld1, ld2) < 1e-13);
+    CHECK(rel_diff(wd1, wd2) < 1e-14);
+    // Sanity: the float path follows the double one.
+    CHECK(rel_diff(o0, cast_vector<float>(od2)) < 1e-5);
+  }
 }
 
 TEST_CASE("radix sort equals a stable sort by key, for Morton items", "[decoder][kernels]") {
