@@ -3,15 +3,15 @@
 // the role of levels): for every (batch, query, head), a weighted sum over views x points of bilinear samples of the
 // value map, grid_sample style (zero padding, align_corners=False: normalised 0 and 1 are the outer image edges).
 // Backward gives the gradients of value, sampling locations and attention weights.
-#include <cmath>
+#include <algorithm>
 #include <cstring>
 #include <span>
 #include <type_traits>
 #include <vector>
 
+#include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/profile.hpp"
-#include "flexsplat/core/inline.hpp"
 #include "flexsplat/core/simd.hpp"
 #include "flexsplat/core/simd_dispatch.hpp"
 #include "flexsplat/core/tensor.hpp"
