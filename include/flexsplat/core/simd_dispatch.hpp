@@ -45,7 +45,9 @@ inline const char* dispatch_name(DispatchLevel level) {
   return level == DispatchLevel::avx512 ? "avx512" : level == DispatchLevel::avx2 ? "avx2" : "none";
 }
 
-#if FLEXSPLAT_SIMD_DISPATCH
+// The vector-extension wrapper and its target-free helpers exist wherever GCC or Clang compiles (fixed-width rows of
+// any kernel use them); what follows them needs x86 and its target attributes.
+#if defined(__GNUC__)
 
 namespace detail {
 template <class T>
@@ -138,6 +140,10 @@ inline T lane_sum(wide<T, N> x) {  // lanes in order, like reduce_add
   for (int i = 1; i < N; ++i) s += x.v[i];
   return s;
 }
+#endif  // __GNUC__
+
+#if FLEXSPLAT_SIMD_DISPATCH
+
 // Any / all through the sign bits of the mask lanes (256-bit vectors); the overload carries the AVX2 target of the
 // kernels that use it.
 __attribute__((target("avx2"))) inline bool lane_any(wide_mask<float, 8> c) {

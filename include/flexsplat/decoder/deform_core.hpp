@@ -4,7 +4,6 @@
 // value map, grid_sample style (zero padding, align_corners=False: normalised 0 and 1 are the outer image edges).
 // Backward gives the gradients of value, sampling locations and attention weights.
 #include <algorithm>
-#include <cstring>
 #include <span>
 #include <type_traits>
 #include <vector>
@@ -118,38 +117,30 @@ namespace detail {
 // Row operations over one head's D values. Dc > 0 fixes D at compile time (a multiple of 4: the small model's heads
 // are 8-16 wide), run in 16-byte vectors whatever the target; 0 takes the run-time d in scalar loops.
 template <class T>
-struct Row16 {
-  static constexpr index_t lanes = 16 / sizeof(T);
-  typedef T type __attribute__((vector_size(16)));
-  static type load(const T* p) {
-    type v;
-    std::memcpy(&v, p, sizeof(v));
-    return v;
-  }
-  static void store(T* p, type v) { std::memcpy(p, &v, sizeof(v)); }
-};
+using Row16 = simd::wide<T, 16 / static_cast<int>(sizeof(T))>;
 
 template <index_t Dc, class T>
 FLEXSPLAT_ALWAYS_INLINE void row_axpy(index_t d, T a, const T* x, T* y) {
   if constexpr (Dc > 0) {
     using R = Row16<T>;
-    static_assert(Dc % R::lanes == 0);
-    for (index_t i = 0; i < Dc; i += R::lanes) R::store(y + i, R::load(y + i) + a * R::load(x + i));
+    constexpr index_t lanes = simd::lane_count<R>::value;
+    static_assert(Dc % lanes == 0);
+    for (index_t i = 0; i < Dc; i += lanes)
+      simd::lane_store(y + i, simd::lane_load<R>(y + i) + a * simd::lane_load<R>(x + i));
   } else {
     for (index_t i = 0; i < d; ++i) y[i] += a * x[i];
   }
 }
 
-// sum_i x[i] y[i]: with Dc > 0 in vector partial sums, then across the lanes.
+// sum_i x[i] y[i]: with Dc > 0 in vector partial sums, then across the lanes in order.
 template <index_t Dc, class T>
 FLEXSPLAT_ALWAYS_INLINE T row_dot(index_t d, const T* x, const T* y) {
   if constexpr (Dc > 0) {
     using R = Row16<T>;
-    typename R::type acc = R::load(x) * R::load(y);
-    for (index_t i = R::lanes; i < Dc; i += R::lanes) acc += R::load(x + i) * R::load(y + i);
-    T s = acc[0];
-    for (index_t l = 1; l < R::lanes; ++l) s += acc[l];
-    return s;
+    constexpr index_t lanes = simd::lane_count<R>::value;
+    R acc = simd::lane_load<R>(x) * simd::lane_load<R>(y);
+    for (index_t i = lanes; i < Dc; i += lanes) acc += simd::lane_load<R>(x + i) * simd::lane_load<R>(y + i);
+    return simd::lane_sum(acc);
   } else {
     T s = 0;
     for (index_t i = 0; i < d; ++i) s += x[i] * y[i];
