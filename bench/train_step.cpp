@@ -121,8 +121,7 @@ static int run_recipe(const RecipeOptions& ro) {
       profile::set_enabled(true);
     }
     const auto t0 = std::chrono::steady_clock::now();
-    std::vector<model::TrainExample<float>> batch;
-    for (index_t b = 0; b < cfg.batch; ++b) batch.push_back(model::make_train_scene(data, cfg, step, b));
+    const std::vector<model::TrainExample<float>> batch = model::make_train_scenes(data, cfg, step, 0, cfg.batch);
     const auto t1 = std::chrono::steady_clock::now();
     const model::StepSchedule at = cfg.schedule_at(step);
     const model::TrainStage& st = cfg.stages[at.stage];
@@ -139,16 +138,22 @@ static int run_recipe(const RecipeOptions& ro) {
   }
   profile::set_enabled(false);
   const profile::Totals ops = profile::totals();
-  const double n = double(ro.steps), total_s = data_s + step_s;
+  const double n = double(ro.steps), wall_s = data_s + step_s;
+  // Scenes side by side: every phase and op family is time summed over the threads, so shares are of the threads' time.
+  const int threads = model::scenes_side_by_side(cfg.batch) ? global_pool().size() : 1;
+  const double total_s = wall_s * threads;
   std::printf("\n%lld steps, %lld scenes: %.2f scenes/s with data generation, %.2f without; %.1f ms per step "
-              "(data %.1f ms)\n", (long long)ro.steps, (long long)scenes, double(scenes) / total_s,
-              double(scenes) / step_s, total_s / n * 1e3, data_s / n * 1e3);
+              "(data %.1f ms)\n", (long long)ro.steps, (long long)scenes, double(scenes) / wall_s,
+              double(scenes) / step_s, wall_s / n * 1e3, data_s / n * 1e3);
+  if (threads > 1)
+    std::printf("scenes side by side on %d threads: times below are summed over the threads (%.1f ms of thread time "
+                "per step), shares are of that\n", threads, total_s / n * 1e3);
   std::printf("\n%-20s %10s %7s %10s %9s\n", "phase", "ms/step", "share", "GFLOP", "GFLOP/s");
   auto phase = [&](const char* name, double ms, double flops) {
     std::printf("%-20s %10.2f %6.1f%% %10.3f %9.1f\n", name, ms / n, ms / 10 / total_s,
                 flops / n / 1e9, ms > 0 ? flops / (ms * 1e-3) / 1e9 : 0.0);
   };
-  phase("data generation", data_s * 1e3, 0);
+  phase("data generation", data_s * threads * 1e3, 0);
   phase("geometry forward", phases.geometry_forward, phases.flops.geometry_forward);
   phase("geometry backward", phases.geometry_backward, phases.flops.geometry_backward);
   phase("decoder forward", phases.decoder_forward, phases.flops.decoder_forward);
@@ -156,10 +161,11 @@ static int run_recipe(const RecipeOptions& ro) {
   phase("raster forward", phases.raster_forward, phases.flops.raster_forward);
   phase("raster backward", phases.raster_backward, phases.flops.raster_backward);
   phase("losses", phases.losses, phases.flops.losses);
-  phase("update", phases.update, phases.flops.update);
+  phase("update", phases.update * threads, phases.flops.update);
   const double step_flops = phases.flops.total();
-  std::printf("%-20s %10.2f %6.1f%% %10.3f %9.1f  (%.3f of SGEMM)\n", "whole step", total_s / n * 1e3, 100.0,
-              step_flops / n / 1e9, step_flops / total_s / 1e9, step_flops / total_s / 1e9 / sgemm.gflops);
+  std::printf("%-20s %10.2f %6.1f%% %10.3f %9.1f  (%.3f of SGEMM on %d thread(s))\n", "whole step", wall_s / n * 1e3,
+              100.0, step_flops / n / 1e9, step_flops / wall_s / 1e9, step_flops / wall_s / 1e9 / sgemm.gflops,
+              global_pool().size());
 
   std::printf("\n%-20s %10s %7s %10s %10s %9s\n", "op family (self)", "ms/step", "share", "calls/step", "GFLOP",
               "GFLOP/s");
@@ -170,8 +176,8 @@ static int run_recipe(const RecipeOptions& ro) {
                 ops.seconds[i] / n * 1e3, ops.seconds[i] / total_s * 100, double(ops.calls[i]) / n,
                 ops.flops[i] / n / 1e9, ops.seconds[i] > 0 ? ops.flops[i] / ops.seconds[i] / 1e9 : 0.0);
   }
-  std::printf("%-20s %10.2f %6.1f%%\n", "everything else", (total_s - profiled) / n * 1e3,
-              (total_s - profiled) / total_s * 100);
+  std::printf("%-20s %10.2f %6.1f%%%s\n", "everything else", (total_s - profiled) / n * 1e3,
+              (total_s - profiled) / total_s * 100, threads > 1 ? "  (with the threads' idle time)" : "");
   const double fwd = ops.seconds[int(profile::Op::attention_forward)], bwd = ops.seconds[int(profile::Op::attention_backward)];
   std::printf("\nattention backward / forward: %.2f\n", fwd > 0 ? bwd / fwd : 0.0);
   std::printf("peak RSS %.2f GB\n", peak_rss_gb());
@@ -251,7 +257,7 @@ int main(int argc, char** argv) {
     model::StepConfig sc;
     sc.camera_weight = 1.0, sc.depth_weight = 0.1;
     model::StepWorkspace<float> ws;
-    ws.scene.geometry.recompute = recompute;
+    ws.recompute = recompute;
     train::SoloCommunicator solo;
     model::PhaseTimes best;
     double best_total = 1e300;

@@ -4,6 +4,7 @@
 #include <atomic>
 #include <chrono>
 #include <cstdlib>
+#include <stdexcept>
 #include <string>
 #include <thread>
 #include <tuple>
@@ -220,4 +221,54 @@ TEST_CASE("two threads submitting to one pool take turns", "[parallel]") {
   std::thread a(submit), b(submit);
   a.join(), b.join();
   CHECK(total == 2 * 500 * 8);
+}
+
+TEST_CASE("SerialScope makes the calling thread a one-thread process and restores it", "[parallel]") {
+  ThreadPool two(2);
+  const UsePool use(two);
+  REQUIRE(&global_pool() == &two);
+  {
+    const SerialScope serial;
+    CHECK(global_pool().size() == 1);
+    CHECK(ThreadPool::current_worker() == -1);
+    CHECK(serial_scope_open());
+    std::vector<Chunk> seen;
+    parallel_for(10, [&](index_t b, index_t e, int w) { seen.push_back({b, e, w}); });
+    CHECK(seen == std::vector<Chunk>{{0, 10, 0}});  // one chunk, as on one thread
+  }
+  CHECK(&global_pool() == &two);
+  CHECK(!serial_scope_open());
+  // Inside a region, on worker 1: the worker index comes back after the scope.
+  std::vector<int> after(2, -2);
+  two.run_on_all([&](int w) {
+    { const SerialScope serial; }
+    after[static_cast<std::size_t>(w)] = ThreadPool::current_worker();
+  });
+  CHECK(after == std::vector<int>{0, 1});
+}
+
+TEST_CASE("parallel_tasks runs every task once, each as on one thread, and rethrows", "[parallel]") {
+  ThreadPool two(2);
+  const index_t n = 7;
+  std::vector<int> runs(n, 0), pool_sizes(n, 0), workers(n, -1);
+  parallel_tasks(n, [&](index_t i, int w) {
+    ++runs[static_cast<std::size_t>(i)];
+    pool_sizes[static_cast<std::size_t>(i)] = global_pool().size();
+    workers[static_cast<std::size_t>(i)] = w;
+  }, two);
+  CHECK(runs == std::vector<int>(n, 1));
+  CHECK(pool_sizes == std::vector<int>(n, 1));
+  for (int w : workers) CHECK((w == 0 || w == 1));
+  // One task, or a one-worker pool: a loop on the caller with the pool as it is (worker 0).
+  ThreadPool one(1);
+  ThreadPool& outer = global_pool();
+  bool as_is = false;
+  parallel_tasks(1, [&](index_t, int w) { as_is = &global_pool() == &outer && w == 0; }, two);
+  CHECK(as_is);
+  parallel_tasks(3, [&](index_t, int w) { CHECK(w == 0); }, one);
+  CHECK_THROWS_WITH(parallel_tasks(5, [&](index_t i, int) { if (i == 3) throw std::runtime_error("task 3"); }, two),
+                    "task 3");
+  std::atomic<int> count{0};
+  parallel_tasks(4, [&](index_t, int) { ++count; }, two);  // the pool still works
+  CHECK(count == 4);
 }

@@ -217,3 +217,47 @@ TEST_CASE("point_weight, match_weight and match_coarse_weight: scene_gradient is
   sc.point_weight = 0;
   CHECK_THROWS_WITH(model::scene_loss<double>(ws2, *plain, e, sc), Catch::Contains("needs a model with the match head"));
 }
+
+TEST_CASE("train_step with scenes side by side on two threads matches one thread to the bit", "[model][train]") {
+  const auto c = model::flexsplat_tiny_config();
+  auto serial_w = model::FlexSplatWeights<float>::create(c, true);
+  auto paired_w = model::FlexSplatWeights<float>::create(c, true);
+  serial_w->init(5);
+  paired_w->init(5);
+  // Three scenes of 1-3 views: two threads take them unevenly, in whatever order they finish.
+  const std::vector<model::TrainExample<float>> batch{model::make_train_example<float>(tiny_scene(3, 1, 31), c),
+                                                      model::make_train_example<float>(tiny_scene(1, 2, 32), c),
+                                                      model::make_train_example<float>(tiny_scene(2, 1, 33), c)};
+  model::StepConfig sc;
+  sc.camera_weight = 1.0;
+  sc.depth_weight = 0.1;
+  sc.gaussians = 48;
+  train::SoloCommunicator solo;
+  model::StepWorkspace<float> serial_ws, paired_ws;
+  ThreadPool two(2);
+  for (std::uint64_t step = 0; step < 2; ++step) {
+    model::StepReport a, b;
+    {
+      const SerialScope serial;
+      REQUIRE(!model::scenes_side_by_side(3));
+      a = model::train_step<float>(serial_ws, *serial_w, batch, 3, sc, 1e-3, step, solo);
+    }
+    {
+      const UsePool use(two);
+      REQUIRE(model::scenes_side_by_side(3));
+      model::PhaseTimes times;
+      b = model::train_step<float>(paired_ws, *paired_w, batch, 3, sc, 1e-3, step, solo, nullptr, &times);
+      CHECK(times.geometry_forward > 0);
+      CHECK(times.decoder_backward > 0);
+    }
+    CHECK(a.loss == b.loss);
+    CHECK(a.grad_norm == b.grad_norm);
+    const auto& sa = serial_w->store();
+    const auto& sb = paired_w->store();
+    REQUIRE(sa.size() == sb.size());
+    index_t differ = 0;
+    for (index_t i = 0; i < sa.size(); ++i) differ += sa.params()[i] != sb.params()[i];
+    INFO("step " << step << ": " << differ << " of " << sa.size() << " parameters differ");
+    CHECK(differ == 0);
+  }
+}

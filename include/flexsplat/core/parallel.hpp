@@ -32,6 +32,8 @@ inline int default_thread_count() {
   return hw ? static_cast<int>(hw) : 1;
 }
 
+class SerialScope;
+
 class ThreadPool {
 public:
   explicit ThreadPool(int threads = default_thread_count()) : size_(threads < 1 ? 1 : threads) {
@@ -82,6 +84,7 @@ public:
   }
 
 private:
+  friend class SerialScope;
   // Waiting threads poll this long before they sleep: a training step opens thousands of regions of tens of
   // microseconds each, and a sleeping thread takes about as long to wake (bench/train_step, 2 threads).
   static constexpr std::chrono::microseconds spin_time{50};
@@ -196,10 +199,63 @@ private:
   std::exception_ptr error_;
 };
 
+namespace detail {
+// The pool global_pool() gives on this thread instead of the process's (UsePool).
+inline ThreadPool*& pool_override() noexcept {
+  thread_local ThreadPool* pool = nullptr;
+  return pool;
+}
+inline bool& serial_scope_flag() noexcept {
+  thread_local bool open = false;
+  return open;
+}
+}  // namespace detail
+
 inline ThreadPool& global_pool() {
+  if (ThreadPool* p = detail::pool_override()) return *p;
   static ThreadPool pool;
   return pool;
 }
+
+// While it lives, global_pool() on the calling thread is `pool` (scopes nest; the previous one comes back).
+class UsePool {
+public:
+  explicit UsePool(ThreadPool& pool) noexcept : previous_(detail::pool_override()) { detail::pool_override() = &pool; }
+  ~UsePool() { detail::pool_override() = previous_; }
+  UsePool(const UsePool&) = delete;
+  UsePool& operator=(const UsePool&) = delete;
+
+private:
+  ThreadPool* previous_;
+};
+
+// While it lives, the calling thread runs as a one-thread process: global_pool() is a pool of one worker and the thread
+// is outside any region, so work split by the pool's size is split as on one thread and gives its results to the bit.
+class SerialScope {
+public:
+  SerialScope() noexcept : use_(one()), worker_(ThreadPool::worker_index()), open_(detail::serial_scope_flag()) {
+    ThreadPool::worker_index() = -1;
+    detail::serial_scope_flag() = true;
+  }
+  ~SerialScope() {
+    ThreadPool::worker_index() = worker_;
+    detail::serial_scope_flag() = open_;
+  }
+  SerialScope(const SerialScope&) = delete;
+  SerialScope& operator=(const SerialScope&) = delete;
+
+private:
+  static ThreadPool& one() noexcept {
+    thread_local ThreadPool pool(1);
+    return pool;
+  }
+  UsePool use_;
+  int worker_;
+  bool open_;
+};
+
+// Whether a SerialScope is open on this thread (other threads may be running other tasks meanwhile).
+inline bool serial_scope_open() noexcept { return detail::serial_scope_flag(); }
 
 // Calls body(begin, end, worker) on contiguous chunks of [0, n); chunk boundaries depend only on n and the pool size.
 // Inside another parallel region it runs body(0, n, current worker) serially on the calling thread.
@@ -219,6 +275,24 @@ void parallel_for(index_t n, Body&& body, ThreadPool& pool = global_pool()) {
     if (w >= workers) return;
     const index_t begin = n * w / workers, end = n * (w + 1) / workers;
     body(begin, end, w);
+  });
+}
+
+// Runs task(i, worker) once for every i in [0, n), each call on one worker inside a SerialScope: independent tasks
+// too small for their operations to split well (a training step's scenes) run side by side, each as on one thread.
+// Which worker (in [0, pool.size())) runs which task varies from run to run: results must not depend on it. With one
+// worker, one task or inside a region it is a plain loop on the calling thread (worker 0), the operations split as usual.
+template <class Task>
+void parallel_tasks(index_t n, Task&& task, ThreadPool& pool = global_pool()) {
+  if (n <= 0) return;
+  if (pool.size() == 1 || n == 1 || ThreadPool::current_worker() >= 0) {
+    for (index_t i = 0; i < n; ++i) task(i, 0);
+    return;
+  }
+  std::atomic<index_t> next{0};
+  pool.run_on_all([&](int worker) {
+    const SerialScope serial;
+    for (index_t i; (i = next.fetch_add(1, std::memory_order_relaxed)) < n;) task(i, worker);
   });
 }
 

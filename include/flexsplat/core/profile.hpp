@@ -62,6 +62,8 @@ struct Frame {
   std::chrono::steady_clock::time_point since;
 };
 inline thread_local Frame* current = nullptr;
+// The FLOPs of the scopes opened on this thread.
+inline thread_local double thread_flops = 0;
 
 inline void add_time(Op op, std::chrono::steady_clock::duration d) {
   counters().nanoseconds[static_cast<int>(op)].fetch_add(
@@ -81,6 +83,9 @@ inline void reset() {
     c.flops[i].store(0.0, std::memory_order_relaxed);
   }
 }
+
+// The FLOPs of the scopes this thread opened since the process started (only while enabled).
+inline double thread_flops() { return detail::thread_flops; }
 
 inline Totals totals() {
   const auto& c = detail::counters();
@@ -106,7 +111,7 @@ public:
     detail::current = &frame_;
     auto& c = detail::counters();
     c.calls[static_cast<int>(op)].fetch_add(1, std::memory_order_relaxed);
-    if (flops > 0) c.flops[static_cast<int>(op)].fetch_add(flops, std::memory_order_relaxed);
+    if (flops > 0) c.flops[static_cast<int>(op)].fetch_add(flops, std::memory_order_relaxed), detail::thread_flops += flops;
   }
   Scope(const Scope&) = delete;
   Scope& operator=(const Scope&) = delete;

@@ -15,6 +15,7 @@
 
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gaussians.hpp"
+#include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/model.hpp"
@@ -67,12 +68,25 @@ struct PhaseValues {
     return geometry_forward + geometry_backward + decoder_forward + decoder_backward + raster_forward +
            raster_backward + losses + update;
   }
+  PhaseValues& operator+=(const PhaseValues& o) {
+    for (double PhaseValues::*f : {&PhaseValues::geometry_forward, &PhaseValues::geometry_backward,
+                                   &PhaseValues::decoder_forward, &PhaseValues::decoder_backward,
+                                   &PhaseValues::raster_forward, &PhaseValues::raster_backward, &PhaseValues::losses,
+                                   &PhaseValues::update})
+      this->*f += o.*f;
+    return *this;
+  }
 };
 
 // Wall time per phase in milliseconds, accumulated (benchmarks and the training log read it), and the GEMM and
 // attention FLOPs each phase ran while profile:: is enabled.
 struct PhaseTimes : PhaseValues {
   PhaseValues flops;
+  PhaseTimes& operator+=(const PhaseTimes& o) {
+    PhaseValues::operator+=(o);
+    flops += o.flops;
+    return *this;
+  }
 };
 
 // Adds the time (and profiled FLOPs) since construction or the last lap to a PhaseTimes field.
@@ -91,8 +105,10 @@ public:
   }
 
 private:
+  // Inside a SerialScope other threads run other scenes: only this thread's FLOPs are the phase's.
   static double profiled_flops() {
     if (!profile::enabled()) return 0;
+    if (serial_scope_open()) return profile::thread_flops();
     const profile::Totals t = profile::totals();
     double sum = 0;
     for (double f : t.flops) sum += f;

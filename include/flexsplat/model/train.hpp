@@ -337,14 +337,23 @@ StepReport scene_gradient(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T
   return detail::scene_pass<T>(ws, w, grads, e, sc, lpips, times);
 }
 
+// Whether a step's `scenes` local scenes run side by side, one per thread (train_step, make_train_scenes): with several
+// threads and at least as many scenes; at this model's size one scene's operations split poorly over threads.
+inline bool scenes_side_by_side(index_t scenes, ThreadPool& pool = global_pool()) {
+  return pool.size() > 1 && scenes >= pool.size() && ThreadPool::current_worker() < 0;
+}
+
 template <class T>
 struct StepWorkspace {
-  SceneWorkspace<T> scene;
+  std::vector<SceneWorkspace<T>> scenes;  // one per worker that runs scenes side by side (train_step)
+  bool recompute = false;                 // the geometry's transformer blocks rerun in backward (GeometryStage)
   std::vector<std::vector<T, AlignedAllocator<T>>> scene_grads;  // one gradient per local scene
 };
 
 // One update from a global batch: `local` are this rank's scenes, in global order (train::share_of). lr from the
-// schedule; step counts updates done before this one. Returns the global batch's mean losses.
+// schedule; step counts updates done before this one. Returns the global batch's mean losses. Scenes side by side
+// (scenes_side_by_side) each run as on one thread: the step is then bit-identical to one thread and to any number of
+// ranks, and `times` sums the threads' phase times.
 template <class T>
 StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<const TrainExample<T>> local,
                       index_t global_batch, const StepConfig& sc, double lr, std::uint64_t step,
@@ -356,21 +365,33 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   // One scene on one rank: its gradient is the sum, so it goes straight into the store (no second gradient-sized
   // buffer; the same values as the copy ordered_sum would make).
   const bool direct = comm.size() == 1 && local.size() == 1;
+  const index_t workers = global_pool().size(), scenes = static_cast<index_t>(local.size());
+  const bool side_by_side = scenes_side_by_side(scenes);
+  ws.scenes.resize(static_cast<std::size_t>(std::max<index_t>(side_by_side ? workers : 1,
+                                                              static_cast<index_t>(ws.scenes.size()))));
+  for (SceneWorkspace<T>& s : ws.scenes) s.geometry.recompute = ws.recompute;
   ws.scene_grads.resize(direct ? 0 : local.size());
   if (direct) store.zero_grads();
   constexpr std::size_t means = std::size(step_report_means), fields = means + 1;  // + the scene count
   std::vector<double> values(local.size() * fields);
-  for (std::size_t s = 0; s < local.size(); ++s) {
+  std::vector<PhaseTimes> worker_times(times && side_by_side ? static_cast<std::size_t>(workers) : 0);
+  auto run = [&](index_t s, int worker) {
     T* g = direct ? store.grads() : nullptr;
     if (!direct) {
-      ws.scene_grads[s].assign(static_cast<std::size_t>(n), T(0));
-      g = ws.scene_grads[s].data();
+      ws.scene_grads[static_cast<std::size_t>(s)].assign(static_cast<std::size_t>(n), T(0));
+      g = ws.scene_grads[static_cast<std::size_t>(s)].data();
     }
-    const StepReport r = scene_gradient(ws.scene, w, g, local[s], sc, lpips, times);
-    double* v = values.data() + fields * s;
+    PhaseTimes* t = side_by_side && times ? &worker_times[static_cast<std::size_t>(worker)] : times;
+    const StepReport r = scene_gradient(ws.scenes[static_cast<std::size_t>(worker)], w, g,
+                                        local[static_cast<std::size_t>(s)], sc, lpips, t);
+    double* v = values.data() + fields * static_cast<std::size_t>(s);
     for (std::size_t i = 0; i < means; ++i) v[i] = r.*step_report_means[i];
     v[means] = 1.0;
-  }
+  };
+  if (side_by_side) parallel_tasks(scenes, run);
+  else
+    for (index_t s = 0; s < scenes; ++s) run(s, 0);
+  for (const PhaseTimes& t : worker_times) *times += t;
   PhaseClock clock(times);
   std::vector<const T*> ptrs;
   for (auto& g : ws.scene_grads) ptrs.push_back(g.data());

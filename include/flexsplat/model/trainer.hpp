@@ -369,8 +369,7 @@ inline TrainerResult run_training(const nlohmann::json& recipe, const TrainData&
   while (step < stop_at) {
     const StepSchedule at = cfg.schedule_at(step);
     const TrainStage& stage = cfg.stages[at.stage];
-    std::vector<TrainExample<float>> local;
-    for (index_t b = share.first; b < share.first + share.count; ++b) local.push_back(make_train_scene(data, cfg, step, b));
+    const std::vector<TrainExample<float>> local = make_train_scenes(data, cfg, step, share.first, share.count);
     const StepReport r = train_step<float>(ws, *w, local, cfg.batch, stage.step, at.lr, step, comm, lpips.get());
     require(std::isfinite(r.loss), "train: the loss is ", r.loss, " at step ", step, " (stage '", stage.name,
             "'); lower the learning rate");
