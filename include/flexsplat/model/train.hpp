@@ -12,8 +12,10 @@
 #include <cstdint>
 #include <iterator>
 #include <span>
+#include <utility>
 #include <vector>
 
+#include "flexsplat/core/parallel.hpp"
 #include "flexsplat/data/dataset.hpp"
 #include "flexsplat/geometry/pose_encoding.hpp"
 #include "flexsplat/geometry/unproject.hpp"
@@ -388,8 +390,17 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
     for (std::size_t i = 0; i < means; ++i) v[i] = r.*step_report_means[i];
     v[means] = 1.0;
   };
-  if (side_by_side) parallel_tasks(scenes, run);
-  else
+  if (side_by_side) {
+    // Largest first (views, then rendered targets), so that the threads finish close together.
+    std::vector<index_t> order(static_cast<std::size_t>(scenes));
+    for (index_t s = 0; s < scenes; ++s) order[static_cast<std::size_t>(s)] = s;
+    auto cost = [&](index_t s) {
+      const TrainExample<T>& e = local[static_cast<std::size_t>(s)];
+      return std::pair<index_t, index_t>{e.views, e.targets};
+    };
+    std::stable_sort(order.begin(), order.end(), [&](index_t a, index_t b) { return cost(a) > cost(b); });
+    parallel_tasks(scenes, [&](index_t i, int worker) { run(order[static_cast<std::size_t>(i)], worker); });
+  } else
     for (index_t s = 0; s < scenes; ++s) run(s, 0);
   for (const PhaseTimes& t : worker_times) *times += t;
   PhaseClock clock(times);
