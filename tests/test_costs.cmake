@@ -27,6 +27,7 @@ set(flexsplat_test_costs
     "cli: train write fault (full) keeps the checkpoint|12"
     "cli: train on 2 MPI ranks equals 1 process|11"
     "cli: train resumes exactly|11"
+    "cli: train on 2 threads equals 1 thread|8"
     "nn:attention backward passes the float64 gradient check and is thread-count independent|11")
 foreach(entry ${flexsplat_test_costs})
   string(FIND "${entry}" "|" bar REVERSE)

@@ -1,6 +1,7 @@
 # Runs `flexsplat train` twice into two folders and requires byte-identical model.safetensors.
-# -DFLEXSPLAT=exe -DCONFIG=json -DWORK_DIR=dir -DMODE=mpi|resume [-DMPIEXEC=mpiexec]
-# mpi: one process vs 2 MPI ranks, 4 steps each; resume: 4 steps in one go vs 2 steps, then a rerun to step 4.
+# -DFLEXSPLAT=exe -DCONFIG=json -DWORK_DIR=dir -DMODE=mpi|threads|resume [-DMPIEXEC=mpiexec]
+# Against one process of one thread, 4 steps: mpi, 2 MPI ranks of one thread; threads, one process of 2 threads (the
+# step's scenes side by side); resume, 2 steps, then a rerun to step 4.
 file(REMOVE_RECURSE ${WORK_DIR})
 file(MAKE_DIRECTORY ${WORK_DIR})
 function(run_train)
@@ -11,12 +12,16 @@ function(run_train)
   message(STATUS "${out}")
 endfunction()
 set(common train --quiet --config ${CONFIG} --data procedural)
-run_train(${FLEXSPLAT} ${common} --out ${WORK_DIR}/a --steps 4)
+set(one ${CMAKE_COMMAND} -E env FLEXSPLAT_NUM_THREADS=1)
+run_train(${one} ${FLEXSPLAT} ${common} --out ${WORK_DIR}/a --steps 4)
 if(MODE STREQUAL "mpi")
-  run_train(${MPIEXEC} --oversubscribe --allow-run-as-root -np 2 ${FLEXSPLAT} ${common} --out ${WORK_DIR}/b --steps 4)
+  run_train(${one} ${MPIEXEC} --oversubscribe --allow-run-as-root -np 2 -x FLEXSPLAT_NUM_THREADS ${FLEXSPLAT} ${common}
+            --out ${WORK_DIR}/b --steps 4)
+elseif(MODE STREQUAL "threads")
+  run_train(${CMAKE_COMMAND} -E env FLEXSPLAT_NUM_THREADS=2 ${FLEXSPLAT} ${common} --out ${WORK_DIR}/b --steps 4)
 elseif(MODE STREQUAL "resume")
-  run_train(${FLEXSPLAT} ${common} --out ${WORK_DIR}/b --steps 2)
-  run_train(${FLEXSPLAT} ${common} --out ${WORK_DIR}/b --steps 4)
+  run_train(${one} ${FLEXSPLAT} ${common} --out ${WORK_DIR}/b --steps 2)
+  run_train(${one} ${FLEXSPLAT} ${common} --out ${WORK_DIR}/b --steps 4)
   file(STRINGS ${WORK_DIR}/b/log.jsonl lines)
   list(LENGTH lines n)
   if(NOT n EQUAL 4)
@@ -32,7 +37,7 @@ elseif(MODE STREQUAL "resume")
     set(previous ${cpu})
   endforeach()
 else()
-  message(FATAL_ERROR "MODE must be mpi or resume, got '${MODE}'")
+  message(FATAL_ERROR "MODE must be mpi, threads or resume, got '${MODE}'")
 endif()
 execute_process(COMMAND ${CMAKE_COMMAND} -E compare_files ${WORK_DIR}/a/model.safetensors ${WORK_DIR}/b/model.safetensors
                 RESULT_VARIABLE differ)
