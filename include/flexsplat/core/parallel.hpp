@@ -233,7 +233,7 @@ private:
 // is outside any region, so work split by the pool's size is split as on one thread and gives its results to the bit.
 class SerialScope {
 public:
-  SerialScope() noexcept : use_(one()), worker_(ThreadPool::worker_index()), open_(detail::serial_scope_flag()) {
+  SerialScope() : use_(one()), worker_(ThreadPool::worker_index()), open_(detail::serial_scope_flag()) {
     ThreadPool::worker_index() = -1;
     detail::serial_scope_flag() = true;
   }
@@ -245,7 +245,7 @@ public:
   SerialScope& operator=(const SerialScope&) = delete;
 
 private:
-  static ThreadPool& one() noexcept {
+  static ThreadPool& one() {
     thread_local ThreadPool pool(1);
     return pool;
   }

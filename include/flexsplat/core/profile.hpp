@@ -111,7 +111,10 @@ public:
     detail::current = &frame_;
     auto& c = detail::counters();
     c.calls[static_cast<int>(op)].fetch_add(1, std::memory_order_relaxed);
-    if (flops > 0) c.flops[static_cast<int>(op)].fetch_add(flops, std::memory_order_relaxed), detail::thread_flops += flops;
+    if (flops > 0) {
+      c.flops[static_cast<int>(op)].fetch_add(flops, std::memory_order_relaxed);
+      detail::thread_flops += flops;
+    }
   }
   Scope(const Scope&) = delete;
   Scope& operator=(const Scope&) = delete;
