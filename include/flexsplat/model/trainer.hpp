@@ -138,7 +138,7 @@ inline std::vector<ValidationSet> make_validation_sets(const TrainData& d, const
 // its inputs, then targets and renders.
 inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, const FlexSplatWeights<float>& w,
                                     const std::filesystem::path& picture) {
-  ValidationWorkspace<float> ws;
+  std::vector<ValidationWorkspace<float>> ws(static_cast<std::size_t>(global_pool().size()));
   nlohmann::json result = nlohmann::json::object();
   std::deque<Tensor<float, 3>> keep;  // owns the renders the grid cells point at (a deque never moves them)
   std::vector<image::GridCell> cells;
@@ -147,10 +147,21 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
     double psnr = 0, ssim = 0, rot = 0, depth = 0, depth_shape = 0, rra15 = 0, rra30 = 0, prot = 0, prra15 = 0, prra30 = 0, chance = 0, mrot = 0,
            mrra15 = 0, mrra30 = 0, macc = 0, mgt = 0, morc = 0, morc15 = 0, macc4 = 0;
     std::array<double, 4> bin_hits{}, bin_count{}, bin_pairs{}, bin_pairs15{};
+    // Scored side by side as training scenes run (scenes_side_by_side), summed below in scene order.
+    const index_t count = static_cast<index_t>(set.scenes.size());
+    std::vector<ValidationScore> scores(set.scenes.size());
+    std::vector<std::vector<Tensor<float, 3>>> scene_renders(set.scenes.size());
+    auto score = [&](index_t i, int worker) {
+      const auto k = static_cast<std::size_t>(i);
+      scores[k] = validate_scene(ws[static_cast<std::size_t>(worker)], w, set.scenes[k], &scene_renders[k]);
+    };
+    if (scenes_side_by_side(count)) parallel_tasks(count, score);
+    else
+      for (index_t i = 0; i < count; ++i) score(i, 0);
     for (std::size_t i = 0; i < set.scenes.size(); ++i) {
       const auto& e = set.scenes[i];
-      std::vector<Tensor<float, 3>> renders;
-      const ValidationScore s = validate_scene(ws, w, e, &renders);
+      const std::vector<Tensor<float, 3>>& renders = scene_renders[i];
+      const ValidationScore& s = scores[i];
       psnr += s.psnr, ssim += s.ssim, rot += s.rotation_deg, depth += s.depth_rel, depth_shape += s.depth_shape_rel, rra15 += s.rra15, rra30 += s.rra30;
       prot += s.points_rotation_deg, prra15 += s.points_rra15, prra30 += s.points_rra30, chance += s.chance_rotation_deg;
       mrot += s.matches_rotation_deg, mrra15 += s.matches_rra15, mrra30 += s.matches_rra30;
