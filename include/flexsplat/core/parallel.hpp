@@ -199,7 +199,7 @@ private:
   std::exception_ptr error_;
 };
 
-namespace detail {
+namespace parallel_detail {
 // The pool global_pool() gives on this thread instead of the process's (UsePool).
 inline ThreadPool*& pool_override() noexcept {
   thread_local ThreadPool* pool = nullptr;
@@ -209,10 +209,10 @@ inline bool& serial_scope_flag() noexcept {
   thread_local bool open = false;
   return open;
 }
-}  // namespace detail
+}  // namespace parallel_detail
 
 inline ThreadPool& global_pool() {
-  if (ThreadPool* p = detail::pool_override()) return *p;
+  if (ThreadPool* p = parallel_detail::pool_override()) return *p;
   static ThreadPool pool;
   return pool;
 }
@@ -220,8 +220,10 @@ inline ThreadPool& global_pool() {
 // While it lives, global_pool() on the calling thread is `pool` (scopes nest; the previous one comes back).
 class UsePool {
 public:
-  explicit UsePool(ThreadPool& pool) noexcept : previous_(detail::pool_override()) { detail::pool_override() = &pool; }
-  ~UsePool() { detail::pool_override() = previous_; }
+  explicit UsePool(ThreadPool& pool) noexcept : previous_(parallel_detail::pool_override()) {
+    parallel_detail::pool_override() = &pool;
+  }
+  ~UsePool() { parallel_detail::pool_override() = previous_; }
   UsePool(const UsePool&) = delete;
   UsePool& operator=(const UsePool&) = delete;
 
@@ -233,13 +235,13 @@ private:
 // is outside any region, so work split by the pool's size is split as on one thread and gives its results to the bit.
 class SerialScope {
 public:
-  SerialScope() : use_(one()), worker_(ThreadPool::worker_index()), open_(detail::serial_scope_flag()) {
+  SerialScope() : use_(one()), worker_(ThreadPool::worker_index()), open_(parallel_detail::serial_scope_flag()) {
     ThreadPool::worker_index() = -1;
-    detail::serial_scope_flag() = true;
+    parallel_detail::serial_scope_flag() = true;
   }
   ~SerialScope() {
     ThreadPool::worker_index() = worker_;
-    detail::serial_scope_flag() = open_;
+    parallel_detail::serial_scope_flag() = open_;
   }
   SerialScope(const SerialScope&) = delete;
   SerialScope& operator=(const SerialScope&) = delete;
@@ -255,7 +257,7 @@ private:
 };
 
 // Whether a SerialScope is open on this thread (other threads may be running other tasks meanwhile).
-inline bool serial_scope_open() noexcept { return detail::serial_scope_flag(); }
+inline bool serial_scope_open() noexcept { return parallel_detail::serial_scope_flag(); }
 
 // Calls body(begin, end, worker) on contiguous chunks of [0, n); chunk boundaries depend only on n and the pool size.
 // Inside another parallel region it runs body(0, n, current worker) serially on the calling thread.
