@@ -283,7 +283,7 @@ void parallel_for(index_t n, Body&& body, ThreadPool& pool = global_pool()) {
 // Runs task(i, worker) once for every i in [0, n), each call on one worker inside a SerialScope: independent tasks
 // too small for their operations to split well (a training step's scenes) run side by side, each as on one thread.
 // Which worker (in [0, pool.size())) runs which task varies from run to run: results must not depend on it. With one
-// worker, one task or inside a region it is a plain loop on the calling thread (worker 0), the operations split as usual.
+// worker, one task or inside a region it is a plain loop on the calling thread (worker 0), operations split as usual.
 template <class Task>
 void parallel_tasks(index_t n, Task&& task, ThreadPool& pool = global_pool()) {
   if (n <= 0) return;
