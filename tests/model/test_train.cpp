@@ -3,6 +3,8 @@
 #include <cmath>
 #include <cstdio>
 #include <random>
+#include <thread>
+#include <vector>
 
 #include "flexsplat/model/train.hpp"
 #include "flexsplat/testing/gradcheck.hpp"
@@ -259,5 +261,29 @@ TEST_CASE("train_step with scenes side by side on two threads matches one thread
     for (index_t i = 0; i < sa.size(); ++i) differ += sa.params()[i] != sb.params()[i];
     INFO("step " << step << ": " << differ << " of " << sa.size() << " parameters differ");
     CHECK(differ == 0);
+  }
+}
+
+TEST_CASE("run_scenes: side by side from as many scenes as threads, in order on the caller below that", "[model][train]") {
+  ThreadPool two(2);
+  const UsePool use(two);
+  const std::thread::id caller = std::this_thread::get_id();
+  std::vector<index_t> seen;
+  model::run_scenes(1, [&](index_t i, int worker) {
+    CHECK(worker == 0);
+    CHECK(std::this_thread::get_id() == caller);
+    seen.push_back(i);
+  });
+  CHECK(seen == std::vector<index_t>{0});
+  std::vector<int> runs(5, 0), workers(5, -2);
+  model::run_scenes(5, [&](index_t i, int worker) {
+    ++runs[static_cast<std::size_t>(i)];
+    workers[static_cast<std::size_t>(i)] = worker;
+    CHECK(ThreadPool::current_worker() < 0);  // each scene runs as on one thread
+    CHECK(global_pool().size() == 1);
+  });
+  for (std::size_t i = 0; i < runs.size(); ++i) {
+    CHECK(runs[i] == 1);
+    CHECK((workers[i] == 0 || workers[i] == 1));
   }
 }

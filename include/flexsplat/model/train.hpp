@@ -345,6 +345,15 @@ inline bool scenes_side_by_side(index_t scenes, ThreadPool& pool = global_pool()
   return pool.size() > 1 && scenes >= pool.size() && ThreadPool::current_worker() < 0;
 }
 
+// task(i, worker) for i in [0, n): side by side, one scene per thread, when scenes_side_by_side(n), else in order on
+// this thread as worker 0. Unlike parallel_tasks, fewer scenes than threads run in order (each then splits its work).
+template <class Task>
+void run_scenes(index_t n, Task&& task) {
+  if (scenes_side_by_side(n)) parallel_tasks(n, task);
+  else
+    for (index_t i = 0; i < n; ++i) task(i, 0);
+}
+
 template <class T>
 struct StepWorkspace {
   std::vector<SceneWorkspace<T>> scenes;  // one per worker that runs scenes side by side (train_step)
@@ -390,18 +399,16 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
     for (std::size_t i = 0; i < means; ++i) v[i] = r.*step_report_means[i];
     v[means] = 1.0;
   };
-  if (side_by_side) {
-    // Largest first (views, then rendered targets), so that the threads finish close together.
-    std::vector<index_t> order(static_cast<std::size_t>(scenes));
-    for (index_t s = 0; s < scenes; ++s) order[static_cast<std::size_t>(s)] = s;
-    auto cost = [&](index_t s) {
-      const TrainExample<T>& e = local[static_cast<std::size_t>(s)];
-      return std::pair<index_t, index_t>{e.views, e.targets};
-    };
-    std::stable_sort(order.begin(), order.end(), [&](index_t a, index_t b) { return cost(a) > cost(b); });
-    parallel_tasks(scenes, [&](index_t i, int worker) { run(order[static_cast<std::size_t>(i)], worker); });
-  } else
-    for (index_t s = 0; s < scenes; ++s) run(s, 0);
+  // Largest first (views, then rendered targets), so that threads side by side finish close together; each scene
+  // writes only its own gradient and values, so the order does not change the result.
+  std::vector<index_t> order(static_cast<std::size_t>(scenes));
+  for (index_t s = 0; s < scenes; ++s) order[static_cast<std::size_t>(s)] = s;
+  auto cost = [&](index_t s) {
+    const TrainExample<T>& e = local[static_cast<std::size_t>(s)];
+    return std::pair<index_t, index_t>{e.views, e.targets};
+  };
+  std::stable_sort(order.begin(), order.end(), [&](index_t a, index_t b) { return cost(a) > cost(b); });
+  run_scenes(scenes, [&](index_t i, int worker) { run(order[static_cast<std::size_t>(i)], worker); });
   for (const PhaseTimes& t : worker_times) *times += t;
   PhaseClock clock(times);
   std::vector<const T*> ptrs;

@@ -47,14 +47,12 @@ inline TrainExample<float> make_train_scene(const TrainData& d, const model::Tra
   return make_train_example<float>(s[0], c.model, c.match_samples);
 }
 
-// Scenes [first, first + count) of step `step`, made side by side as train_step runs them (scenes_side_by_side).
+// Scenes [first, first + count) of step `step`, made side by side as train_step runs them (run_scenes).
 inline std::vector<TrainExample<float>> make_train_scenes(const TrainData& d, const model::TrainRunConfig& c,
                                                           std::uint64_t step, index_t first, index_t count) {
   std::vector<TrainExample<float>> out(static_cast<std::size_t>(count));
   auto one = [&](index_t i, int) { out[static_cast<std::size_t>(i)] = make_train_scene(d, c, step, first + i); };
-  if (scenes_side_by_side(count)) parallel_tasks(count, one);
-  else
-    for (index_t i = 0; i < count; ++i) one(i, 0);
+  run_scenes(count, one);
   return out;
 }
 

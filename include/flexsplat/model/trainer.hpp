@@ -147,7 +147,7 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
     double psnr = 0, ssim = 0, rot = 0, depth = 0, depth_shape = 0, rra15 = 0, rra30 = 0, prot = 0, prra15 = 0, prra30 = 0, chance = 0, mrot = 0,
            mrra15 = 0, mrra30 = 0, macc = 0, mgt = 0, morc = 0, morc15 = 0, macc4 = 0;
     std::array<double, 4> bin_hits{}, bin_count{}, bin_pairs{}, bin_pairs15{};
-    // Scored side by side as training scenes run (scenes_side_by_side), summed below in scene order.
+    // Scored side by side as training scenes run (run_scenes), summed below in scene order.
     const index_t count = static_cast<index_t>(set.scenes.size());
     std::vector<ValidationScore> scores(set.scenes.size());
     std::vector<std::vector<Tensor<float, 3>>> scene_renders(set.scenes.size());
@@ -155,9 +155,7 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
       const auto k = static_cast<std::size_t>(i);
       scores[k] = validate_scene(ws[static_cast<std::size_t>(worker)], w, set.scenes[k], &scene_renders[k]);
     };
-    if (scenes_side_by_side(count)) parallel_tasks(count, score);
-    else
-      for (index_t i = 0; i < count; ++i) score(i, 0);
+    run_scenes(count, score);
     for (std::size_t i = 0; i < set.scenes.size(); ++i) {
       const auto& e = set.scenes[i];
       const std::vector<Tensor<float, 3>>& renders = scene_renders[i];
