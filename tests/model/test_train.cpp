@@ -242,13 +242,24 @@ TEST_CASE("train_step with scenes side by side on two threads matches one thread
     {
       const SerialScope serial;
       REQUIRE(!model::scenes_side_by_side(3));
-      a = model::train_step<float>(serial_ws, *serial_w, batch, 3, sc, 1e-3, step, solo);
+      std::vector<int> runs(4, 0);
+      const model::SideTasks side{4, [&](index_t i) { ++runs[static_cast<std::size_t>(i)]; }};
+      a = model::train_step<float>(serial_ws, *serial_w, batch, 3, sc, 1e-3, step, solo, nullptr, nullptr, side);
+      CHECK(runs == std::vector<int>(4, 1));
     }
     {
       const UsePool use(two);
       REQUIRE(model::scenes_side_by_side(3));
       model::PhaseTimes times;
-      b = model::train_step<float>(paired_ws, *paired_w, batch, 3, sc, 1e-3, step, solo, nullptr, &times);
+      // Side tasks (the trainer's next scenes) fill the wait for the last scene and leave the step's result alone.
+      std::vector<int> runs(4, 0), pool_sizes(4, 0);
+      const model::SideTasks side{4, [&](index_t i) {
+                                    pool_sizes[static_cast<std::size_t>(i)] = global_pool().size();
+                                    ++runs[static_cast<std::size_t>(i)];
+                                  }};
+      b = model::train_step<float>(paired_ws, *paired_w, batch, 3, sc, 1e-3, step, solo, nullptr, &times, side);
+      CHECK(runs == std::vector<int>(4, 1));
+      CHECK(pool_sizes == std::vector<int>(4, 1));  // each as on one thread
       CHECK(times.geometry_forward > 0);
       CHECK(times.decoder_backward > 0);
     }
@@ -275,15 +286,23 @@ TEST_CASE("run_scenes: side by side from as many scenes as threads, in order on 
     seen.push_back(i);
   });
   CHECK(seen == std::vector<index_t>{0});
-  std::vector<int> runs(5, 0), workers(5, -2);
-  model::run_scenes(5, [&](index_t i, int worker) {
-    ++runs[static_cast<std::size_t>(i)];
-    workers[static_cast<std::size_t>(i)] = worker;
-    CHECK(ThreadPool::current_worker() < 0);  // each scene runs as on one thread
-    CHECK(global_pool().size() == 1);
-  });
+  // Three scenes and two extra tasks; Catch's checks stay on this thread.
+  std::vector<int> runs(5, 0), workers(5, -2), current(5, 0), pool_sizes(5, 0);
+  model::run_scenes(
+      3,
+      [&](index_t i, int worker) {
+        const auto k = static_cast<std::size_t>(i);
+        ++runs[k];
+        workers[k] = worker;
+        current[k] = ThreadPool::current_worker();
+        pool_sizes[k] = global_pool().size();
+      },
+      2);
   for (std::size_t i = 0; i < runs.size(); ++i) {
+    INFO("task " << i);
     CHECK(runs[i] == 1);
     CHECK((workers[i] == 0 || workers[i] == 1));
+    CHECK(current[i] < 0);  // each task runs as on one thread
+    CHECK(pool_sizes[i] == 1);
   }
 }

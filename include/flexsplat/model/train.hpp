@@ -10,6 +10,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <functional>
 #include <iterator>
 #include <span>
 #include <utility>
@@ -345,14 +346,23 @@ inline bool scenes_side_by_side(index_t scenes, ThreadPool& pool = global_pool()
   return pool.size() > 1 && scenes >= pool.size() && ThreadPool::current_worker() < 0;
 }
 
-// task(i, worker) for i in [0, n): side by side, one scene per thread, when scenes_side_by_side(n), else in order on
-// this thread as worker 0. Unlike parallel_tasks, fewer scenes than threads run in order (each then splits its work).
+// task(i, worker) for i in [0, n + extra): side by side, one task per thread, when scenes_side_by_side(n), else in
+// order on this thread as worker 0. The `extra` tasks come after the n scenes, so the first thread to run out of scenes
+// takes them. Unlike parallel_tasks, fewer scenes than threads run in order (each then splits its work).
 template <class Task>
-void run_scenes(index_t n, Task&& task) {
-  if (scenes_side_by_side(n)) parallel_tasks(n, task);
+void run_scenes(index_t n, Task&& task, index_t extra = 0) {
+  if (scenes_side_by_side(n)) parallel_tasks(n + extra, task);
   else
-    for (index_t i = 0; i < n; ++i) task(i, 0);
+    for (index_t i = 0; i < n + extra; ++i) task(i, 0);
 }
+
+// Work that does not read the step's parameters (the trainer's next scenes), run(i) for i < count: with scenes side by
+// side the first thread out of scenes takes it (each task as on one thread), filling its wait for the others' last
+// scene; otherwise it runs after the scenes.
+struct SideTasks {
+  index_t count = 0;
+  std::function<void(index_t)> run;
+};
 
 template <class T>
 struct StepWorkspace {
@@ -364,12 +374,12 @@ struct StepWorkspace {
 // One update from a global batch: `local` are this rank's scenes, in global order (train::share_of). lr from the
 // schedule; step counts updates done before this one. Returns the global batch's mean losses. Scenes side by side
 // (scenes_side_by_side) each run as on one thread: the step is then bit-identical to one thread and to any number of
-// ranks, and `times` sums the threads' phase times.
+// ranks, and `times` sums the threads' phase times (the side tasks' time is not in them).
 template <class T>
 StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<const TrainExample<T>> local,
                       index_t global_batch, const StepConfig& sc, double lr, std::uint64_t step,
                       train::Communicator& comm, const loss::LpipsWeights<T>* lpips = nullptr,
-                      PhaseTimes* times = nullptr) {
+                      PhaseTimes* times = nullptr, const SideTasks& side = {}) {
   require(!local.empty(), "train_step: rank ", comm.rank(), " has no scenes");
   auto& store = w.store();
   const index_t n = store.size();
@@ -408,7 +418,14 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
     return std::pair<index_t, index_t>{e.views, e.targets};
   };
   std::stable_sort(order.begin(), order.end(), [&](index_t a, index_t b) { return cost(a) > cost(b); });
-  run_scenes(scenes, [&](index_t i, int worker) { run(order[static_cast<std::size_t>(i)], worker); });
+  const index_t side_count = side.run ? side.count : 0;
+  run_scenes(
+      scenes,
+      [&](index_t i, int worker) {
+        if (i < scenes) run(order[static_cast<std::size_t>(i)], worker);
+        else side.run(i - scenes);
+      },
+      side_count);
   for (const PhaseTimes& t : worker_times) *times += t;
   PhaseClock clock(times);
   std::vector<const T*> ptrs;

@@ -375,11 +375,21 @@ inline TrainerResult run_training(const nlohmann::json& recipe, const TrainData&
     train::save_training_state(state_path, w->store(), model_json,
                                train::TrainingState{done, train::rng_state_string(std::mt19937_64(cfg.seed))});
   };
+  // Each step also makes the next step's scenes, side by side in the time a thread would wait for the other's last.
+  std::vector<TrainExample<float>> local, next;
   while (step < stop_at) {
     const StepSchedule at = cfg.schedule_at(step);
     const TrainStage& stage = cfg.stages[at.stage];
-    const std::vector<TrainExample<float>> local = make_train_scenes(data, cfg, step, share.first, share.count);
-    const StepReport r = train_step<float>(ws, *w, local, cfg.batch, stage.step, at.lr, step, comm, lpips.get());
+    if (next.empty()) local = make_train_scenes(data, cfg, step, share.first, share.count);
+    else local.swap(next);
+    next.assign(step + 1 < stop_at ? static_cast<std::size_t>(share.count) : 0, TrainExample<float>{});
+    const std::uint64_t next_step = step + 1;
+    const SideTasks prefetch{static_cast<index_t>(next.size()), [&](index_t i) {
+                               next[static_cast<std::size_t>(i)] =
+                                   make_train_scene(data, cfg, next_step, share.first + i);
+                             }};
+    const StepReport r = train_step<float>(ws, *w, std::span<const TrainExample<float>>(local), cfg.batch, stage.step,
+                                           at.lr, step, comm, lpips.get(), nullptr, prefetch);
     require(std::isfinite(r.loss), "train: the loss is ", r.loss, " at step ", step, " (stage '", stage.name,
             "'); lower the learning rate");
     const std::uint64_t done = ++step;
