@@ -1,6 +1,8 @@
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cmath>
+#include <utility>
 #include <limits>
 #include <vector>
 
@@ -70,4 +72,48 @@ TEST_CASE("cameras are checked for size, finiteness and focal lengths", "[core][
   cams[0].t.y = 0;
   cams[0].height = 0;
   CHECK_THROWS_WITH(check_cameras(cams, "test"), Catch::Contains("image size 32x0"));
+}
+
+TEST_CASE("relative_w2c maps camera j's coordinates to camera i's in any world frame; its backward", "[core][camera]") {
+  const Camera a = look_at({2.0, -1.0, 0.7}, {0, 0, 0}, 32, 32, intrinsics_from_fov(32, 32, 50.0));
+  const Camera b = look_at({-0.5, 2.2, 1.3}, {0.1, 0, 0}, 32, 32, intrinsics_from_fov(32, 32, 50.0));
+  double ea[12], eb[12], rel[12];
+  camera_arrays(a, static_cast<double*>(nullptr), ea);
+  camera_arrays(b, static_cast<double*>(nullptr), eb);
+  relative_w2c(rel, ea, eb);
+  // A world point seen by b, carried to a's coordinates by rel, is where a sees it.
+  const glm::dvec3 x(0.3, -0.2, 0.4), xb = b.to_camera(x), xa = a.to_camera(x);
+  for (int r = 0; r < 3; ++r) {
+    const double y = rel[4 * r] * xb.x + rel[4 * r + 1] * xb.y + rel[4 * r + 2] * xb.z + rel[4 * r + 3];
+    CHECK(y == Approx(xa[r]).margin(1e-12));
+  }
+  // Moving both cameras' world by one rigid motion leaves rel unchanged.
+  const glm::dmat3 Rw = glm::dmat3(look_at({1, 2, 3}, {0, 0, 0}, 8, 8, glm::dmat3(1.0)).R);
+  const glm::dvec3 tw(0.5, -1.0, 2.0);
+  double ma[12], mb[12], rel2[12];
+  for (const auto& [cam, out] : {std::pair{&a, ma}, std::pair{&b, mb}}) {
+    Camera moved = *cam;  // x_cam = R (Rw^T (x' - tw)) + t for x' = Rw x + tw
+    moved.R = cam->R * glm::transpose(Rw);
+    moved.t = cam->t - moved.R * tw;
+    camera_arrays(moved, static_cast<double*>(nullptr), out);
+  }
+  relative_w2c(rel2, ma, mb);
+  for (int k = 0; k < 12; ++k) CHECK(rel2[k] == Approx(rel[k]).margin(1e-12));
+  // Backward against central differences of a fixed linear read-out (entries of i and j perturbed freely).
+  const double wout[12] = {0.3, -1.1, 0.7, 0.2, 0.9, 0.4, -0.6, -0.8, 0.5, 1.3, -0.2, 0.1};
+  double di[12] = {}, dj[12] = {};
+  relative_w2c_backward(di, dj, wout, ea, eb);
+  auto f = [&](const double* i, const double* j) {
+    double r[12], s = 0;
+    relative_w2c(r, i, j);
+    for (int k = 0; k < 12; ++k) s += wout[k] * r[k];
+    return s;
+  };
+  for (int k = 0; k < 12; ++k) {
+    double ip[12], im[12], jp[12], jm[12];
+    std::copy(ea, ea + 12, ip), std::copy(ea, ea + 12, im), std::copy(eb, eb + 12, jp), std::copy(eb, eb + 12, jm);
+    ip[k] += 1e-6, im[k] -= 1e-6, jp[k] += 1e-6, jm[k] -= 1e-6;
+    CHECK(di[k] == Approx((f(ip, eb) - f(im, eb)) / 2e-6).margin(1e-8));
+    CHECK(dj[k] == Approx((f(ea, jp) - f(ea, jm)) / 2e-6).margin(1e-8));
+  }
 }

@@ -1,5 +1,7 @@
 #include <catch2/catch.hpp>
 
+#include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <vector>
 
@@ -407,4 +409,67 @@ TEST_CASE("VGGT activation memory: the formula equals the tiny training caches, 
                   mib(b.total()));
       if (recompute) CHECK(b.total() < vggt_activation_bytes<float>(r.c, r.frames, r.size, r.size, false).total());
     }
+}
+
+TEST_CASE("VGGT frame_tokens 1: every frame alike, the cameras re-expressed in the first frame's; reordering the frames "
+          "reorders the decoded cameras and depth, and the gradient through the re-expression matches central "
+          "differences",
+          "[geometry][vggt][backward][permutation]") {
+  VggtConfig c = tiny_vggt();
+  c.aggregator.frame_tokens = 1;
+  FlatVggt<double> m(c, 17);
+  const index_t S = 3, H = 4, W = 6, plane = 3 * H * W, px = H * W;
+  auto images = random_doubles(static_cast<std::size_t>(S * plane), 18, 0.5);
+  const index_t order[S] = {2, 0, 1};
+  std::vector<double> permuted(images.size());
+  for (index_t s = 0; s < S; ++s)
+    std::copy(images.begin() + order[s] * plane, images.begin() + (order[s] + 1) * plane, permuted.begin() + s * plane);
+  VggtWorkspace<double> ws;
+  const auto a = vggt_forward<double>(images.data(), S, H, W, c, m.w, ws);
+  const auto b = vggt_forward<double>(permuted.data(), S, H, W, c, m.w, ws);
+  REQUIRE(a.head_extrinsics.size() == S * 12);
+  for (int k = 0; k < 12; ++k) CHECK(a.extrinsics.data()[k] == identity_w2c[k]);
+  for (index_t s = 0; s < S; ++s) {
+    CAPTURE(s);
+    for (int k = 0; k < 12; ++k)
+      CHECK(b.head_extrinsics.data()[12 * s + k] == Approx(a.head_extrinsics.data()[12 * order[s] + k]).margin(1e-12));
+    for (index_t p = 0; p < px; ++p)
+      CHECK(b.depth.data()[s * px + p] == Approx(a.depth.data()[order[s] * px + p]).margin(1e-12));
+    for (index_t u = 0; u < S; ++u) {
+      double ra[12], rb[12];
+      relative_w2c(rb, b.extrinsics.data() + 12 * s, b.extrinsics.data() + 12 * u);
+      relative_w2c(ra, a.extrinsics.data() + 12 * order[s], a.extrinsics.data() + 12 * order[u]);
+      for (int k = 0; k < 12; ++k) CHECK(rb[k] == Approx(ra[k]).margin(1e-12));
+    }
+  }
+  // Not the identity for the other frames: the head's cameras differ between frames with different pictures.
+  double off = 0;
+  for (int k = 0; k < 12; ++k) off = std::max(off, std::abs(a.extrinsics.data()[12 + k] - identity_w2c[k]));
+  CHECK(off > 1e-3);
+
+  VggtCache<double> cache;
+  VggtBackwardScratch<double> scratch;
+  VggtOptions features;
+  features.keep_depth_features = true;
+  auto first = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws, {}, features);
+  const std::vector<double> feedback(cache.camera.raw.begin(),
+                                     cache.camera.raw.begin() + (c.camera.iterations - 1) * S * pose_encoding_dim);
+  VggtTrainOptions<double> train;
+  train.camera_feedback = feedback.data();
+  auto forward = [&](std::span<double> out) {
+    VggtCache<double> k;
+    flatten(vggt_forward_train<double>(images.data(), S, H, W, c, m.w, k, ws, train, features), out.data());
+  };
+  auto backward = [&](std::span<const double> d_out) {
+    const auto o = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws, train, features);
+    vggt_backward<double>(nullptr, m.g, unflatten_grads(o, d_out.data()), o, cache, c, m.w, scratch);
+  };
+  std::vector<testing::GradParam> head;
+  for (auto& p : m.grad_params())
+    if (p.name.rfind("camera_head.", 0) == 0 || p.name == "aggregator.camera_token") head.push_back(p);
+  testing::GradCheckOptions options;
+  options.max_checks_per_param = 3;
+  auto result = testing::check_gradients(head, output_size(first), forward, backward, options);
+  INFO(result.summary());
+  CHECK(result.ok());
 }

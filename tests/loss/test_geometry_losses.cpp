@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <limits>
+#include <numbers>
 #include <random>
 #include <vector>
 
@@ -54,6 +55,84 @@ TEST_CASE("camera loss: gradient check (L1 with a clamped term, Huber)", "[loss]
         [&](std::span<const double> d) {
           loss::camera_loss_backward<double>({da.data(), db.data(), dc.data()}, d[0], {a.data(), b.data(), c3.data()},
                                              gt.data(), valid, frames, c);
+        });
+    INFO(r.summary());
+    CHECK(r.ok());
+  }
+}
+
+TEST_CASE("relative pose loss: blind to the world frame, the chordal angle and translation by hand", "[loss][camera]") {
+  // Ground truth: camera 0 the identity, camera 1 turned by 60 degrees about y and moved.
+  const double a = std::numbers::pi / 3, ca = std::cos(a), sa = std::sin(a);
+  const std::vector<double> gt = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, ca, 0, sa, 0.5, 0, 1, 0, -0.2, -sa, 0, ca, 1.5};
+  // The same cameras after a world motion x' = Rw x + tw: w2c' = [R Rw^T | t - R Rw^T tw].
+  const double b = 0.4, cb = std::cos(b), sb = std::sin(b);
+  const double Rw[9] = {cb, -sb, 0, sb, cb, 0, 0, 0, 1}, tw[3] = {0.3, -0.7, 2.0};
+  std::vector<double> moved(24);
+  for (int v = 0; v < 2; ++v)
+    for (int r = 0; r < 3; ++r) {
+      double t = gt[12 * v + 4 * r + 3];
+      for (int c = 0; c < 3; ++c) {
+        double s = 0;
+        for (int k = 0; k < 3; ++k) s += gt[12 * v + 4 * r + k] * Rw[3 * c + k];
+        moved[12 * v + 4 * r + c] = s;
+      }
+      for (int c = 0; c < 3; ++c) t -= moved[12 * v + 4 * r + c] * tw[c];
+      moved[12 * v + 4 * r + 3] = t;
+    }
+  loss::CameraLossConfig c;
+  const auto same = loss::relative_pose_loss_forward<double>({moved.data()}, gt.data(), 2, c);
+  CHECK(same.total == Approx(0.0).margin(1e-9));
+  // Camera 1 predicted at 90 degrees instead of 60, same centre offset: both ordered pairs are 30 degrees off, whose
+  // chordal distance is 2 sqrt(2) sin(15 degrees) (smoothed by eps).
+  std::vector<double> pred = gt;
+  const double p = std::numbers::pi / 2;
+  pred[12] = std::cos(p), pred[14] = std::sin(p), pred[20] = -std::sin(p), pred[22] = std::cos(p);
+  const auto parts = loss::relative_pose_loss_forward<double>({pred.data()}, gt.data(), 2, c);
+  const double chord = 2 * std::sqrt(2.0) * std::sin(std::numbers::pi / 12);
+  CHECK(parts.rotation == Approx(std::sqrt(chord * chord + 1e-12) - loss::relative_pose_eps).epsilon(1e-12));
+  // Pair (1, 0) has the translation t_1 (off by nothing); pair (0, 1) has -R_1^T t_1, which turns with R_1.
+  double r0[12], g0[12];
+  relative_w2c(r0, pred.data(), pred.data() + 12);
+  relative_w2c(g0, gt.data(), gt.data() + 12);
+  const double lt = (std::abs(r0[3] - g0[3]) + std::abs(r0[7] - g0[7]) + std::abs(r0[11] - g0[11])) / 6;
+  CHECK(parts.translation == Approx(lt).epsilon(1e-12));
+  CHECK(parts.total == Approx(parts.rotation + parts.translation).epsilon(1e-14));
+  CHECK(loss::relative_pose_loss_forward<double>({pred.data()}, gt.data(), 1, c).total == 0.0);
+  // A translation entry off by more than translation_clamp counts as the clamp in both pairs.
+  std::vector<double> far = gt;
+  far[15] += 300;
+  double r1[12], g1[12];
+  relative_w2c(r0, far.data(), far.data() + 12);
+  relative_w2c(r1, far.data() + 12, far.data());
+  relative_w2c(g1, gt.data() + 12, gt.data());
+  double clamped = 0;
+  for (int r = 0; r < 3; ++r)
+    clamped += std::min(std::abs(r0[4 * r + 3] - g0[4 * r + 3]), 100.0) + std::min(std::abs(r1[4 * r + 3] - g1[4 * r + 3]), 100.0);
+  CHECK(clamped > 200);
+  CHECK(loss::relative_pose_loss_forward<double>({far.data()}, gt.data(), 2, c).translation == Approx(clamped / 6).epsilon(1e-12));
+  pred[5] = std::numeric_limits<double>::quiet_NaN();
+  CHECK_THROWS_WITH(loss::relative_pose_loss_forward<double>({pred.data()}, gt.data(), 2, c),
+                    Catch::Contains("relative pose loss: stage 0 frame 0 entry 5"));
+}
+
+TEST_CASE("relative pose loss: gradient check over 3 views and 2 stages (L1, Huber)",
+          "[loss][camera][gradcheck]") {
+  for (auto type : {loss::CameraLossType::l1, loss::CameraLossType::huber}) {
+    const index_t frames = 3;
+    auto gt = uniform(36, 11, -1, 1), a = uniform(36, 12, -1.5, 1.5), b = uniform(36, 13, -1.5, 1.5);
+    loss::CameraLossConfig c;
+    c.type = type;
+    c.huber_delta = 0.7;
+    std::vector<double> da(36), db(36);
+    const auto r = testing::check_gradients(
+        {{"stage0", a, da}, {"stage1", b, db}}, 1,
+        [&](std::span<double> out) {
+          out[0] = loss::relative_pose_loss_forward<double>({a.data(), b.data()}, gt.data(), frames, c).total;
+        },
+        [&](std::span<const double> d) {
+          loss::relative_pose_loss_backward<double>({da.data(), db.data()}, d[0], {a.data(), b.data()}, gt.data(),
+                                                    frames, c);
         });
     INFO(r.summary());
     CHECK(r.ok());

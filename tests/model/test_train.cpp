@@ -220,6 +220,65 @@ TEST_CASE("point_weight, match_weight and match_coarse_weight: scene_gradient is
   CHECK_THROWS_WITH(model::scene_loss<double>(ws2, *plain, e, sc), Catch::Contains("needs a model with the match head"));
 }
 
+TEST_CASE("relative_camera_weight with frame_tokens 1: scene_gradient is the derivative of scene_loss along a random "
+          "direction, the loss blind to the order of the views",
+          "[model][train]") {
+  auto c = model::flexsplat_tiny_config();
+  c.geometry.aggregator.frame_tokens = 1;
+  c.validate();
+  auto w = model::FlexSplatWeights<double>::create(c, true);
+  w->init(7);
+  const auto e = model::make_train_example<double>(tiny_scene(3, 0, 21), c);
+  model::StepConfig sc;
+  sc.appearance = false;
+  sc.relative_camera_weight = 1.0;
+  model::SceneWorkspace<double> ws;
+  auto& store = w->store();
+  const index_t n = store.size();
+  std::vector<double> grads(static_cast<std::size_t>(n), 0.0), dir(grads.size());
+  // Hold the camera head's detached feedback at the unperturbed values (see GeometryStage::camera_feedback).
+  model::scene_gradient<double>(ws, *w, grads.data(), e, sc);
+  const index_t fb = (c.geometry.camera.iterations - 1) * e.views * 9;
+  const std::vector<double> feedback(ws.geometry.cache.camera.raw.begin(), ws.geometry.cache.camera.raw.begin() + fb);
+  ws.geometry.camera_feedback = feedback.data();
+  std::fill(grads.begin(), grads.end(), 0.0);
+  const auto r = model::scene_gradient<double>(ws, *w, grads.data(), e, sc);
+  REQUIRE(r.camera > 0);
+  std::mt19937 rng(4);
+  std::normal_distribution<double> normal;
+  double g_dot = 0;
+  for (std::size_t i = 0; i < dir.size(); ++i) dir[i] = normal(rng), g_dot += grads[i] * dir[i];
+  const std::vector<double> base(store.params(), store.params() + n);
+  auto loss_at = [&](double eps) {
+    for (index_t i = 0; i < n; ++i) store.params()[i] = base[static_cast<std::size_t>(i)] + eps * dir[static_cast<std::size_t>(i)];
+    return model::scene_loss<double>(ws, *w, e, sc).loss;
+  };
+  const double h = 1e-7, numeric = (loss_at(h) - loss_at(-h)) / (2 * h);
+  loss_at(0);
+  INFO("analytic " << g_dot << ", numeric " << numeric);
+  REQUIRE(std::abs(numeric) > 1e-6);
+  CHECK(g_dot == Approx(numeric).epsilon(1e-5));
+  // The views in another order (the first one included): the same pairs, so the same rotation term (the translations'
+  // scale is the mean point distance from the first camera, which the order changes).
+  sc.camera_loss.weight_translation = 0;
+  ws.geometry.camera_feedback = nullptr;
+  const double rotation = model::scene_loss<double>(ws, *w, e, sc).camera;
+  const auto scene = tiny_scene(3, 0, 21);
+  auto turned = scene;
+  const index_t order[3] = {2, 0, 1};
+  for (index_t v = 0; v < 3; ++v) turned.inputs.cameras[static_cast<std::size_t>(v)] = scene.inputs.cameras[static_cast<std::size_t>(order[v])];
+  const index_t px = 3 * e.h * e.w, dpx = e.h * e.w;
+  for (index_t v = 0; v < 3; ++v) {
+    std::copy(scene.inputs.rgb.data() + order[v] * px, scene.inputs.rgb.data() + (order[v] + 1) * px, turned.inputs.rgb.data() + v * px);
+    std::copy(scene.inputs.alpha.data() + order[v] * dpx, scene.inputs.alpha.data() + (order[v] + 1) * dpx, turned.inputs.alpha.data() + v * dpx);
+    std::copy(scene.inputs.depth.data() + order[v] * dpx, scene.inputs.depth.data() + (order[v] + 1) * dpx, turned.inputs.depth.data() + v * dpx);
+  }
+  const auto e2 = model::make_train_example<double>(turned, c);
+  ws.geometry.camera_feedback = nullptr;
+  CHECK(rotation > 0);
+  CHECK(model::scene_loss<double>(ws, *w, e2, sc).camera == Approx(rotation).epsilon(1e-9));
+}
+
 TEST_CASE("train_step with scenes side by side on two threads matches one thread to the bit", "[model][train]") {
   const auto c = model::flexsplat_tiny_config();
   auto serial_w = model::FlexSplatWeights<float>::create(c, true);

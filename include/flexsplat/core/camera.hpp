@@ -110,6 +110,49 @@ Camera camera_from_arrays(const T* K, const T* w2c, int width, int height, std::
   return c;
 }
 
+// out = w2c_i * w2c_j^-1 for rigid row-major [3, 4] cameras: camera j's coordinates to camera i's, the same in every
+// world frame. R = R_i R_j^T, t = t_i - R t_j. out must not alias the inputs.
+template <class T>
+void relative_w2c(T* out, const T* w2c_i, const T* w2c_j) {
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) {
+      T s = T(0);
+      for (int k = 0; k < 3; ++k) s += w2c_i[4 * r + k] * w2c_j[4 * c + k];
+      out[4 * r + c] = s;
+    }
+  for (int r = 0; r < 3; ++r) {
+    T s = w2c_i[4 * r + 3];
+    for (int k = 0; k < 3; ++k) s -= out[4 * r + k] * w2c_j[4 * k + 3];
+    out[4 * r + 3] = s;
+  }
+}
+
+// Backward of relative_w2c: adds into d_i and d_j [3, 4] (either may be null) from d_out [3, 4].
+template <class T>
+void relative_w2c_backward(T* d_i, T* d_j, const T* d_out, const T* w2c_i, const T* w2c_j) {
+  T rel[12], dR[9];
+  relative_w2c(rel, w2c_i, w2c_j);
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) dR[3 * r + c] = d_out[4 * r + c] - d_out[4 * r + 3] * w2c_j[4 * c + 3];
+  for (int r = 0; r < 3; ++r) {
+    if (d_i) d_i[4 * r + 3] += d_out[4 * r + 3];
+    if (d_j) {
+      T s = T(0);
+      for (int k = 0; k < 3; ++k) s += rel[4 * k + r] * d_out[4 * k + 3];
+      d_j[4 * r + 3] -= s;
+    }
+    for (int c = 0; c < 3; ++c) {
+      T si = T(0), sj = T(0);
+      for (int k = 0; k < 3; ++k) {
+        si += dR[3 * r + k] * w2c_j[4 * k + c];  // dR_i = dR R_j
+        sj += dR[3 * k + r] * w2c_i[4 * k + c];  // dR_j = dR^T R_i
+      }
+      if (d_i) d_i[4 * r + c] += si;
+      if (d_j) d_j[4 * r + c] += sj;
+    }
+  }
+}
+
 // Image size positive, entries finite, focal lengths positive; throws naming the camera otherwise.
 inline void check_cameras(const std::vector<Camera>& cameras, const std::string& context) {
   for (const Camera& cam : cameras) {

@@ -61,7 +61,8 @@ struct AggregatorConfig {
   double norm_eps = 1e-5;
   index_t aa_block_size = 1;        // consecutive blocks of one kind before switching
   // Distinct camera/register token sets: frame s takes set min(s, frame_tokens - 1). VGGT's 2 (first frame, the
-  // rest) keeps the model order-free apart from the reference frame; more makes it depend on the input order.
+  // rest) keeps the model order-free apart from the reference frame; more makes it depend on the input order; 1 is
+  // Pi3's reference-free design (every frame alike; the cameras are then re-expressed in the first view's frame).
   index_t frame_tokens = 2;
   std::vector<std::string> aa_order{"frame", "global"};
   DinoConfig dino;
@@ -83,8 +84,8 @@ struct AggregatorConfig {
             " must be a positive multiple of aa_block_size ", aa_block_size);
     require(rope_freq <= 0 || block().head_dim() % 4 == 0, "aggregator config: 2-D RoPE needs head_dim divisible by 4, got ",
             block().head_dim());
-    require(frame_tokens >= 2 && frame_tokens <= 64, "aggregator config: frame_tokens ", frame_tokens,
-            " must be in [2, 64]");
+    require(frame_tokens >= 1 && frame_tokens <= 64, "aggregator config: frame_tokens ", frame_tokens,
+            " must be in [1, 64]");
     require(!aa_order.empty(), "aggregator config: aa_order is empty");
     bool frame = false, global = false;
     for (auto& kind : aa_order) {
@@ -232,6 +233,8 @@ struct VggtConfig {
             " differs from the aggregator's ", aggregator.patch_size);
     require(depth.output_dim == 2, "VGGT config: the depth head predicts depth + confidence (output_dim 2), got ",
             depth.output_dim);
+    require(!point_head || aggregator.frame_tokens >= 2, "VGGT config: the point head predicts points in the first "
+            "frame's camera frame, which frame_tokens 1 (every frame alike) cannot tell apart");
     require(match_dim >= 0 && match_dim <= 256, "VGGT config: match_dim ", match_dim, " must be in [0, 256]");
     require(!match_image || match_dim > 0, "VGGT config: match_image needs the match head (match_dim > 0)");
     require(match_image_convs == 0 || match_image, "VGGT config: match_image_convs ", match_image_convs,

@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/geometry/aggregator.hpp"
 #include "flexsplat/geometry/camera_head.hpp"
@@ -28,7 +29,10 @@ namespace geometry {
 template <class T>
 struct VggtOutputs {
   Tensor<T, 3> pose_enc;      // [iterations, S, 9] (absT_quaR_FoV, quaternion xyzw); the last is the prediction
-  Tensor<T, 3> extrinsics;    // [S, 3, 4] world-to-camera (OpenCV)
+  Tensor<T, 3> extrinsics;    // [S, 3, 4] world-to-camera (OpenCV), the first view's camera the identity
+  // [S, 3, 4] the cameras as decoded, in the frame the head chose, when frame_tokens is 1 (`extrinsics` is then each
+  // camera re-expressed in the first view's frame); empty otherwise.
+  Tensor<T, 3> head_extrinsics;
   Tensor<T, 3> intrinsics;    // [S, 3, 3]
   Tensor<T, 3> depth;         // [S, H, W]
   Tensor<T, 3> depth_conf;    // [S, H, W]
@@ -220,6 +224,15 @@ VggtOutputs<T> vggt_forward_impl(const T* images, index_t frames, index_t image_
   pose_encoding_to_extri_intri<T>(out.extrinsics.data(), out.intrinsics.data(),
                                   out.pose_enc.data() + (c.camera.iterations - 1) * frames * pose_encoding_dim, frames,
                                   image_h, image_w, c.pose_decode);
+  if (c.aggregator.frame_tokens == 1) {
+    // Reference-free: no frame is told it is the first, so the first view's frame is chosen here.
+    out.head_extrinsics = out.extrinsics;
+    const T* raw = out.head_extrinsics.data();
+    std::copy(identity_w2c, identity_w2c + 12, out.extrinsics.data());
+    for (index_t v = 1; v < frames; ++v) relative_w2c(out.extrinsics.data() + 12 * v, raw + 12 * v, raw);
+  } else {
+    out.head_extrinsics = Tensor<T, 3>();
+  }
   report("camera_head", 1, 1);
 
   report("depth_head", 0, 1);
@@ -293,7 +306,8 @@ VggtOutputs<T> vggt_forward_train(const T* images, index_t frames, index_t image
 
 template <class T>
 struct VggtBackwardScratch {
-  std::vector<T, AlignedAllocator<T>> d_depth, d_extrinsics, d_intrinsics, d_pose_enc, d_dino, d_normalized;
+  std::vector<T, AlignedAllocator<T>> d_depth, d_extrinsics, d_head_extrinsics, d_intrinsics, d_pose_enc, d_dino,
+      d_normalized;
   std::vector<std::vector<T, AlignedAllocator<T>>> d_layers;
   DinoBackwardScratch<T> dino;
   AggregatorBackwardScratch<T> aggregator;
@@ -328,6 +342,16 @@ void vggt_backward(T* d_images, const VggtGrads<T>& g, const VggtOutputGrads<T>&
   if (d_out.world_points)
     unproject_depth_backward<T>(d_depth, d_extr, d_intr, d_out.world_points, out.depth.data(), out.extrinsics.data(),
                                 out.intrinsics.data(), S, H, W);
+  if (c.aggregator.frame_tokens == 1) {
+    // Back through the re-expression in the first view's frame (the first camera is the constant identity).
+    require(out.head_extrinsics.size() == S * 12, "VGGT backward: frame_tokens 1 without the decoded cameras");
+    scratch.d_head_extrinsics.assign(static_cast<std::size_t>(S * 12), T(0));
+    const T* raw = out.head_extrinsics.data();
+    for (index_t v = 1; v < S; ++v)
+      relative_w2c_backward(scratch.d_head_extrinsics.data() + 12 * v, scratch.d_head_extrinsics.data(), d_extr + 12 * v,
+                            raw + 12 * v, raw);
+    d_extr = scratch.d_head_extrinsics.data();
+  }
   T* d_pose = init(scratch.d_pose_enc, I * S * E, d_out.pose_enc);
   pose_encoding_to_extri_intri_backward<T>(d_pose + (I - 1) * S * E, d_extr, d_intr,
                                            out.pose_enc.data() + (I - 1) * S * E, S, H, W, c.pose_decode);

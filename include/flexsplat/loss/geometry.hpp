@@ -15,6 +15,7 @@
 #include <cstdint>
 #include <vector>
 
+#include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
 
@@ -120,6 +121,92 @@ void camera_loss_backward(const std::vector<T*>& d_stages, double d_total, const
         d[f * 9 + k] += static_cast<T>(ws * w * camera_detail::penalty_grad(x, c));
       }
     }
+  }
+}
+
+// Relative pose loss over every ordered pair of views (Pi3's supervision, blind to the world frame): per stage, with
+// rel = w2c_i w2c_j^-1 of the prediction and of the ground truth, the chordal rotation distance sqrt(|dR|_F^2 +
+// eps^2) - eps (linear in the angle near 0, so an L1 of the rotation) and the penalty of c over the translation's 3
+// entries (each clamped at translation_clamp), means over the V (V - 1) pairs; stages weighted as the camera loss.
+// stages: n pointers to [frames, 3, 4] world-to-camera extrinsics; gt [frames, 3, 4]. Fewer than 2 frames: 0.
+inline constexpr double relative_pose_eps = 1e-6;
+
+template <class T>
+CameraLossParts relative_pose_loss_forward(const std::vector<const T*>& stages, const T* gt, index_t frames,
+                                           const CameraLossConfig& c) {
+  require(!stages.empty() && gt && frames >= 1, "relative pose loss: no stages, no ground truth or no frames");
+  require(c.huber_delta > 0 && c.gamma > 0, "relative pose loss: huber_delta ", c.huber_delta, " and gamma ", c.gamma,
+          " must be positive");
+  CameraLossParts out;
+  if (frames < 2) return out;
+  const index_t n = static_cast<index_t>(stages.size());
+  const double pairs = static_cast<double>(frames * (frames - 1)), eps = relative_pose_eps;
+  for (index_t s = 0; s < n; ++s) {
+    const T* p = stages[static_cast<std::size_t>(s)];
+    for (index_t k = 0; k < 12 * frames; ++k)
+      if (!(std::isfinite(static_cast<double>(p[k])) && std::isfinite(static_cast<double>(gt[k]))))
+        fail("relative pose loss: stage ", s, " frame ", k / 12, " entry ", k % 12, ": prediction ",
+             static_cast<double>(p[k]), ", ground truth ", static_cast<double>(gt[k]));
+    const double ws = std::pow(c.gamma, static_cast<double>(n - 1 - s)) / static_cast<double>(n);
+    double lt = 0, lr = 0;
+    for (index_t i = 0; i < frames; ++i)
+      for (index_t j = 0; j < frames; ++j) {
+        if (i == j) continue;
+        double rp[12], rg[12], pi[12], pj[12], gi[12], gj[12];
+        for (int k = 0; k < 12; ++k)
+          pi[k] = p[12 * i + k], pj[k] = p[12 * j + k], gi[k] = gt[12 * i + k], gj[k] = gt[12 * j + k];
+        relative_w2c(rp, pi, pj);
+        relative_w2c(rg, gi, gj);
+        double sq = 0;
+        for (int r = 0; r < 3; ++r)
+          for (int col = 0; col < 3; ++col) sq += (rp[4 * r + col] - rg[4 * r + col]) * (rp[4 * r + col] - rg[4 * r + col]);
+        lr += std::sqrt(sq + eps * eps) - eps;
+        for (int r = 0; r < 3; ++r)
+          lt += std::min(camera_detail::penalty(rp[4 * r + 3] - rg[4 * r + 3], c), c.translation_clamp);
+      }
+    out.translation += ws * lt / (3 * pairs);
+    out.rotation += ws * lr / pairs;
+  }
+  out.total = c.weight_translation * out.translation + c.weight_rotation * out.rotation;
+  return out;
+}
+
+// Adds d_total * d(total)/d(stage) into d_stages [frames, 3, 4] (entries may be null).
+template <class T>
+void relative_pose_loss_backward(const std::vector<T*>& d_stages, double d_total, const std::vector<const T*>& stages,
+                                 const T* gt, index_t frames, const CameraLossConfig& c) {
+  require(d_stages.size() == stages.size(), "relative pose loss: ", d_stages.size(), " gradient buffers for ",
+          stages.size(), " stages");
+  if (frames < 2) return;
+  const index_t n = static_cast<index_t>(stages.size());
+  const double pairs = static_cast<double>(frames * (frames - 1)), eps = relative_pose_eps;
+  for (index_t s = 0; s < n; ++s) {
+    T* d = d_stages[static_cast<std::size_t>(s)];
+    if (!d) continue;
+    const T* p = stages[static_cast<std::size_t>(s)];
+    const double ws = d_total * std::pow(c.gamma, static_cast<double>(n - 1 - s)) / static_cast<double>(n);
+    std::vector<double> acc(static_cast<std::size_t>(12 * frames), 0.0);
+    for (index_t i = 0; i < frames; ++i)
+      for (index_t j = 0; j < frames; ++j) {
+        if (i == j) continue;
+        double rp[12], rg[12], pi[12], pj[12], gi[12], gj[12], drel[12] = {};
+        for (int k = 0; k < 12; ++k)
+          pi[k] = p[12 * i + k], pj[k] = p[12 * j + k], gi[k] = gt[12 * i + k], gj[k] = gt[12 * j + k];
+        relative_w2c(rp, pi, pj);
+        relative_w2c(rg, gi, gj);
+        double sq = 0;
+        for (int r = 0; r < 3; ++r)
+          for (int col = 0; col < 3; ++col) sq += (rp[4 * r + col] - rg[4 * r + col]) * (rp[4 * r + col] - rg[4 * r + col]);
+        const double wr = ws * c.weight_rotation / pairs / std::sqrt(sq + eps * eps);
+        for (int r = 0; r < 3; ++r) {
+          for (int col = 0; col < 3; ++col) drel[4 * r + col] = wr * (rp[4 * r + col] - rg[4 * r + col]);
+          const double x = rp[4 * r + 3] - rg[4 * r + 3];
+          if (camera_detail::penalty(x, c) < c.translation_clamp)
+            drel[4 * r + 3] = ws * c.weight_translation / (3 * pairs) * camera_detail::penalty_grad(x, c);
+        }
+        relative_w2c_backward(acc.data() + 12 * i, acc.data() + 12 * j, drel, pi, pj);
+      }
+    for (index_t k = 0; k < 12 * frames; ++k) d[k] += static_cast<T>(acc[static_cast<std::size_t>(k)]);
   }
 }
 

@@ -161,6 +161,7 @@ inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where)
   s.step.appearance = k.boolean("appearance", true);
   s.step.train_geometry = k.boolean("train_geometry", true);
   s.step.camera_weight = k.number("camera_weight", 0.0, 0, 1e6);
+  s.step.relative_camera_weight = k.number("relative_camera_weight", 0.0, 0, 1e6);
   s.step.depth_weight = k.number("depth_weight", 0.0, 0, 1e6);
   s.step.depth_shape_weight = k.number("depth_shape_weight", 0.0, 0, 1e6);
   s.step.point_weight = k.number("point_weight", 0.0, 0, 1e6);
@@ -177,10 +178,11 @@ inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where)
     ok.finish();
   }
   k.finish();
-  require(s.step.appearance || s.step.camera_weight > 0 || s.step.depth_weight > 0 || s.step.depth_shape_weight > 0 ||
-              s.step.point_weight > 0 || s.step.match_weight > 0,
+  require(s.step.appearance || s.step.camera_weight > 0 || s.step.relative_camera_weight > 0 || s.step.depth_weight > 0 ||
+              s.step.depth_shape_weight > 0 || s.step.point_weight > 0 || s.step.match_weight > 0,
           "train config: '", where,
-          "' has no loss (appearance is false and camera_weight, depth_weight, depth_shape_weight, point_weight and match_weight are 0)");
+          "' has no loss (appearance is false and camera_weight, relative_camera_weight, depth_weight, depth_shape_weight, "
+          "point_weight and match_weight are 0)");
   require(s.step.match_coarse_weight == 0 || s.step.match_weight > 0, "train config: '", where, "' has match_coarse_weight ",
           s.step.match_coarse_weight, " without match_weight (the coarse term refines the match loss)");
   require(s.step.train_geometry || s.step.appearance, "train config: '", where,

@@ -123,6 +123,7 @@ struct StepConfig {
   bool appearance = true;            // run the FlexSplat objective (off: geometry pre-training only)
   bool train_geometry = true;        // off: geometry frozen (no geometry backward)
   double camera_weight = 0.0;        // VGGT's supervised camera loss on the pose encodings
+  double relative_camera_weight = 0.0;  // the relative pose loss over all ordered view pairs (reported in `camera`)
   double depth_weight = 0.0;         // VGGT's supervised depth loss
   double depth_shape_weight = 0.0;   // the per-view scale-blind depth shape loss (loss::depth_shape_loss_forward)
   double point_weight = 0.0;         // VGGT's point-map loss (needs the point head)
@@ -158,7 +159,7 @@ template <class T>
 struct SceneWorkspace {
   GeometryStage<T> geometry;
   GeometryResult<T> d_geometry;
-  std::vector<T> d_pose_enc;
+  std::vector<T> d_pose_enc, stage_extrinsics, d_stage_extrinsics;
   ObjectiveWorkspace<T> objective;
   std::vector<RenderView<T>> views;
   std::vector<std::uint8_t> depth_mask;
@@ -197,6 +198,29 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
     r.camera = sc.camera_weight * loss::camera_loss_forward(stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss).total;
     if (backward)
       loss::camera_loss_backward(d_stages, sc.camera_weight, stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss);
+  }
+  if (sc.relative_camera_weight > 0 && V >= 2) {
+    // Every iteration's encoding decoded to extrinsics; the loss's gradient goes back through the decoding.
+    const auto& decode = c.geometry.pose_decode;
+    ws.stage_extrinsics.resize(static_cast<std::size_t>(iters * V * 12));
+    std::vector<const T*> stages;
+    for (index_t i = 0; i < iters; ++i) {
+      geometry::pose_encoding_to_extri_intri<T>(ws.stage_extrinsics.data() + i * V * 12, nullptr,
+                                                ws.geometry.pose_enc.data() + i * V * 9, V, e.h, e.w, decode);
+      stages.push_back(ws.stage_extrinsics.data() + i * V * 12);
+    }
+    r.camera += sc.relative_camera_weight *
+                loss::relative_pose_loss_forward(stages, e.gt_extrinsics.data(), V, sc.camera_loss).total;
+    if (backward) {
+      ws.d_stage_extrinsics.assign(ws.stage_extrinsics.size(), T(0));
+      std::vector<T*> d_stages;
+      for (index_t i = 0; i < iters; ++i) d_stages.push_back(ws.d_stage_extrinsics.data() + i * V * 12);
+      loss::relative_pose_loss_backward(d_stages, sc.relative_camera_weight, stages, e.gt_extrinsics.data(), V,
+                                        sc.camera_loss);
+      for (index_t i = 0; i < iters; ++i)
+        geometry::pose_encoding_to_extri_intri_backward<T>(ws.d_pose_enc.data() + i * V * 9, d_stages[static_cast<std::size_t>(i)], nullptr,
+                                                           ws.geometry.pose_enc.data() + i * V * 9, V, e.h, e.w, decode);
+    }
   }
   // Pixels with ground-truth depth: where the depth and point losses compare.
   if (sc.depth_weight > 0 || sc.depth_shape_weight > 0 || sc.point_weight > 0) {

@@ -145,7 +145,7 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
   const int inputs_shown = 4, targets_shown = 2, cols = inputs_shown + 2 * targets_shown;
   for (const auto& set : sets) {
     double psnr = 0, ssim = 0, rot = 0, depth = 0, depth_shape = 0, rra15 = 0, rra30 = 0, prot = 0, prra15 = 0, prra30 = 0, chance = 0, mrot = 0,
-           mrra15 = 0, mrra30 = 0, macc = 0, mgt = 0, morc = 0, morc15 = 0, macc4 = 0;
+           mrra15 = 0, mrra30 = 0, macc = 0, mgt = 0, morc = 0, morc15 = 0, macc4 = 0, hrot = 0, hrra30 = 0;
     std::array<double, 4> bin_hits{}, bin_count{}, bin_pairs{}, bin_pairs15{};
     // Scored side by side as training scenes run (run_scenes), summed below in scene order.
     const index_t count = static_cast<index_t>(set.scenes.size());
@@ -163,6 +163,7 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
       psnr += s.psnr, ssim += s.ssim, rot += s.rotation_deg, depth += s.depth_rel, depth_shape += s.depth_shape_rel, rra15 += s.rra15, rra30 += s.rra30;
       prot += s.points_rotation_deg, prra15 += s.points_rra15, prra30 += s.points_rra30, chance += s.chance_rotation_deg;
       mrot += s.matches_rotation_deg, mrra15 += s.matches_rra15, mrra30 += s.matches_rra30;
+      hrot += s.head_rotation_deg, hrra30 += s.head_rra30;
       macc += s.match_accuracy, mgt += s.matches_gt_depth_rotation_deg;
       morc += s.matches_oracle_rotation_deg, morc15 += s.matches_oracle_rra15, macc4 += s.match_accuracy_4px;
       for (std::size_t b = 0; b < bin_hits.size(); ++b) bin_hits[b] += s.match_hits_by_baseline[b], bin_count[b] += s.matches_by_baseline[b],
@@ -186,7 +187,8 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
     const double n = static_cast<double>(std::max<std::size_t>(set.scenes.size(), 1));
     result[set.name] = {{"psnr", psnr / n}, {"ssim", ssim / n}, {"rotation_deg", rot / n}, {"depth_rel", depth / n},
                         {"depth_shape_rel", depth_shape / n},
-                        {"rra15", rra15 / n}, {"rra30", rra30 / n}, {"chance_rotation_deg", chance / n}};
+                        {"rra15", rra15 / n}, {"rra30", rra30 / n}, {"chance_rotation_deg", chance / n},
+                        {"head_rotation_deg", hrot / n}, {"head_rra30", hrra30 / n}};
     if (w.config().geometry.point_head)
       result[set.name].update({{"points_rotation_deg", prot / n}, {"points_rra15", prra15 / n}, {"points_rra30", prra30 / n}});
     if (w.config().geometry.match_dim > 0)

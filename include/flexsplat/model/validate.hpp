@@ -40,6 +40,8 @@ struct ValidationScore {
   double psnr = 0, ssim = 0;    // means over the scene's target views
   double rotation_deg = 0;      // mean over input views 2..V of the relative rotation error (0 for one view)
   double rra15 = 1, rra30 = 1;  // fraction of input-view pairs whose relative rotation is within 15 / 30 deg
+  // The same three for the camera head's own cameras (the same as above unless another source placed the views).
+  double head_rotation_deg = 0, head_rra15 = 1, head_rra30 = 1;
   // The same three for the cameras solved from the point head's map (geometry/procrustes.hpp); 0 without the head.
   double points_rotation_deg = 0, points_rra15 = 0, points_rra30 = 0;
   // The same for the cameras solved from the match head's correspondences; 0 without the head.
@@ -119,6 +121,12 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
   for (std::size_t i = 0; i < pred.size(); ++i)
     pred[i] = static_cast<double>(p.geometry.extrinsics[i]), gt[i] = static_cast<double>(e.gt_extrinsics[i]);
   detail::score_rotations(pred.data(), gt.data(), V, s.rotation_deg, s.rra15, s.rra30);
+  {
+    const auto& head = ws.predict.geometry.outputs.extrinsics;  // before predict's matched or searched cameras
+    std::vector<double> hd(pred.size());
+    for (std::size_t i = 0; i < hd.size(); ++i) hd[i] = static_cast<double>(head.data()[i]);
+    detail::score_rotations(hd.data(), gt.data(), V, s.head_rotation_deg, s.head_rra15, s.head_rra30);
+  }
   for (index_t v = 1; v < V; ++v) s.chance_rotation_deg += rotation_error_deg(gt.data(), gt.data() + 12 * v) / static_cast<double>(V - 1);
   if (w.config().geometry.point_head) {
     const auto& o = ws.predict.geometry.outputs;
