@@ -123,7 +123,8 @@ struct StepConfig {
   bool appearance = true;            // run the FlexSplat objective (off: geometry pre-training only)
   bool train_geometry = true;        // off: geometry frozen (no geometry backward)
   double camera_weight = 0.0;        // VGGT's supervised camera loss on the pose encodings
-  double relative_camera_weight = 0.0;  // the relative pose loss over all ordered view pairs (reported in `camera`)
+  // The relative pose loss over all ordered view pairs and the camera loss's FoV term (reported in `camera`).
+  double relative_camera_weight = 0.0;
   double depth_weight = 0.0;         // VGGT's supervised depth loss
   double depth_shape_weight = 0.0;   // the per-view scale-blind depth shape loss (loss::depth_shape_loss_forward)
   double point_weight = 0.0;         // VGGT's point-map loss (needs the point head)
@@ -198,6 +199,19 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
     r.camera = sc.camera_weight * loss::camera_loss_forward(stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss).total;
     if (backward)
       loss::camera_loss_backward(d_stages, sc.camera_weight, stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss);
+  }
+  if (sc.relative_camera_weight > 0) {
+    // The field of view is each frame's own, so the camera loss's FoV term supervises it in any world frame.
+    loss::CameraLossConfig fov = sc.camera_loss;
+    fov.weight_translation = fov.weight_rotation = 0;
+    std::vector<const T*> stages;
+    std::vector<T*> d_stages;
+    for (index_t i = 0; i < iters; ++i) {
+      stages.push_back(ws.geometry.pose_enc.data() + i * V * 9);
+      if (backward) d_stages.push_back(ws.d_pose_enc.data() + i * V * 9);
+    }
+    r.camera += sc.relative_camera_weight * loss::camera_loss_forward(stages, e.gt_pose_enc.data(), nullptr, V, fov).total;
+    if (backward) loss::camera_loss_backward(d_stages, sc.relative_camera_weight, stages, e.gt_pose_enc.data(), nullptr, V, fov);
   }
   if (sc.relative_camera_weight > 0 && V >= 2) {
     // Every iteration's encoding decoded to extrinsics; the loss's gradient goes back through the decoding.
