@@ -411,7 +411,7 @@ TEST_CASE("VGGT activation memory: the formula equals the tiny training caches, 
     }
 }
 
-TEST_CASE("VGGT frame_tokens 1: every frame alike, the cameras re-expressed in the first frame's; reordering the frames "
+TEST_CASE("VGGT frame_tokens 1: every frame alike, the cameras re-expressed in the first frame's, reordering the frames "
           "reorders the decoded cameras and depth, and the gradient through the re-expression matches central "
           "differences",
           "[geometry][vggt][backward][permutation]") {
