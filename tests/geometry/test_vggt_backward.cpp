@@ -123,6 +123,32 @@ std::size_t block_cache_size(const BlockCache<T>& k) {
          k.proj_out.size() + k.x_mid.size() + k.ln2_mean.size() + k.ln2_rstd.size() + k.hidden.size() + k.mlp_out.size();
 }
 
+// Gradient check of every differentiable output (flatten) against params, the camera head's fed-back encoding held
+// at the unperturbed run's values (VGGT detaches it); d_images (may be null) receives the images' gradient.
+testing::GradCheckResult check_outputs(const VggtConfig& c, FlatVggt<double>& m, std::vector<double>& images, index_t S,
+                                       index_t H, index_t W, const std::vector<testing::GradParam>& params,
+                                       double* d_images, const testing::GradCheckOptions& options) {
+  VggtWorkspace<double> ws;
+  VggtCache<double> cache;
+  VggtBackwardScratch<double> scratch;
+  VggtOptions features;
+  features.keep_depth_features = true;
+  auto first = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws, {}, features);
+  const std::vector<double> feedback(cache.camera.raw.begin(),
+                                     cache.camera.raw.begin() + (c.camera.iterations - 1) * S * pose_encoding_dim);
+  VggtTrainOptions<double> train;
+  train.camera_feedback = feedback.data();
+  auto forward = [&](std::span<double> out) {
+    VggtCache<double> k;
+    flatten(vggt_forward_train<double>(images.data(), S, H, W, c, m.w, k, ws, train, features), out.data());
+  };
+  auto backward = [&](std::span<const double> d_out) {
+    const auto o = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws, train, features);
+    vggt_backward<double>(d_images, m.g, unflatten_grads(o, d_out.data()), o, cache, c, m.w, scratch);
+  };
+  return testing::check_gradients(params, output_size(first), forward, backward, options);
+}
+
 }  // namespace vggt_backward_test
 
 using namespace vggt_backward_test;
@@ -138,33 +164,13 @@ TEST_CASE("VGGT end to end: images -> cameras, depth, confidence, world points, 
   const index_t S = 2, H = 4, W = 6;  // 2 x 3 patches: DINO's 3 x 3 position grid resized
   auto images = random_doubles(static_cast<std::size_t>(S * 3 * H * W), 4, 0.5);
   std::vector<double> d_images(images.size());
-  VggtWorkspace<double> ws;
-  VggtCache<double> cache;
-  VggtBackwardScratch<double> scratch;
-  VggtOptions features;
-  features.keep_depth_features = true;
-  // VGGT detaches the camera head's fed-back encoding: hold it at the unperturbed run's values.
-  auto first = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws, {}, features);
-  const std::vector<double> feedback(cache.camera.raw.begin(),
-                                     cache.camera.raw.begin() + (c.camera.iterations - 1) * S * pose_encoding_dim);
-  VggtTrainOptions<double> train;
-  train.camera_feedback = feedback.data();
-  const std::size_t n_out = output_size(first);
-  auto forward = [&](std::span<double> out) {
-    VggtCache<double> k;
-    flatten(vggt_forward_train<double>(images.data(), S, H, W, c, m.w, k, ws, train, features), out.data());
-  };
-  auto backward = [&](std::span<const double> d_out) {
-    const auto o = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws, train, features);
-    vggt_backward<double>(d_images.data(), m.g, unflatten_grads(o, d_out.data()), o, cache, c, m.w, scratch);
-  };
   auto params = m.grad_params();
   for (auto& p : params)
     if (p.name == "aggregator.patch_embed.mask_token") p.zero_reason = "stored, never read (nothing is masked)";
   params.push_back({"images", images, d_images});
   testing::GradCheckOptions options;
   options.max_checks_per_param = 2;  // ~100 tensors, each reached; every op has its own full check
-  auto result = testing::check_gradients(params, n_out, forward, backward, options);
+  auto result = check_outputs(c, m, images, S, H, W, params, d_images.data(), options);
   INFO(result.summary());
   CHECK(result.ok());
 }
@@ -447,29 +453,12 @@ TEST_CASE("VGGT frame_tokens 1: every frame alike, the cameras re-expressed in t
   for (int k = 0; k < 12; ++k) off = std::max(off, std::abs(a.extrinsics.data()[12 + k] - identity_w2c[k]));
   CHECK(off > 1e-3);
 
-  VggtCache<double> cache;
-  VggtBackwardScratch<double> scratch;
-  VggtOptions features;
-  features.keep_depth_features = true;
-  auto first = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws, {}, features);
-  const std::vector<double> feedback(cache.camera.raw.begin(),
-                                     cache.camera.raw.begin() + (c.camera.iterations - 1) * S * pose_encoding_dim);
-  VggtTrainOptions<double> train;
-  train.camera_feedback = feedback.data();
-  auto forward = [&](std::span<double> out) {
-    VggtCache<double> k;
-    flatten(vggt_forward_train<double>(images.data(), S, H, W, c, m.w, k, ws, train, features), out.data());
-  };
-  auto backward = [&](std::span<const double> d_out) {
-    const auto o = vggt_forward_train<double>(images.data(), S, H, W, c, m.w, cache, ws, train, features);
-    vggt_backward<double>(nullptr, m.g, unflatten_grads(o, d_out.data()), o, cache, c, m.w, scratch);
-  };
   std::vector<testing::GradParam> head;
   for (auto& p : m.grad_params())
     if (p.name.rfind("camera_head.", 0) == 0 || p.name == "aggregator.camera_token") head.push_back(p);
   testing::GradCheckOptions options;
   options.max_checks_per_param = 3;
-  auto result = testing::check_gradients(head, output_size(first), forward, backward, options);
+  auto result = check_outputs(c, m, images, S, H, W, head, nullptr, options);
   INFO(result.summary());
   CHECK(result.ok());
 }

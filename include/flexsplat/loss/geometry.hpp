@@ -131,6 +131,27 @@ void camera_loss_backward(const std::vector<T*>& d_stages, double d_total, const
 // stages: n pointers to [frames, 3, 4] world-to-camera extrinsics; gt [frames, 3, 4]. Fewer than 2 frames: 0.
 inline constexpr double relative_pose_eps = 1e-6;
 
+namespace camera_detail {
+// Pair (i, j) of a stage and of the ground truth in double: the cameras and their relative transforms.
+template <class T>
+struct RelativePair {
+  double pi[12], pj[12], rp[12], rg[12];
+  RelativePair(const T* p, const T* gt, index_t i, index_t j) {
+    double gi[12], gj[12];
+    for (int k = 0; k < 12; ++k)
+      pi[k] = p[12 * i + k], pj[k] = p[12 * j + k], gi[k] = gt[12 * i + k], gj[k] = gt[12 * j + k];
+    relative_w2c(rp, pi, pj);
+    relative_w2c(rg, gi, gj);
+  }
+  double rotation_sq() const {  // |dR|_F^2
+    double sq = 0;
+    for (int r = 0; r < 3; ++r)
+      for (int col = 0; col < 3; ++col) sq += (rp[4 * r + col] - rg[4 * r + col]) * (rp[4 * r + col] - rg[4 * r + col]);
+    return sq;
+  }
+};
+}  // namespace camera_detail
+
 template <class T>
 CameraLossParts relative_pose_loss_forward(const std::vector<const T*>& stages, const T* gt, index_t frames,
                                            const CameraLossConfig& c) {
@@ -152,14 +173,8 @@ CameraLossParts relative_pose_loss_forward(const std::vector<const T*>& stages, 
     for (index_t i = 0; i < frames; ++i)
       for (index_t j = 0; j < frames; ++j) {
         if (i == j) continue;
-        double rp[12], rg[12], pi[12], pj[12], gi[12], gj[12];
-        for (int k = 0; k < 12; ++k)
-          pi[k] = p[12 * i + k], pj[k] = p[12 * j + k], gi[k] = gt[12 * i + k], gj[k] = gt[12 * j + k];
-        relative_w2c(rp, pi, pj);
-        relative_w2c(rg, gi, gj);
-        double sq = 0;
-        for (int r = 0; r < 3; ++r)
-          for (int col = 0; col < 3; ++col) sq += (rp[4 * r + col] - rg[4 * r + col]) * (rp[4 * r + col] - rg[4 * r + col]);
+        camera_detail::RelativePair<T> q(p, gt, i, j);
+        const double sq = q.rotation_sq(), *rp = q.rp, *rg = q.rg;
         lr += std::sqrt(sq + eps * eps) - eps;
         for (int r = 0; r < 3; ++r)
           lt += std::min(camera_detail::penalty(rp[4 * r + 3] - rg[4 * r + 3], c), c.translation_clamp);
@@ -189,14 +204,9 @@ void relative_pose_loss_backward(const std::vector<T*>& d_stages, double d_total
     for (index_t i = 0; i < frames; ++i)
       for (index_t j = 0; j < frames; ++j) {
         if (i == j) continue;
-        double rp[12], rg[12], pi[12], pj[12], gi[12], gj[12], drel[12] = {};
-        for (int k = 0; k < 12; ++k)
-          pi[k] = p[12 * i + k], pj[k] = p[12 * j + k], gi[k] = gt[12 * i + k], gj[k] = gt[12 * j + k];
-        relative_w2c(rp, pi, pj);
-        relative_w2c(rg, gi, gj);
-        double sq = 0;
-        for (int r = 0; r < 3; ++r)
-          for (int col = 0; col < 3; ++col) sq += (rp[4 * r + col] - rg[4 * r + col]) * (rp[4 * r + col] - rg[4 * r + col]);
+        camera_detail::RelativePair<T> q(p, gt, i, j);
+        const double sq = q.rotation_sq(), *rp = q.rp, *rg = q.rg;
+        double drel[12] = {};
         const double wr = ws * c.weight_rotation / pairs / std::sqrt(sq + eps * eps);
         for (int r = 0; r < 3; ++r) {
           for (int col = 0; col < 3; ++col) drel[4 * r + col] = wr * (rp[4 * r + col] - rg[4 * r + col]);
@@ -204,7 +214,7 @@ void relative_pose_loss_backward(const std::vector<T*>& d_stages, double d_total
           if (camera_detail::penalty(x, c) < c.translation_clamp)
             drel[4 * r + 3] = ws * c.weight_translation / (3 * pairs) * camera_detail::penalty_grad(x, c);
         }
-        relative_w2c_backward(acc.data() + 12 * i, acc.data() + 12 * j, drel, pi, pj);
+        relative_w2c_backward(acc.data() + 12 * i, acc.data() + 12 * j, drel, q.pi, q.pj);
       }
     for (index_t k = 0; k < 12 * frames; ++k) d[k] += static_cast<T>(acc[static_cast<std::size_t>(k)]);
   }
