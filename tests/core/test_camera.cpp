@@ -74,7 +74,8 @@ TEST_CASE("cameras are checked for size, finiteness and focal lengths", "[core][
   CHECK_THROWS_WITH(check_cameras(cams, "test"), Catch::Contains("image size 32x0"));
 }
 
-TEST_CASE("relative_w2c maps camera j's coordinates to camera i's in any world frame, and its backward", "[core][camera]") {
+TEST_CASE("relative_w2c maps camera j's coordinates to camera i's in any world frame, and its backward",
+          "[core][camera]") {
   const Camera a = look_at({2.0, -1.0, 0.7}, {0, 0, 0}, 32, 32, intrinsics_from_fov(32, 32, 50.0));
   const Camera b = look_at({-0.5, 2.2, 1.3}, {0.1, 0, 0}, 32, 32, intrinsics_from_fov(32, 32, 50.0));
   double ea[12], eb[12], rel[12];

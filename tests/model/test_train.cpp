@@ -47,7 +47,7 @@ Directional directional_derivative(model::SceneWorkspace<double>& ws, model::Fle
   for (std::size_t i = 0; i < dir.size(); ++i) dir[i] = normal(rng), d.analytic += grads[i] * dir[i];
   const std::vector<double> base(store.params(), store.params() + n);
   auto loss_at = [&](double eps) {
-    for (index_t i = 0; i < n; ++i) store.params()[i] = base[static_cast<std::size_t>(i)] + eps * dir[static_cast<std::size_t>(i)];
+    for (std::size_t i = 0; i < base.size(); ++i) store.params()[i] = base[i] + eps * dir[i];
     return model::scene_loss<double>(ws, w, e, sc).loss;
   };
   d.numeric = (loss_at(h) - loss_at(-h)) / (2 * h);
@@ -273,12 +273,16 @@ TEST_CASE("relative_camera_weight with frame_tokens 1: scene_gradient is the der
   const auto scene = tiny_scene(3, 0, 21);
   auto turned = scene;
   const index_t order[3] = {2, 0, 1};
-  for (index_t v = 0; v < 3; ++v) turned.inputs.cameras[static_cast<std::size_t>(v)] = scene.inputs.cameras[static_cast<std::size_t>(order[v])];
-  const index_t px = 3 * e.h * e.w, dpx = e.h * e.w;
+  const index_t px = e.h * e.w;
   for (index_t v = 0; v < 3; ++v) {
-    std::copy(scene.inputs.rgb.data() + order[v] * px, scene.inputs.rgb.data() + (order[v] + 1) * px, turned.inputs.rgb.data() + v * px);
-    std::copy(scene.inputs.alpha.data() + order[v] * dpx, scene.inputs.alpha.data() + (order[v] + 1) * dpx, turned.inputs.alpha.data() + v * dpx);
-    std::copy(scene.inputs.depth.data() + order[v] * dpx, scene.inputs.depth.data() + (order[v] + 1) * dpx, turned.inputs.depth.data() + v * dpx);
+    const auto to = static_cast<std::size_t>(v), from = static_cast<std::size_t>(order[v]);
+    turned.inputs.cameras[to] = scene.inputs.cameras[from];
+    auto copy = [&](const float* src, float* dst, index_t n) {
+      std::copy(src + order[v] * n, src + (order[v] + 1) * n, dst + v * n);
+    };
+    copy(scene.inputs.rgb.data(), turned.inputs.rgb.data(), 3 * px);
+    copy(scene.inputs.alpha.data(), turned.inputs.alpha.data(), px);
+    copy(scene.inputs.depth.data(), turned.inputs.depth.data(), px);
   }
   const auto e2 = model::make_train_example<double>(turned, c);
   ws.geometry.camera_feedback = nullptr;

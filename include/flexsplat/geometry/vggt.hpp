@@ -347,10 +347,9 @@ void vggt_backward(T* d_images, const VggtGrads<T>& g, const VggtOutputGrads<T>&
     require(out.head_extrinsics.size() == S * 12, "VGGT backward: frame_tokens 1 without the decoded cameras");
     scratch.d_head_extrinsics.assign(static_cast<std::size_t>(S * 12), T(0));
     const T* raw = out.head_extrinsics.data();
-    for (index_t v = 1; v < S; ++v)
-      relative_w2c_backward(scratch.d_head_extrinsics.data() + 12 * v, scratch.d_head_extrinsics.data(), d_extr + 12 * v,
-                            raw + 12 * v, raw);
-    d_extr = scratch.d_head_extrinsics.data();
+    T* d_raw = scratch.d_head_extrinsics.data();
+    for (index_t v = 1; v < S; ++v) relative_w2c_backward(d_raw + 12 * v, d_raw, d_extr + 12 * v, raw + 12 * v, raw);
+    d_extr = d_raw;
   }
   T* d_pose = init(scratch.d_pose_enc, I * S * E, d_out.pose_enc);
   pose_encoding_to_extri_intri_backward<T>(d_pose + (I - 1) * S * E, d_extr, d_intr,

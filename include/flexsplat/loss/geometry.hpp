@@ -124,11 +124,7 @@ void camera_loss_backward(const std::vector<T*>& d_stages, double d_total, const
   }
 }
 
-// Relative pose loss over every ordered pair of views (Pi3's supervision, blind to the world frame): per stage, with
-// rel = w2c_i w2c_j^-1 of the prediction and of the ground truth, the chordal rotation distance sqrt(|dR|_F^2 +
-// eps^2) - eps (linear in the angle near 0, so an L1 of the rotation) and the penalty of c over the translation's 3
-// entries (each clamped at translation_clamp), means over the V (V - 1) pairs; stages weighted as the camera loss.
-// stages: n pointers to [frames, 3, 4] world-to-camera extrinsics; gt [frames, 3, 4]. Fewer than 2 frames: 0.
+// Smooths the relative pose loss's chordal distance at 0, where its gradient would be undefined.
 inline constexpr double relative_pose_eps = 1e-6;
 
 namespace camera_detail {
@@ -152,6 +148,11 @@ struct RelativePair {
 };
 }  // namespace camera_detail
 
+// Relative pose loss over every ordered pair of views (Pi3's supervision, blind to the world frame): per stage, with
+// rel = w2c_i w2c_j^-1 of the prediction and of the ground truth, the chordal rotation distance sqrt(|dR|_F^2 +
+// eps^2) - eps (linear in the angle near 0, so an L1 of the rotation) and the penalty of c over the translation's 3
+// entries (each clamped at translation_clamp), means over the V (V - 1) pairs; stages weighted as the camera loss.
+// stages: n pointers to [frames, 3, 4] world-to-camera extrinsics; gt [frames, 3, 4]. Fewer than 2 frames: 0.
 template <class T>
 CameraLossParts relative_pose_loss_forward(const std::vector<const T*>& stages, const T* gt, index_t frames,
                                            const CameraLossConfig& c) {
