@@ -230,8 +230,6 @@ VggtOutputs<T> vggt_forward_impl(const T* images, index_t frames, index_t image_
     const T* raw = out.head_extrinsics.data();
     std::copy(identity_w2c, identity_w2c + 12, out.extrinsics.data());
     for (index_t v = 1; v < frames; ++v) relative_w2c(out.extrinsics.data() + 12 * v, raw + 12 * v, raw);
-  } else {
-    out.head_extrinsics = Tensor<T, 3>();
   }
   report("camera_head", 1, 1);
 

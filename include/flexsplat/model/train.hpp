@@ -189,39 +189,39 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
     ws.d_pose_enc.assign(static_cast<std::size_t>(iters * V * 9), T(0));
   }
 
+  // Every camera-head iteration's encoding and its gradient slot, for the camera losses.
+  std::vector<const T*> enc;
+  std::vector<T*> d_enc;
+  for (index_t i = 0; i < iters; ++i) {
+    enc.push_back(ws.geometry.pose_enc.data() + i * V * 9);
+    d_enc.push_back(backward ? ws.d_pose_enc.data() + i * V * 9 : nullptr);
+  }
   if (sc.camera_weight > 0) {
-    std::vector<const T*> stages;
-    std::vector<T*> d_stages;
-    for (index_t i = 0; i < iters; ++i) {
-      stages.push_back(ws.geometry.pose_enc.data() + i * V * 9);
-      if (backward) d_stages.push_back(ws.d_pose_enc.data() + i * V * 9);
-    }
-    r.camera = sc.camera_weight * loss::camera_loss_forward(stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss).total;
+    r.camera = sc.camera_weight * loss::camera_loss_forward(enc, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss).total;
     if (backward)
-      loss::camera_loss_backward(d_stages, sc.camera_weight, stages, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss);
+      loss::camera_loss_backward(d_enc, sc.camera_weight, enc, e.gt_pose_enc.data(), nullptr, V, sc.camera_loss);
   }
   if (sc.relative_camera_weight > 0) {
     // The field of view is each frame's own, so the camera loss's FoV term supervises it in any world frame.
     loss::CameraLossConfig fov = sc.camera_loss;
     fov.weight_translation = fov.weight_rotation = 0;
     const T* gt = e.gt_pose_enc.data();
-    std::vector<const T*> enc, extr;
-    std::vector<T*> d_enc, d_extr;
+    std::vector<const T*> extr;
     ws.stage_extrinsics.resize(static_cast<std::size_t>(iters * V * 12));
-    ws.d_stage_extrinsics.assign(ws.stage_extrinsics.size(), T(0));
     for (index_t i = 0; i < iters; ++i) {
-      enc.push_back(ws.geometry.pose_enc.data() + i * V * 9);
-      d_enc.push_back(backward ? ws.d_pose_enc.data() + i * V * 9 : nullptr);
       // Every iteration's encoding decoded to extrinsics; the pair loss's gradient goes back through the decoding.
-      geometry::pose_encoding_to_extri_intri<T>(ws.stage_extrinsics.data() + i * V * 12, nullptr, enc.back(), V, e.h,
-                                                e.w, c.geometry.pose_decode);
-      extr.push_back(ws.stage_extrinsics.data() + i * V * 12);
-      d_extr.push_back(ws.d_stage_extrinsics.data() + i * V * 12);
+      T* E = ws.stage_extrinsics.data() + i * V * 12;
+      geometry::pose_encoding_to_extri_intri<T>(E, nullptr, enc[static_cast<std::size_t>(i)], V, e.h, e.w,
+                                                c.geometry.pose_decode);
+      extr.push_back(E);
     }
     r.camera += sc.relative_camera_weight * (loss::camera_loss_forward(enc, gt, nullptr, V, fov).total +
                                              loss::relative_pose_loss_forward(extr, e.gt_extrinsics.data(), V,
                                                                               sc.camera_loss).total);
     if (backward) {
+      ws.d_stage_extrinsics.assign(ws.stage_extrinsics.size(), T(0));
+      std::vector<T*> d_extr;
+      for (index_t i = 0; i < iters; ++i) d_extr.push_back(ws.d_stage_extrinsics.data() + i * V * 12);
       loss::camera_loss_backward(d_enc, sc.relative_camera_weight, enc, gt, nullptr, V, fov);
       loss::relative_pose_loss_backward(d_extr, sc.relative_camera_weight, extr, e.gt_extrinsics.data(), V,
                                         sc.camera_loss);

@@ -121,12 +121,9 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
   for (std::size_t i = 0; i < pred.size(); ++i)
     pred[i] = static_cast<double>(p.geometry.extrinsics[i]), gt[i] = static_cast<double>(e.gt_extrinsics[i]);
   detail::score_rotations(pred.data(), gt.data(), V, s.rotation_deg, s.rra15, s.rra30);
-  {
-    const auto& head = ws.predict.geometry.outputs.extrinsics;  // before predict's matched or searched cameras
-    std::vector<double> hd(pred.size());
-    for (std::size_t i = 0; i < hd.size(); ++i) hd[i] = static_cast<double>(head.data()[i]);
-    detail::score_rotations(hd.data(), gt.data(), V, s.head_rotation_deg, s.head_rra15, s.head_rra30);
-  }
+  const auto& head = ws.predict.geometry.outputs.extrinsics;  // before predict's matched or searched cameras
+  for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(head.data()[i]);
+  detail::score_rotations(pred.data(), gt.data(), V, s.head_rotation_deg, s.head_rra15, s.head_rra30);
   for (index_t v = 1; v < V; ++v) s.chance_rotation_deg += rotation_error_deg(gt.data(), gt.data() + 12 * v) / static_cast<double>(V - 1);
   if (w.config().geometry.point_head) {
     const auto& o = ws.predict.geometry.outputs;
