@@ -121,13 +121,14 @@ static int run_recipe(const RecipeOptions& ro) {
       profile::set_enabled(true);
     }
     const auto t0 = std::chrono::steady_clock::now();
-    const std::vector<model::TrainExample<float>> batch = model::make_train_scenes(data, cfg, step, 0, cfg.batch);
+    const train::ScenePlan plan = train::contiguous_plan(cfg.batch, 1);
+    const std::vector<model::TrainExample<float>> batch = model::make_train_scenes(data, cfg, step, plan.scenes_of(0));
     const auto t1 = std::chrono::steady_clock::now();
     const model::StepSchedule at = cfg.schedule_at(step);
     const model::TrainStage& st = cfg.stages[at.stage];
     const double lr = at.lr;
     // train_step adds into the PhaseTimes it is given: the counted steps accumulate in `phases`.
-    const auto r = model::train_step<float>(ws, *w, batch, cfg.batch, st.step, lr, step, solo, lpips.get(),
+    const auto r = model::train_step<float>(ws, *w, batch, plan, st.step, lr, step, solo, lpips.get(),
                                             k < 0 ? nullptr : &phases);
     const auto t2 = std::chrono::steady_clock::now();
     require(std::isfinite(r.loss), "train_step bench: the loss is ", r.loss, " at step ", step);
@@ -263,7 +264,8 @@ int main(int argc, char** argv) {
     double best_total = 1e300;
     for (index_t s = 0; s < steps; ++s) {
       model::PhaseTimes t;
-      const auto r = model::train_step<float>(ws, *w, batch, 1, sc, 1e-4, static_cast<std::uint64_t>(s), solo, nullptr, &t);
+      const auto r = model::train_step<float>(ws, *w, batch, train::contiguous_plan(1, 1), sc, 1e-4,
+                                              static_cast<std::uint64_t>(s), solo, nullptr, &t);
       std::printf("step %lld: %.1f ms, loss %.4f\n", (long long)s, t.total(), r.loss);
       if (t.total() < best_total) best_total = t.total(), best = t;
     }

@@ -140,7 +140,8 @@ TEST_CASE("train_step drives the loss on one fixed scene down by 10x", "[model][
   const train::CosineSchedule schedule{3e-3, 0.0, 0, steps};
   double first = 0, last = 0;
   for (int s = 0; s < steps; ++s) {
-    const auto r = model::train_step<float>(ws, *w, batch, 1, sc, schedule.lr(static_cast<std::uint64_t>(s)),
+    const auto r = model::train_step<float>(ws, *w, batch, train::contiguous_plan(1, 1), sc,
+                                            schedule.lr(static_cast<std::uint64_t>(s)),
                                             static_cast<std::uint64_t>(s), solo);
     REQUIRE(std::isfinite(r.loss));
     if (s == 0) first = r.loss;
@@ -314,7 +315,8 @@ TEST_CASE("train_step with scenes side by side on two threads matches one thread
       REQUIRE(!model::scenes_side_by_side(3));
       std::vector<int> runs(4, 0);
       const model::SideTasks side{4, [&](index_t i) { ++runs[static_cast<std::size_t>(i)]; }};
-      a = model::train_step<float>(serial_ws, *serial_w, batch, 3, sc, 1e-3, step, solo, nullptr, nullptr, side);
+      a = model::train_step<float>(serial_ws, *serial_w, batch, train::contiguous_plan(3, 1), sc, 1e-3, step, solo,
+                                   nullptr, nullptr, side);
       CHECK(runs == std::vector<int>(4, 1));
     }
     {
@@ -327,7 +329,8 @@ TEST_CASE("train_step with scenes side by side on two threads matches one thread
                                     pool_sizes[static_cast<std::size_t>(i)] = global_pool().size();
                                     ++runs[static_cast<std::size_t>(i)];
                                   }};
-      b = model::train_step<float>(paired_ws, *paired_w, batch, 3, sc, 1e-3, step, solo, nullptr, &times, side);
+      b = model::train_step<float>(paired_ws, *paired_w, batch, train::contiguous_plan(3, 1), sc, 1e-3, step, solo,
+                                   nullptr, &times, side);
       CHECK(runs == std::vector<int>(4, 1));
       CHECK(pool_sizes == std::vector<int>(4, 1));  // each as on one thread
       CHECK(times.geometry_forward > 0);

@@ -77,3 +77,29 @@ TEST_CASE("run_training resumes exactly and reports its steps", "[model][trainer
   CHECK(organic_data.generator.object.blob_fraction == 0.25f);
   CHECK(organic_data.generator.object.attached);
 }
+
+TEST_CASE("train_scene_plan spreads a step's scenes over the ranks by their view counts", "[model][trainer]") {
+  nlohmann::json recipe = nlohmann::json::parse(recipe_text);
+  recipe["batch"] = 4, recipe["inputs"] = nlohmann::json::parse("[1, 3]");
+  const model::TrainRunConfig cfg = model::parse_train_config(recipe);
+  index_t uneven_contiguous = 0;
+  for (std::uint64_t step = 0; step < 64; ++step) {
+    std::vector<index_t> views;
+    for (index_t s = 0; s < 4; ++s) views.push_back(model::scene_view_count(cfg, step, s));
+    CHECK(model::train_scene_plan(cfg, step, 1).owner == std::vector<int>(4, 0));
+    const train::ScenePlan p = model::train_scene_plan(cfg, step, 2);
+    CHECK(p.owner == model::train_scene_plan(cfg, step, 2).owner);  // every rank computes the same plan
+    index_t load[2] = {0, 0}, count[2] = {0, 0};
+    for (std::size_t s = 0; s < 4; ++s) load[p.owner[s]] += views[s], ++count[p.owner[s]];
+    CHECK(count[0] == 2);
+    CHECK(count[1] == 2);
+    const index_t total = load[0] + load[1], pair = views[0] + views[1];
+    // No better split into pairs exists; the contiguous one is often worse.
+    for (std::size_t partner = 1; partner < 4; ++partner) {
+      const index_t with = views[0] + views[partner];
+      CHECK(std::max(load[0], load[1]) <= std::max(with, total - with));
+    }
+    if (std::max(pair, total - pair) > std::max(load[0], load[1])) ++uneven_contiguous;
+  }
+  CHECK(uneven_contiguous > 8);
+}

@@ -405,13 +405,13 @@ struct StepWorkspace {
   std::vector<std::vector<T, AlignedAllocator<T>>> scene_grads;  // one gradient per local scene
 };
 
-// One update from a global batch: `local` are this rank's scenes, in global order (train::share_of). lr from the
-// schedule; step counts updates done before this one. Returns the global batch's mean losses. Scenes side by side
+// One update from a global batch: `local` are this rank's scenes of `plan`, in global order (plan.scenes_of). lr from
+// the schedule; step counts updates done before this one. Returns the global batch's mean losses. Scenes side by side
 // (scenes_side_by_side) each run as on one thread: the step is then bit-identical to one thread and to any number of
-// ranks, and `times` sums the threads' phase times (the side tasks' time is not in them).
+// ranks and plans, and `times` sums the threads' phase times (the side tasks' time is not in them).
 template <class T>
 StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<const TrainExample<T>> local,
-                      index_t global_batch, const StepConfig& sc, double lr, std::uint64_t step,
+                      const train::ScenePlan& plan, const StepConfig& sc, double lr, std::uint64_t step,
                       train::Communicator& comm, const loss::LpipsWeights<T>* lpips = nullptr,
                       PhaseTimes* times = nullptr, const SideTasks& side = {}) {
   require(!local.empty(), "train_step: rank ", comm.rank(), " has no scenes");
@@ -464,11 +464,12 @@ StepReport train_step(StepWorkspace<T>& ws, FlexSplatWeights<T>& w, std::span<co
   PhaseClock clock(times);
   std::vector<const T*> ptrs;
   for (auto& g : ws.scene_grads) ptrs.push_back(g.data());
-  if (!direct) train::ordered_sum<T>(comm, store.grads(), n, ptrs);
+  if (!direct) train::ordered_sum<T>(comm, store.grads(), n, plan, ptrs);
   std::vector<const double*> vptrs;
   for (std::size_t s = 0; s < local.size(); ++s) vptrs.push_back(values.data() + fields * s);
   double totals[fields];
-  train::ordered_sum<double>(comm, totals, fields, vptrs);
+  train::ordered_sum<double>(comm, totals, fields, plan, vptrs);
+  const index_t global_batch = plan.global();
   require(static_cast<index_t>(totals[means]) == global_batch, "train_step: the ranks hold ", totals[means],
           " scenes, the global batch is ", global_batch);
   const T inv = static_cast<T>(1.0 / static_cast<double>(global_batch));

@@ -3,12 +3,14 @@
 // made in process, or object folders), as pure functions of (seed, step, scene) so that resumed and multi-rank runs
 // draw the same scenes. `flexsplat train` and bench/train_step share them.
 #include <cstdint>
+#include <span>
 #include <vector>
 
 #include "flexsplat/core/profile.hpp"
 #include "flexsplat/data/dataset.hpp"
 #include "flexsplat/model/train.hpp"
 #include "flexsplat/model/run_config.hpp"
+#include "flexsplat/train/distributed.hpp"
 
 namespace flexsplat {
 inline namespace v0 {
@@ -47,13 +49,23 @@ inline TrainExample<float> make_train_scene(const TrainData& d, const model::Tra
   return make_train_example<float>(s[0], c.model, c.match_samples);
 }
 
-// Scenes [first, first + count) of step `step`, made side by side as train_step runs them (run_scenes).
+// Scenes `scenes` (global indices) of step `step`, made side by side as train_step runs them (run_scenes).
 inline std::vector<TrainExample<float>> make_train_scenes(const TrainData& d, const model::TrainRunConfig& c,
-                                                          std::uint64_t step, index_t first, index_t count) {
-  std::vector<TrainExample<float>> out(static_cast<std::size_t>(count));
-  auto one = [&](index_t i, int) { out[static_cast<std::size_t>(i)] = make_train_scene(d, c, step, first + i); };
-  run_scenes(count, one);
+                                                          std::uint64_t step, std::span<const index_t> scenes) {
+  std::vector<TrainExample<float>> out(scenes.size());
+  auto one = [&](index_t i, int) {
+    out[static_cast<std::size_t>(i)] = make_train_scene(d, c, step, scenes[static_cast<std::size_t>(i)]);
+  };
+  run_scenes(static_cast<index_t>(scenes.size()), one);
   return out;
+}
+
+// Which rank makes and computes each scene of step `step`: balanced by input view count (every scene of a step
+// renders the same targets), known before any scene is made.
+inline train::ScenePlan train_scene_plan(const model::TrainRunConfig& c, std::uint64_t step, int ranks) {
+  std::vector<index_t> views(static_cast<std::size_t>(c.batch));
+  for (index_t s = 0; s < c.batch; ++s) views[static_cast<std::size_t>(s)] = scene_view_count(c, step, s);
+  return train::balanced_plan(views, ranks);
 }
 
 }  // namespace model

@@ -302,7 +302,7 @@ inline TrainerResult run_training(const nlohmann::json& recipe, const TrainData&
     lpips = std::make_unique<loss::LpipsWeights<float>>(
         loss::lpips_load_weights<float>(safetensors::File::open(cfg.lpips_weights)));
   const bool root = comm.rank() == 0;
-  const train::Share share = train::share_of(cfg.batch, comm.rank(), comm.size());
+  (void)train::contiguous_plan(cfg.batch, comm.size());  // a batch too small for the ranks fails before any work
   const fs::path state_path = o.run / "state.safetensors", log_path = o.run / "log.jsonl";
   const json model_json = to_json(cfg.model);
   auto note = [&](const std::string& s) {
@@ -354,9 +354,9 @@ inline TrainerResult run_training(const nlohmann::json& recipe, const TrainData&
   }
   // Every rank starts from rank 0's parameters, optimizer moments and step.
   for (float* block : {w->store().params(), w->store().adam_m(), w->store().adam_v()})
-    comm.broadcast_from_first(block, w->store().size());
+    comm.broadcast(block, w->store().size(), 0);
   double step_value = static_cast<double>(step);  // exact: steps stay far below 2^53
-  comm.broadcast_from_first(&step_value, 1);
+  comm.broadcast(&step_value, 1, 0);
   step = static_cast<std::uint64_t>(step_value);
   const std::uint64_t first_step = step;
   note("train: " + o.run.string() + ", " + std::to_string(w->store().size()) + " parameters, " +
@@ -382,22 +382,25 @@ inline TrainerResult run_training(const nlohmann::json& recipe, const TrainData&
   while (step < stop_at) {
     const StepSchedule at = cfg.schedule_at(step);
     const TrainStage& stage = cfg.stages[at.stage];
-    if (next.empty()) local = make_train_scenes(data, cfg, step, share.first, share.count);
+    const train::ScenePlan plan = train_scene_plan(cfg, step, comm.size());
+    if (next.empty()) local = make_train_scenes(data, cfg, step, plan.scenes_of(comm.rank()));
     else local.swap(next);
-    next.assign(step + 1 < stop_at ? static_cast<std::size_t>(share.count) : 0, TrainExample<float>{});
     const std::uint64_t next_step = step + 1;
+    std::vector<index_t> next_scenes;
+    if (next_step < stop_at) next_scenes = train_scene_plan(cfg, next_step, comm.size()).scenes_of(comm.rank());
+    next.assign(next_scenes.size(), TrainExample<float>{});
     const SideTasks prefetch{static_cast<index_t>(next.size()), [&](index_t i) {
                                next[static_cast<std::size_t>(i)] =
-                                   make_train_scene(data, cfg, next_step, share.first + i);
+                                   make_train_scene(data, cfg, next_step, next_scenes[static_cast<std::size_t>(i)]);
                              }};
-    const StepReport r = train_step<float>(ws, *w, std::span<const TrainExample<float>>(local), cfg.batch, stage.step,
+    const StepReport r = train_step<float>(ws, *w, std::span<const TrainExample<float>>(local), plan, stage.step,
                                            at.lr, step, comm, lpips.get(), nullptr, prefetch);
     require(std::isfinite(r.loss), "train: the loss is ", r.loss, " at step ", step, " (stage '", stage.name,
             "'); lower the learning rate");
     const std::uint64_t done = ++step;
     // The last rank's clock decides, so every rank stops after the same step.
     double out_of_time = o.seconds > 0 && elapsed() >= o.seconds ? 1.0 : 0.0;
-    comm.broadcast_from_last(&out_of_time, 1);
+    comm.broadcast(&out_of_time, 1, comm.size() - 1);
     if (out_of_time > 0) stop_at = done;
     if (!root) continue;
     const double now = elapsed();
