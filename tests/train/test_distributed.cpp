@@ -162,6 +162,16 @@ TEST_CASE("ordered_sum on any rank count and plan is bitwise the one-process sum
       CHECK(std::memcmp(spread.data(), one.data(), n * 4) == 0);
     }
   }
+  // A plan naming a rank the communicator does not have is refused before anything is sent.
+  {
+    train::SoloCommunicator solo;
+    train::ScenePlan bad;
+    bad.owner = {0, 1};
+    std::vector<const float*> local{grads[0].data()};
+    std::vector<float> total(n);
+    CHECK_THROWS_WITH(train::ordered_sum<float>(solo, total.data(), n, bad, local),
+                      Catch::Contains("scene 1 belongs to rank 1 of 1"));
+  }
   // The one-process result is the plain sequential sum.
   std::vector<float> seq(grads[0]);
   for (index_t s = 1; s < global; ++s)

@@ -129,6 +129,9 @@ void ordered_sum(Communicator& comm, T* total, index_t n, const ScenePlan& plan,
   require(static_cast<index_t>(plan.scenes_of(me).size()) == static_cast<index_t>(local.size()), "ordered_sum: rank ",
           me, " holds ", local.size(), " scenes, its plan ", plan.scenes_of(me).size());
   auto owner = [&](index_t s) { return plan.owner[static_cast<std::size_t>(s)]; };
+  for (index_t s = 0; s < global; ++s)
+    require(owner(s) >= 0 && owner(s) < comm.size(), "ordered_sum: scene ", s, " belongs to rank ", owner(s), " of ",
+            comm.size());
   std::size_t next = 0;
   for (index_t s = 0; s < global; ++s) {
     if (owner(s) != me) continue;
