@@ -114,6 +114,7 @@ static int run_recipe(const RecipeOptions& ro) {
   model::PhaseTimes phases;
   double data_s = 0, step_s = 0;
   index_t scenes = 0;
+  const train::ScenePlan plan = train::contiguous_plan(cfg.batch, 1);
   for (index_t k = -1; k < ro.steps; ++k) {  // k = -1: warm-up (workspaces, first-touch), not counted
     const std::uint64_t step = start + static_cast<std::uint64_t>(std::max<index_t>(k, 0));
     if (k == 0) {
@@ -121,7 +122,6 @@ static int run_recipe(const RecipeOptions& ro) {
       profile::set_enabled(true);
     }
     const auto t0 = std::chrono::steady_clock::now();
-    const train::ScenePlan plan = train::contiguous_plan(cfg.batch, 1);
     const std::vector<model::TrainExample<float>> batch = model::make_train_scenes(data, cfg, step, plan.scenes_of(0));
     const auto t1 = std::chrono::steady_clock::now();
     const model::StepSchedule at = cfg.schedule_at(step);

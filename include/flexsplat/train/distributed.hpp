@@ -126,8 +126,8 @@ void ordered_sum(Communicator& comm, T* total, index_t n, const ScenePlan& plan,
   const int me = comm.rank();
   const index_t global = plan.global();
   require(global >= 1 && !local.empty(), "ordered_sum: rank ", me, " has no scenes");
-  require(static_cast<index_t>(plan.scenes_of(me).size()) == static_cast<index_t>(local.size()), "ordered_sum: rank ",
-          me, " holds ", local.size(), " scenes, its plan ", plan.scenes_of(me).size());
+  const std::size_t mine = plan.scenes_of(me).size();
+  require(mine == local.size(), "ordered_sum: rank ", me, " holds ", local.size(), " scenes, its plan ", mine);
   auto owner = [&](index_t s) { return plan.owner[static_cast<std::size_t>(s)]; };
   for (index_t s = 0; s < global; ++s)
     require(owner(s) >= 0 && owner(s) < comm.size(), "ordered_sum: scene ", s, " belongs to rank ", owner(s), " of ",
