@@ -77,6 +77,7 @@ struct Experiment {
   bool refine_cameras = true;     // refine the predicted cameras with the Gaussians
   bool refine_carve = true;       // carve the Gaussians to the input photos' silhouettes first
   index_t refine_grow = model::refine_grow_gaussians;  // Gaussians grown in the visual hull
+  bool true_cameras = false;      // --cameras truth: the folder's input cameras in place of the predicted ones
   double rotation_noise_deg = 0;  // 0: none
   std::uint64_t seed = 0;         // rotation noise and the posed fit's initialisation (per object: model::object_seed)
   bool posed_fit = false;
@@ -118,9 +119,10 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
   for (int v : in) rgba.push_back(image::read_float<float>(rec.frames[static_cast<std::size_t>(v)].image, 4));
   const Tensor<float, 4> images = model::model_input<float>(rgba, c);
   model::BeforeDecoder<float> noise;
-  if (x.rotation_noise_deg > 0)
+  if (x.rotation_noise_deg > 0 || x.true_cameras)
     noise = [&](model::GeometryResult<float>& g) {
-      model::rotation_noise(g.extrinsics.data(), g.views, x.rotation_noise_deg, seed);
+      if (x.true_cameras) model::true_input_cameras(rec, in, g);
+      if (x.rotation_noise_deg > 0) model::rotation_noise(g.extrinsics.data(), g.views, x.rotation_noise_deg, seed);
     };
   model::Prediction<float> p = model::predict<float>(ws, w, TensorView<const float, 4>(images.view()), x.gaussians, noise);
   double seconds = since(t0);
@@ -316,7 +318,9 @@ int eval_command(Args args) {
   take_option(args, "--self-attention", attention_text);
   std::string cameras_text = "model";
   take_option(args, "--cameras", cameras_text);
-  const model::CameraSource camera_source = model::parse_camera_source(cameras_text);
+  // truth (eval only): the model's cameras replaced by the folder's before the decoder.
+  const bool true_cameras = cameras_text == "truth";
+  const model::CameraSource camera_source = model::parse_camera_source(true_cameras ? "model" : cameras_text);
   const bool quiet = take_flag(args, "--quiet");
   for (const auto& a : args) require(a.empty() || a[0] != '-', "eval: unknown option '", a, "'");
   require(!args.empty(), "eval needs at least one OBJECT_DIR (a folder with cameras.json, or a folder of them)");
@@ -336,6 +340,7 @@ int eval_command(Args args) {
   eo.white_baseline = has("white");
   Experiment x;
   x.posed_fit = has("posed-fit");
+  x.true_cameras = true_cameras;
   if (!refine_text.empty()) x.refine_seconds = parse_number(refine_text, "--refine", false);
   if (!noise_text.empty()) {
     x.rotation_noise_deg = parse_number(noise_text, "--rotation-noise", true);
@@ -400,6 +405,7 @@ int eval_command(Args args) {
   if (attention) title += attention->first ? ", local self-attention (windows of " + std::to_string(attention->second) + ")"
                                            : std::string(", full self-attention");
   if (x.gaussians > 0) title += ", " + std::to_string(x.gaussians) + " Gaussians";
+  if (x.true_cameras) title += ", the folders' input cameras";
   if (x.rotation_noise_deg > 0) {
     std::snprintf(buf, sizeof buf, ", rotation noise %g deg (seed %llu)", x.rotation_noise_deg,
                   static_cast<unsigned long long>(x.seed));
@@ -475,7 +481,7 @@ const RegisterCommand registered_cmd_eval(
              "  [--refine-validate on|off] [--refine-cameras on|off] [--refine-carve on|off] [--refine-grow N]\n"
              "  [--rotation-noise DEG] [--seed N]\n"
              "  [--gaussians N] [--self-attention full|local[:WINDOW]] [--resolution native|model] [--lpips LPIPS.safetensors]\n"
-             "  [--cameras model|orbit] [--json out.json]\n"
+             "  [--cameras model|orbit|truth] [--json out.json]\n"
              "  [--grid out.png [--grid-targets 4]] [--quiet]\n"
              "  OBJECT_DIR: a folder in the layout of ../shared/data/objects/<name> or a folder of them\n"
              "  inputs: the folder's input_views (--views N: those when it lists N, else N evenly spaced frames;\n"
@@ -499,7 +505,9 @@ const RegisterCommand registered_cmd_eval(
              "  cameras for the model's seconds; --gaussians: default the model's budget for the view count;\n"
              "  --self-attention: the decoder's, whatever the model was trained with (local: windows of 512)\n"
              "  --cameras orbit: the input cameras searched on an orbit around the object from the predicted\n"
-             "  silhouettes, depth and colours (models with a match head) instead of the model's own cameras\n"
+             "  silhouettes, depth and colours (models with a match head) instead of the model's own cameras;\n"
+             "  --cameras truth: the folder's own input cameras (in the predicted depth's units) given to the\n"
+             "  decoder, what the appearance side makes of exact cameras\n"
              "  (docs/app.md)",
              eval_command});
 

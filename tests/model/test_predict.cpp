@@ -333,6 +333,53 @@ TEST_CASE("the evaluation protocol undoes a known similarity and scores ground-t
   CHECK_THROWS_WITH(model::eval_views(rec, two, in, targets), Catch::Contains("input view 40 is not a frame"));
 }
 
+TEST_CASE("true input cameras are the folder's, relative to the first input, in the predicted depth's units",
+          "[model][predict][eval]") {
+  const auto objects = data::load_objects({std::filesystem::path(FLEXSPLAT_SHARED_DIR) / "data/objects/spot"});
+  const auto& rec = objects[0];
+  const std::vector<int> in{3, 12, 25};  // three elevations
+  const index_t h = 56, w = 56;
+  model::GeometryResult<float> g;
+  g.resize(3, h, w, 1, 1, 1);
+  // A "predicted" depth half the true one on the surface, 1 on the background (no true depth there: not counted).
+  for (index_t v = 0; v < 3; ++v) {
+    const auto& fr = rec.frames[static_cast<std::size_t>(in[static_cast<std::size_t>(v)])];
+    const auto depth = image::read_depth_png<double>(fr.depth, rec.depth_scale);
+    const index_t H = depth.shape(0), W = depth.shape(1);
+    for (index_t y = 0; y < h; ++y)
+      for (index_t x = 0; x < w; ++x) {
+        const double z = depth((y * H + H / 2) / h, (x * W + W / 2) / w);  // the pixel centre's nearest source pixel
+        g.depth[static_cast<std::size_t>((v * h + y) * w + x)] = z > 0 ? static_cast<float>(0.5 * z) : 1.0f;
+      }
+  }
+  const double s = model::true_input_cameras(rec, in, g);
+  CHECK(s == Approx(0.5).epsilon(1e-6));
+  for (int i = 0; i < 12; ++i)
+    CHECK(g.extrinsics[static_cast<std::size_t>(i)] == Approx(i % 5 == 0 ? 1.0 : 0.0).margin(1e-6));
+  const auto& K = rec.frames[12].camera.K;
+  CHECK(g.K[9] == Approx(K[0][0] * 56.0 / rec.width).epsilon(1e-6));
+  CHECK(g.K[9 + 2] == Approx(K[2][0] * 56.0 / rec.width).epsilon(1e-6));
+  // The evaluation's alignment finds them exact, at twice the scale.
+  model::EvalOptions o;
+  std::vector<int> targets{0};
+  GaussianSet<float> none;
+  none.means = Tensor<float, 2>(Shape<2>{0, 3});
+  none.quats = Tensor<float, 2>(Shape<2>{0, 4});
+  none.scales = Tensor<float, 2>(Shape<2>{0, 3});
+  none.opacities = Tensor<float, 1>(Shape<1>{0});
+  none.sh = Tensor<float, 3>(Shape<3>{0, 1, 3});
+  model::EvalWorkspace ws;
+  const auto r = model::score_prediction(rec, in, targets, g.extrinsics.data(), none, h, w, o, ws);
+  CHECK(r.rotation_error_deg < 0.05);  // the angle's acos of a float trace resolves no finer (about 0.03 deg)
+  CHECK(r.center_error_rel < 1e-5);
+  CHECK(r.alignment.scale == Approx(2.0).epsilon(1e-5));
+  // No positive predicted depth where the object is: the scale is undefined.
+  std::fill(g.depth.begin(), g.depth.end(), 0.0f);
+  CHECK_THROWS_WITH(model::true_input_cameras(rec, in, g), Catch::Contains("the depth scale is undefined"));
+  CHECK_THROWS_WITH(model::true_input_cameras(rec, std::vector<int>{3, 12}, g),
+                    Catch::Contains("2 input views and a prediction of 3"));
+}
+
 TEST_CASE("with VGGT's two frame-token sets and two decoder view slots, reordering views 2..V reorders the cameras "
           "and leaves the renders unchanged",
           "[model][predict][permutation]") {

@@ -243,6 +243,52 @@ void rotation_noise(T* w2c, index_t views, double deg, std::uint64_t seed) {
   }
 }
 
+// The folder's own cameras of the input views `in` in place of the predicted ones (g at the model's size): w2c
+// relative to the first input view, K through the model's window, translations in the predicted depth's units (the
+// median over the input views' surface pixels of predicted / true depth, which is returned), so that the decoder's
+// depth-tied centres and the cameras agree. What the appearance side makes of exact cameras (eval --cameras truth).
+template <class T>
+double true_input_cameras(const data::ObjectRecord& rec, const std::vector<int>& in, GeometryResult<T>& g) {
+  const index_t V = static_cast<index_t>(in.size());
+  require(V == g.views, "true input cameras: ", V, " input views and a prediction of ", g.views);
+  std::vector<double> ratios;
+  std::vector<Eigen::Matrix<double, 3, 4>> E(static_cast<std::size_t>(V));
+  for (index_t v = 0; v < V; ++v) {
+    const data::FrameRecord& fr = rec.frames[static_cast<std::size_t>(in[static_cast<std::size_t>(v)])];
+    const Tensor<double, 2> depth = image::read_depth_png<double>(fr.depth, rec.depth_scale);
+    const ViewMapping map = view_mapping(depth.shape(1), depth.shape(0), g.h, g.w);
+    for (index_t y = 0; y < g.h; ++y)
+      for (index_t x = 0; x < g.w; ++x) {
+        const auto sx = std::min(depth.shape(1) - 1, map.x0 + static_cast<index_t>((x + 0.5) / map.scale_x));
+        const auto sy = std::min(depth.shape(0) - 1, map.y0 + static_cast<index_t>((y + 0.5) / map.scale_y));
+        const double z = depth(sy, sx);
+        const double p = static_cast<double>(g.depth[static_cast<std::size_t>((v * g.h + y) * g.w + x)]);
+        if (z > 0 && p > 0) ratios.push_back(p / z);
+      }
+    double K[9], e[12];
+    camera_arrays(fr.camera, K, e);
+    map.intrinsics(K);
+    for (int i = 0; i < 9; ++i) g.K[static_cast<std::size_t>(9 * v + i)] = static_cast<T>(K[i]);
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 4; ++c) E[static_cast<std::size_t>(v)](r, c) = e[4 * r + c];
+  }
+  require(!ratios.empty(), "true input cameras: the depth maps of '", rec.dir.string(),
+          "' show no surface where the predicted depth is positive; the depth scale is undefined");
+  const double s = median_of(ratios);
+  const Eigen::Matrix3d R0 = E[0].leftCols<3>();
+  const Eigen::Vector3d t0 = E[0].col(3);
+  for (index_t v = 0; v < V; ++v) {
+    // x_v = R_v R_0^T (x_0 - t_0) + t_v, with x_0 the first camera's coordinates (the prediction's world).
+    const Eigen::Matrix3d R = E[static_cast<std::size_t>(v)].leftCols<3>() * R0.transpose();
+    const Eigen::Vector3d t = s * (E[static_cast<std::size_t>(v)].col(3) - R * t0);
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) g.extrinsics[static_cast<std::size_t>(12 * v + 4 * r + c)] = static_cast<T>(R(r, c));
+      g.extrinsics[static_cast<std::size_t>(12 * v + 4 * r + 3)] = static_cast<T>(t(r));
+    }
+  }
+  return s;
+}
+
 // A folder's input views at h x w (model::photo_targets) with their ground-truth cameras: what the posed-fit
 // baseline is given.
 struct PosedViews {
