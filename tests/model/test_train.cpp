@@ -291,6 +291,47 @@ TEST_CASE("relative_camera_weight with frame_tokens 1: scene_gradient is the der
   CHECK(model::scene_loss<double>(ws, *w, e2, sc).camera == Approx(rotation).epsilon(1e-9));
 }
 
+TEST_CASE("decoder_true_cameras: the decoder sees the true cameras and the render loss trains no camera head",
+          "[model][train]") {
+  const auto c = model::flexsplat_tiny_config();
+  auto w = model::FlexSplatWeights<double>::create(c, true);
+  w->init(9);
+  const auto e = model::make_train_example<double>(tiny_scene(3, 2, 13), c);
+  model::StepConfig sc;  // the render objective alone
+  model::SceneWorkspace<double> ws;
+  auto& store = w->store();
+  auto camera_head_grad = [&] {
+    double sum = 0;
+    index_t tensors = 0;
+    for (const auto& t : store.tensors())
+      if (t.name.find("camera_head.") != std::string::npos) {
+        ++tensors;
+        for (double g : store.grad(t)) sum += std::abs(g);
+      }
+    REQUIRE(tensors > 0);
+    return sum;
+  };
+  store.zero_grads();
+  const auto predicted = model::scene_gradient<double>(ws, *w, store.grads(), e, sc);
+  CHECK(camera_head_grad() > 0);
+  sc.decoder_true_cameras = true;
+  store.zero_grads();
+  const auto forced = model::scene_gradient<double>(ws, *w, store.grads(), e, sc);
+  CHECK(camera_head_grad() == 0.0);
+  CHECK(forced.render != predicted.render);
+  // The same loss when the predicted cameras are replaced by the true ones by hand (the camera head's output unused).
+  for (std::size_t i = 0; i < e.gt_extrinsics.size(); ++i)
+    CHECK(ws.true_camera_geometry.extrinsics[i] == e.gt_extrinsics[i]);
+  CHECK(model::scene_loss<double>(ws, *w, e, sc).render == forced.render);
+  // Other camera-head weights change the predicted cameras, not what the decoder sees.
+  for (const auto& t : store.tensors())
+    if (t.name.find("camera_head.") != std::string::npos)
+      for (double& v : store.param(t)) v *= 1.5;
+  CHECK(model::scene_loss<double>(ws, *w, e, sc).render == forced.render);
+  sc.decoder_true_cameras = false;
+  CHECK(model::scene_loss<double>(ws, *w, e, sc).render != predicted.render);
+}
+
 TEST_CASE("train_step with scenes side by side on two threads matches one thread to the bit", "[model][train]") {
   const auto c = model::flexsplat_tiny_config();
   auto serial_w = model::FlexSplatWeights<float>::create(c, true);

@@ -160,6 +160,7 @@ inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where)
   s.warmup = k.integer("warmup", 0, 0, s.steps);
   s.step.appearance = k.boolean("appearance", true);
   s.step.train_geometry = k.boolean("train_geometry", true);
+  s.step.decoder_true_cameras = k.boolean("decoder_true_cameras", false);
   s.step.camera_weight = k.number("camera_weight", 0.0, 0, 1e6);
   s.step.relative_camera_weight = k.number("relative_camera_weight", 0.0, 0, 1e6);
   s.step.depth_weight = k.number("depth_weight", 0.0, 0, 1e6);

@@ -139,6 +139,10 @@ struct StepConfig {
   loss::PointLossConfig point_loss;
   loss::MatchLossConfig match_loss;
   bool render_inputs = true;         // input views (predicted cameras) are rendered targets too
+  // The decoder and the input views' renders see the ground-truth cameras in place of the predicted ones (teacher
+  // forcing): the appearance side learns to use every view while the cameras are still poor, and the render loss then
+  // sends no gradient to the cameras (only the camera, pose and match losses train them).
+  bool decoder_true_cameras = false;
   index_t gaussians = 0;             // 0: the configuration's budget for the view count
   double max_grad_norm = 1.0;        // <= 0: no clipping
   train::AdamWConfig adamw;
@@ -167,6 +171,7 @@ struct SceneWorkspace {
   std::vector<T> d_points, d_points_conf, d_descriptors, d_foreground;
   std::vector<T> coarse, d_coarse, coarse_prob, d_coarse_prob, coarse_alpha;  // the coarse match loss's cell maps
   std::vector<loss::PixelMatch> coarse_matches;
+  GeometryResult<T> true_camera_geometry;  // StepConfig::decoder_true_cameras: the prediction with the true cameras
 };
 
 namespace detail {
@@ -315,6 +320,13 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
     }
   }
   if (sc.appearance) {
+    const GeometryResult<T>* seen = &g;
+    if (sc.decoder_true_cameras) {
+      ws.true_camera_geometry = g;
+      std::copy(e.gt_extrinsics.begin(), e.gt_extrinsics.end(), ws.true_camera_geometry.extrinsics.begin());
+      std::copy(e.gt_K.begin(), e.gt_K.end(), ws.true_camera_geometry.K.begin());
+      seen = &ws.true_camera_geometry;
+    }
     ws.views.clear();
     if (sc.render_inputs)
       for (index_t v = 0; v < V; ++v) {
@@ -337,9 +349,11 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
                      static_cast<double>(e.background[2])};
     const index_t n = sc.gaussians > 0 ? sc.gaussians : c.gaussians_for(V);
     T* d_app = backward ? grads + w.store().segment(appearance_segment).offset : nullptr;
-    const LossParts p = appearance_objective<T>(ws.objective, w.appearance(), d_app, c.appearance, n, e.images.data(), g,
-                                                backward && sc.train_geometry ? &ws.d_geometry : nullptr, ws.views,
-                                                sc.objective, ro, lpips, times);
+    const LossParts p = appearance_objective<T>(ws.objective, w.appearance(), d_app, c.appearance, n, e.images.data(),
+                                                *seen, backward && sc.train_geometry ? &ws.d_geometry : nullptr,
+                                                ws.views, sc.objective, ro, lpips, times);
+    if (sc.decoder_true_cameras && backward && sc.train_geometry)  // no other loss reaches these two fields
+      for (auto* f : {&ws.d_geometry.extrinsics, &ws.d_geometry.K}) std::fill(f->begin(), f->end(), T(0));
     clock = PhaseClock(times);
     r.rgb_head = p.rgb_head, r.render = p.render, r.render_depth = p.depth, r.lpips = p.lpips, r.psnr = p.psnr_last;
   }
