@@ -362,12 +362,7 @@ TEST_CASE("true input cameras are the folder's, relative to the first input, in 
   // The evaluation's alignment finds them exact, at twice the scale.
   model::EvalOptions o;
   std::vector<int> targets{0};
-  GaussianSet<float> none;
-  none.means = Tensor<float, 2>(Shape<2>{0, 3});
-  none.quats = Tensor<float, 2>(Shape<2>{0, 4});
-  none.scales = Tensor<float, 2>(Shape<2>{0, 3});
-  none.opacities = Tensor<float, 1>(Shape<1>{0});
-  none.sh = Tensor<float, 3>(Shape<3>{0, 1, 3});
+  const GaussianSet<float> none = make_gaussian_set<float>(0, 0);
   model::EvalWorkspace ws;
   const auto r = model::score_prediction(rec, in, targets, g.extrinsics.data(), none, h, w, o, ws);
   CHECK(r.rotation_error_deg < 0.05);  // the angle's acos of a float trace resolves no finer (about 0.03 deg)

@@ -251,8 +251,7 @@ template <class T>
 double true_input_cameras(const data::ObjectRecord& rec, const std::vector<int>& in, GeometryResult<T>& g) {
   const index_t V = static_cast<index_t>(in.size());
   require(V == g.views, "true input cameras: ", V, " input views and a prediction of ", g.views);
-  std::vector<double> ratios;
-  std::vector<Eigen::Matrix<double, 3, 4>> E(static_cast<std::size_t>(V));
+  std::vector<double> ratios, E(static_cast<std::size_t>(12 * V));
   for (index_t v = 0; v < V; ++v) {
     const data::FrameRecord& fr = rec.frames[static_cast<std::size_t>(in[static_cast<std::size_t>(v)])];
     const Tensor<double, 2> depth = image::read_depth_png<double>(fr.depth, rec.depth_scale);
@@ -265,27 +264,19 @@ double true_input_cameras(const data::ObjectRecord& rec, const std::vector<int>&
         const double p = static_cast<double>(g.depth[static_cast<std::size_t>((v * g.h + y) * g.w + x)]);
         if (z > 0 && p > 0) ratios.push_back(p / z);
       }
-    double K[9], e[12];
-    camera_arrays(fr.camera, K, e);
+    double K[9];
+    camera_arrays(fr.camera, K, &E[static_cast<std::size_t>(12 * v)]);
     map.intrinsics(K);
     for (int i = 0; i < 9; ++i) g.K[static_cast<std::size_t>(9 * v + i)] = static_cast<T>(K[i]);
-    for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 4; ++c) E[static_cast<std::size_t>(v)](r, c) = e[4 * r + c];
   }
   require(!ratios.empty(), "true input cameras: the depth maps of '", rec.dir.string(),
           "' show no surface where the predicted depth is positive; the depth scale is undefined");
   const double s = median_of(ratios);
-  const Eigen::Matrix3d R0 = E[0].leftCols<3>();
-  const Eigen::Vector3d t0 = E[0].col(3);
-  for (index_t v = 0; v < V; ++v) {
-    // x_v = R_v R_0^T (x_0 - t_0) + t_v, with x_0 the first camera's coordinates (the prediction's world).
-    const Eigen::Matrix3d R = E[static_cast<std::size_t>(v)].leftCols<3>() * R0.transpose();
-    const Eigen::Vector3d t = s * (E[static_cast<std::size_t>(v)].col(3) - R * t0);
-    for (int r = 0; r < 3; ++r) {
-      for (int c = 0; c < 3; ++c) g.extrinsics[static_cast<std::size_t>(12 * v + 4 * r + c)] = static_cast<T>(R(r, c));
-      g.extrinsics[static_cast<std::size_t>(12 * v + 4 * r + 3)] = static_cast<T>(t(r));
-    }
-  }
+  FirstCameraFrame frame;  // the first input's camera frame, lengths times s
+  frame.first_w2c = to_matrix4(E.data());
+  frame.scale = 1.0 / s;
+  for (index_t v = 0; v < V; ++v) frame.camera(&E[static_cast<std::size_t>(12 * v)]);
+  std::transform(E.begin(), E.end(), g.extrinsics.begin(), [](double x) { return static_cast<T>(x); });
   return s;
 }
 
