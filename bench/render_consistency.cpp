@@ -122,6 +122,27 @@ void perturb(float* E, const double* x) {
     E[4 * i + 3] = static_cast<float>(t2(i));
   }
 }
+
+// A random set of V input frames of rec (one shuffle of all its frames), the next 4 frames as targets, and the inputs
+// at the model's size.
+struct ViewSet {
+  std::vector<int> in, targets;
+  Tensor<float, 4> images;
+  std::string name;
+};
+ViewSet draw_set(const data::ObjectRecord& rec, index_t V, std::mt19937& rng, const model::FlexSplatConfig& c) {
+  std::vector<int> all(rec.frames.size());
+  std::iota(all.begin(), all.end(), 0);
+  std::shuffle(all.begin(), all.end(), rng);
+  ViewSet set;
+  set.in.assign(all.begin(), all.begin() + V);
+  set.targets.assign(all.begin() + V, all.begin() + V + 4);
+  std::vector<Tensor<float, 3>> rgba;
+  for (int v : set.in) rgba.push_back(image::read_float<float>(rec.frames[static_cast<std::size_t>(v)].image, 4));
+  set.images = model::model_input<float>(rgba, c);
+  for (int v : set.in) set.name += (set.name.empty() ? "" : ",") + std::to_string(v);
+  return set;
+}
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -172,16 +193,11 @@ int main(int argc, char** argv) {
         before.clear(), after.clear();
         for (const data::ObjectRecord& rec : objects) {
           for (int s = 0; s < sets; ++s) {
-            std::vector<int> all(rec.frames.size());
-            std::iota(all.begin(), all.end(), 0);
-            std::shuffle(all.begin(), all.end(), rng);
-            const std::vector<int> in(all.begin(), all.begin() + V);
-            const std::vector<int> targets(all.begin() + V, all.begin() + V + 4);
-            std::vector<Tensor<float, 3>> rgba;
-            for (int v : in) rgba.push_back(image::read_float<float>(rec.frames[static_cast<std::size_t>(v)].image, 4));
-            const Tensor<float, 4> images = model::model_input<float>(rgba, c);
-            std::string set_name;
-            for (int v : in) set_name += (set_name.empty() ? "" : ",") + std::to_string(v);
+            const ViewSet set = draw_set(rec, V, rng, c);
+            const std::vector<int>& in = set.in;
+            const std::vector<int>& targets = set.targets;
+            const Tensor<float, 4>& images = set.images;
+            const std::string& set_name = set.name;
             const auto t0 = std::chrono::steady_clock::now();
             ws.cameras = model::CameraSource::orbit_search;
             const model::Prediction<float> p = model::predict<float>(ws, *w, images.data(), V);
@@ -239,15 +255,10 @@ int main(int argc, char** argv) {
       const index_t V = static_cast<index_t>(count);
       for (const data::ObjectRecord& rec : objects) {
         for (int s = 0; s < sets; ++s) {
-          std::vector<int> all(rec.frames.size());
-          std::iota(all.begin(), all.end(), 0);
-          std::shuffle(all.begin(), all.end(), rng);
-          const std::vector<int> in(all.begin(), all.begin() + V);
-          std::vector<Tensor<float, 3>> rgba;
-          for (int v : in) rgba.push_back(image::read_float<float>(rec.frames[static_cast<std::size_t>(v)].image, 4));
-          const Tensor<float, 4> images = model::model_input<float>(rgba, c);
-          std::string set_name;
-          for (int v : in) set_name += (set_name.empty() ? "" : ",") + std::to_string(v);
+          const ViewSet set = draw_set(rec, V, rng, c);
+          const std::vector<int>& in = set.in;
+          const Tensor<float, 4>& images = set.images;
+          const std::string& set_name = set.name;
           for (double deg : noise) {
             double all_in = 0, left_out = 0;
             const int n_draws = deg > 0 ? draws : 1;
