@@ -2,7 +2,8 @@
 // Random input view sets of the object folders (views drawn from all frames, in random order):
 // - without --search: the folder's true input cameras (model::true_input_cameras, in the predicted depth's units),
 //   each turned by D degrees (model::rotation_noise), handed to the decoder; the mean squared error of its renders of
-//   the input views against the input pictures, all views decoded, and with each view left out of the decoder.
+//   the input views against the input pictures, all views decoded, and with each view left out of the decoder (the
+//   others keep the geometry predicted from all views).
 // - --search all|loo: the orbit-searched cameras (what predict gives) refined by a pattern search over each view's
 //   rotation and centre (views 2..V) on that error (all: all views decoded; loo: plus each view left out), then the
 //   eval's rotation error and PSNR on 4 other frames before and after.
@@ -80,27 +81,34 @@ const GaussianSet<float>& decode(model::PredictWorkspace<float>& ws, const model
   return ws.model.gaussians().back();
 }
 
-// Render consistency of extrinsics E: the mean over the views of the MSE of their renders (all views decoded), plus
-// with `loo` the same with each view left out of the decoder.
-double consistency(model::PredictWorkspace<float>& ws, const model::FlexSplatWeights<float>& w,
-                   const model::GeometryResult<float>& g, const float* images, const float* E, bool loo,
-                   raster::RenderWorkspace<float>& rws, raster::RenderOutputs<float>& out) {
+// Render consistency of extrinsics E: the mean over the views of the MSE of their renders with all views decoded,
+// and (with `loo`) the same with each view left out of the decoder (the others' geometry as predicted with it).
+struct Consistency {
+  double all_in = 0, left_out = 0;
+};
+Consistency consistency(model::PredictWorkspace<float>& ws, const model::FlexSplatWeights<float>& w,
+                        const model::GeometryResult<float>& g, const float* images, const float* E, bool loo,
+                        raster::RenderWorkspace<float>& rws, raster::RenderOutputs<float>& out) {
   const index_t V = g.views, h = g.h, wd = g.w, px = 3 * h * wd;
   std::vector<index_t> all(static_cast<std::size_t>(V));
   std::iota(all.begin(), all.end(), index_t(0));
-  double sum = 0;
-  const GaussianSet<float> gs = decode(ws, w, g, images, E, all);
-  for (index_t v = 0; v < V; ++v) sum += render_mse(gs, g.K.data() + 9 * v, E + 12 * v, images + v * px, h, wd, rws, out);
+  Consistency r;
+  const GaussianSet<float>& gs = decode(ws, w, g, images, E, all);
+  for (index_t v = 0; v < V; ++v) r.all_in += render_mse(gs, g.K.data() + 9 * v, E + 12 * v, images + v * px, h, wd, rws, out);
   if (loo && V >= 2)
     for (index_t leave = 0; leave < V; ++leave) {
       std::vector<index_t> keep;
       for (index_t v = 0; v < V; ++v)
         if (v != leave) keep.push_back(v);
       const GaussianSet<float>& q = decode(ws, w, g, images, E, keep);
-      sum += render_mse(q, g.K.data() + 9 * leave, E + 12 * leave, images + leave * px, h, wd, rws, out);
+      r.left_out += render_mse(q, g.K.data() + 9 * leave, E + 12 * leave, images + leave * px, h, wd, rws, out);
     }
-  return sum / static_cast<double>(V);
+  r.all_in /= static_cast<double>(V), r.left_out /= static_cast<double>(V);
+  return r;
 }
+
+// The search's objective: the all-in error, plus with `loo` the left-out one.
+double objective(const Consistency& c, bool loo) { return c.all_in + (loo ? c.left_out : 0.0); }
 
 // Camera v of E turned by axis-angle (rx, ry, rz) radians (in its own frame) about its centre, and its centre moved
 // by (cx, cy, cz) in the world: [R | t] -> [Q R | -Q R (c + dc)].
@@ -176,7 +184,7 @@ int main(int argc, char** argv) {
       require(n >= 1 && n <= 28 && n == std::floor(n), "view count ", n, " must be 1 to 28 (4 frames stay targets)");
     const auto w = model::load_flexsplat<float>(model_path);
     const model::FlexSplatConfig& c = w->config();
-    const index_t h = c.image_h, wd = c.image_w, px = 3 * h * wd;
+    const index_t h = c.image_h, wd = c.image_w;
     const std::vector<data::ObjectRecord> objects = data::load_objects(dirs);
     model::PredictWorkspace<float> ws;
     raster::RenderWorkspace<float> rws;
@@ -207,7 +215,7 @@ int main(int argc, char** argv) {
             model::EvalOptions eo;
             model::EvalWorkspace ews;
             const model::EvalResult e0 = model::score_prediction(rec, in, targets, E.data(), p.gaussians, h, wd, eo, ews);
-            double best = consistency(ws, *w, g, images.data(), E.data(), loo, rws, out);
+            double best = objective(consistency(ws, *w, g, images.data(), E.data(), loo, rws, out), loo);
             const double start = best;
             std::vector<double> depths(g.depth.begin(), g.depth.begin() + h * wd);
             std::nth_element(depths.begin(), depths.begin() + depths.size() / 2, depths.end());
@@ -223,7 +231,7 @@ int main(int argc, char** argv) {
                     x[k] = sign * (k < 3 ? rot_step : move_step);
                     std::vector<float> trial = E;
                     perturb(trial.data() + 12 * v, x);
-                    const double f = consistency(ws, *w, g, images.data(), trial.data(), loo, rws, out);
+                    const double f = objective(consistency(ws, *w, g, images.data(), trial.data(), loo, rws, out), loo);
                     ++evals;
                     if (f < best) {
                       best = f, E = trial, improved = true;
@@ -263,42 +271,15 @@ int main(int argc, char** argv) {
             double all_in = 0, left_out = 0;
             const int n_draws = deg > 0 ? draws : 1;
             for (int d = 0; d < n_draws; ++d) {
-              std::vector<float> K, E;
               const model::BeforeDecoder<float> cams = [&](model::GeometryResult<float>& g) {
                 model::true_input_cameras(rec, in, g);
                 if (deg > 0) model::rotation_noise(g.extrinsics.data(), g.views, deg, seed * 1000u + unsigned(d));
-                K.assign(g.K.begin(), g.K.end());
-                E.assign(g.extrinsics.begin(), g.extrinsics.end());
               };
+              // The prediction holds the cameras the decoder saw: the true K and the turned extrinsics.
               const model::Prediction<float> p = model::predict<float>(ws, *w, images.data(), V, 0, cams);
-              double a = 0;
-              for (index_t v = 0; v < V; ++v)
-                a += render_mse(p.gaussians, &K[9 * v], &E[12 * v], images.data() + v * px, h, wd, rws, out);
-              all_in += a / static_cast<double>(V);
-              if (V >= 2) {
-                double l = 0;
-                for (index_t leave = 0; leave < V; ++leave) {
-                  std::vector<float> sub;
-                  std::vector<int> sub_in;
-                  for (index_t v = 0; v < V; ++v)
-                    if (v != leave) {
-                      sub.insert(sub.end(), images.data() + v * px, images.data() + (v + 1) * px);
-                      sub_in.push_back(in[static_cast<std::size_t>(v)]);
-                    }
-                  const model::BeforeDecoder<float> sub_cams = [&](model::GeometryResult<float>& g) {
-                    index_t k = 0;
-                    for (index_t v = 0; v < V; ++v)
-                      if (v != leave) {
-                        std::copy(&K[9 * v], &K[9 * v] + 9, g.K.begin() + 9 * k);
-                        std::copy(&E[12 * v], &E[12 * v] + 12, g.extrinsics.begin() + 12 * k);
-                        ++k;
-                      }
-                  };
-                  const model::Prediction<float> q = model::predict<float>(ws, *w, sub.data(), V - 1, 0, sub_cams);
-                  l += render_mse(q.gaussians, &K[9 * leave], &E[12 * leave], images.data() + leave * px, h, wd, rws, out);
-                }
-                left_out += l / static_cast<double>(V);
-              }
+              const Consistency r = consistency(ws, *w, p.geometry, images.data(), p.geometry.extrinsics.data(), true,
+                                                rws, out);
+              all_in += r.all_in, left_out += r.left_out;
             }
             std::printf("| %d | %s | %s | %g | %d | %.5f | %.5f |\n", static_cast<int>(V), rec.name.c_str(),
                         set_name.c_str(), deg, n_draws, all_in / n_draws, left_out / n_draws);
