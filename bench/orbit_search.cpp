@@ -10,7 +10,7 @@
 //                     [--descriptor-weight 0 (with --model: its match head's descriptors)]
 //                     [--descriptor-temperature 0.1] [--occluded-cost 0.1] [--samples 256] [--depth-range 0] [--depth-candidates 5]
 //                     [--depth-blend 0 | --depth-grid N] [--depth-waves 0] [--depth-inflate 0]
-//                     [--descriptors model|image|both] [--patch 5] [--patch-spacing 2] OBJECT_DIR...
+//                     [--descriptors model|image|both] [--patch 5] [--patch-spacing 2] [--order-ensemble] OBJECT_DIR...
 //   e.g. `build/bench/orbit_search ../shared/data/objects/*`
 // --inputs keeps only those input codes (silhouettes, depth, intrinsics from the renderer r or the model m); the other
 // options set the search's OrbitSearchConfig fields of the same names (how tolerant it is of the predictions' errors).
@@ -23,6 +23,8 @@
 // --depth-inflate k: the renderer's depth given to the search is each silhouette inflated into a shell (inflated_depth).
 // --descriptors image|both: the search's descriptors are patch correlations of the photos at their own resolution
 // (patch_descriptors, P = --patch samples --patch-spacing photo pixels apart), alone or beside the model's.
+// --order-ensemble (with --model): the model's depth, object probability and descriptors averaged over the V cyclic
+// orders of the views.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -202,6 +204,7 @@ int main(int argc, char** argv) try {
   double waves = 0, inflate = 0, patch_spacing = 2;
   std::string descriptor_source = "model";
   int patch = 5;
+  bool ensemble = false;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     const bool more = i + 1 < argc;
@@ -223,6 +226,7 @@ int main(int argc, char** argv) try {
     else if (a == "--depth-grid" && more) grid = std::stoi(argv[++i]);
     else if (a == "--depth-waves" && more) waves = std::stod(argv[++i]);
     else if (a == "--depth-inflate" && more) inflate = std::stod(argv[++i]);
+    else if (a == "--order-ensemble") ensemble = true;
     else if (a == "--descriptors" && more) descriptor_source = argv[++i];
     else if (a == "--patch" && more) patch = std::stoi(argv[++i]);
     else if (a == "--patch-spacing" && more) patch_spacing = std::stod(argv[++i]);
@@ -241,7 +245,7 @@ int main(int argc, char** argv) try {
           "[--inputs mmm,rrr,...] [--depth-tolerance X] [--silhouette-px X] [--colour-weight X] [--descriptor-weight X] "
           "[--descriptor-temperature X] [--occluded-cost X] [--samples N] [--depth-range X] "
           "[--depth-candidates N] [--depth-blend A | --depth-grid N] [--depth-waves A] [--depth-inflate k] "
-          "[--descriptors model|image|both] [--patch P] [--patch-spacing S] OBJECT_DIR...");
+          "[--descriptors model|image|both] [--patch P] [--patch-spacing S] [--order-ensemble] OBJECT_DIR...");
   require(blend >= 0 && blend <= 1 && (blend == 0 || !model_path.empty()), "orbit_search: --depth-blend ", blend,
           " must be in [0, 1] and needs --model");
   require(grid >= 0 && (grid == 0 || (!model_path.empty() && blend == 0)), "orbit_search: --depth-grid ", grid,
@@ -251,6 +255,7 @@ int main(int argc, char** argv) try {
           " must be in [0, 2] and excludes --depth-grid");
   require(descriptor_source == "model" || descriptor_source == "image" || (descriptor_source == "both" && !model_path.empty()),
           "orbit_search: --descriptors '", descriptor_source, "' must be model, image or both (both needs --model)");
+  require(!ensemble || !model_path.empty(), "orbit_search: --order-ensemble needs --model");
   require(patch >= 1 && patch <= 15 && patch_spacing > 0 && patch_spacing <= 16, "orbit_search: --patch ", patch,
           " must be in [1, 15] and --patch-spacing ", patch_spacing, " in (0, 16]");
   std::unique_ptr<model::FlexSplatWeights<float>> w;
@@ -320,6 +325,47 @@ int main(int argc, char** argv) try {
           pred.depth.assign(o.depth.data(), o.depth.data() + o.depth.size());
           pred.K.assign(o.intrinsics.data(), o.intrinsics.data() + o.intrinsics.size());
           descriptors.assign(o.descriptors.data(), o.descriptors.data() + o.descriptors.size());
+          if (ensemble) {
+            // The same photos with each view first in turn (cyclic orders): each view's depth scaled to the first order's
+            // (median ratio on its object pixels) and averaged in log, its object probability and unit descriptors
+            // averaged.
+            const index_t md = w->config().geometry.match_dim;
+            std::vector<double> logd(pred.depth.size()), fgsum(pred.foreground.begin(), pred.foreground.end());
+            std::vector<double> dsum(descriptors.size(), 0);
+            auto add_desc = [&](const float* src, std::size_t dst_px) {
+              double nm = 0;
+              for (index_t j = 0; j < md; ++j) nm += double(src[j]) * src[j];
+              if (!(nm > 0) || !std::isfinite(nm)) return;
+              for (index_t j = 0; j < md; ++j) dsum[dst_px * md + j] += src[j] / std::sqrt(nm);
+            };
+            for (std::size_t i = 0; i < logd.size(); ++i) logd[i] = std::log(std::max(1e-6f, pred.depth[i]));
+            for (std::size_t i = 0; i < logd.size(); ++i) add_desc(descriptors.data() + i * md, i);
+            for (int r = 1; r < n; ++r) {
+              std::vector<Tensor<float, 3>> turned;
+              for (int j = 0; j < n; ++j) turned.push_back(rgba[static_cast<std::size_t>((j + r) % n)]);
+              const Tensor<float, 4> xr = model::model_input<float>(turned, w->config());
+              model::PredictWorkspace<float> wr;
+              model::predict<float>(wr, *w, TensorView<const float, 4>(xr.view()));
+              const auto& orr = wr.geometry.outputs;
+              for (int j = 0; j < n; ++j) {
+                const std::size_t v = static_cast<std::size_t>((j + r) % n), a = v * px, b = static_cast<std::size_t>(j) * px;
+                std::vector<double> ratio;
+                for (std::size_t i = 0; i < px; ++i)
+                  if (pred.foreground[a + i] >= 0.5f) ratio.push_back(double(pred.depth[a + i]) / orr.depth.data()[b + i]);
+                const double sc = ratio.empty() ? 1.0 : median(ratio);
+                for (std::size_t i = 0; i < px; ++i) {
+                  logd[a + i] += std::log(std::max(1e-6, sc * orr.depth.data()[b + i]));
+                  fgsum[a + i] += orr.foreground.data()[b + i];
+                  add_desc(orr.descriptors.data() + (b + i) * md, a + i);
+                }
+              }
+            }
+            for (std::size_t i = 0; i < logd.size(); ++i) {
+              pred.depth[i] = static_cast<float>(std::exp(logd[i] / n));
+              pred.foreground[i] = static_cast<float>(fgsum[i] / n);
+            }
+            for (std::size_t i = 0; i < dsum.size(); ++i) descriptors[i] = static_cast<float>(dsum[i]);
+          }
           // The predictions' errors: silhouette IoU, depth after each view's median scale (its shape), the same for a
           // constant depth per view (no shape at all), focal length.
           std::vector<float> constant(truth.depth.size(), 1.f);
