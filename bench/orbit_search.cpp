@@ -149,12 +149,10 @@ std::vector<float> patch_descriptors(const data::ObjectRecord& rec, const std::v
   const int n = static_cast<int>(in.size()), dim = 3 * P * P;
   std::vector<float> out(static_cast<std::size_t>(n) * size * size * dim, 0.f);
   for (int v = 0; v < n; ++v) {
-    const Tensor<float, 3> im = image::read_float<float>(rec.frames[static_cast<std::size_t>(in[static_cast<std::size_t>(v)])].image, 4);
+    const Tensor<float, 3> im = image::read_rgb<float>(rec.frames[static_cast<std::size_t>(in[static_cast<std::size_t>(v)])].image);
     const index_t H = im.shape(0), W = im.shape(1);
     auto px = [&](index_t y, index_t x, int c) {
-      y = std::clamp<index_t>(y, 0, H - 1), x = std::clamp<index_t>(x, 0, W - 1);
-      const float a = im(y, x, 3);
-      return a * im(y, x, c) + (1 - a);
+      return double(im(std::clamp<index_t>(y, 0, H - 1), std::clamp<index_t>(x, 0, W - 1), c));
     };
     auto sample = [&](double y, double x, int c) {
       const double fy = std::floor(y), fx = std::floor(x), ty = y - fy, tx = x - fx;
@@ -182,6 +180,35 @@ std::vector<float> patch_descriptors(const data::ObjectRecord& rec, const std::v
       }
   }
   return out;
+}
+
+// 1 / the length of a descriptor, 0 for a zero or broken one (which the search treats as no descriptor).
+double inverse_length(const float* d, index_t dim) {
+  double sq = 0;
+  for (index_t j = 0; j < dim; ++j) sq += double(d[j]) * d[j];
+  return sq > 0 && std::isfinite(sq) ? 1 / std::sqrt(sq) : 0;
+}
+
+// The descriptors the search reads, --descriptors image|both: the patch descriptors alone, or beside the model's
+// [pixels, md] ones with each half of unit length over 2^0.5, so that the cosine is the mean of the two (zero where
+// the patch is flat).
+std::vector<float> image_descriptors(index_t& dim, const data::ObjectRecord& rec, const std::vector<int>& in, int size,
+                                     int patch, double spacing, const std::vector<float>& model, index_t md) {
+  std::vector<float> image = patch_descriptors(rec, in, size, patch, spacing);
+  const index_t pd = 3 * patch * patch;
+  dim = pd;
+  if (md == 0) return image;
+  const std::size_t pixels = image.size() / static_cast<std::size_t>(pd);
+  std::vector<float> joint(pixels * static_cast<std::size_t>(md + pd), 0.f);
+  for (std::size_t i = 0; i < pixels; ++i) {
+    const double im = inverse_length(image.data() + i * pd, pd), mm = inverse_length(model.data() + i * md, md);
+    if (im == 0) continue;
+    float* o = joint.data() + i * static_cast<std::size_t>(md + pd);
+    for (index_t j = 0; j < md; ++j) o[j] = static_cast<float>(model[i * md + j] * mm / std::sqrt(2.0));
+    for (index_t j = 0; j < pd; ++j) o[md + j] = static_cast<float>(image[i * pd + j] * im / std::sqrt(2.0));
+  }
+  dim = md + pd;
+  return joint;
 }
 
 struct Errors {
@@ -306,9 +333,7 @@ int main(int argc, char** argv) try {
         for (std::size_t v = 0; v < static_cast<std::size_t>(n); ++v)
           image::hwc_to_chw(images.data() + v * 3 * px, pv.photos.images.data() + v * 3 * px, size, size);
         Maps pred;
-        std::vector<float> descriptors;  // the model's [n, size, size, match_dim]
-        std::vector<float> image_desc;   // --descriptors image|both
-        index_t image_dim = 0;
+        std::vector<float> descriptors;  // the search's [n, size, size, dim]: the model's, or --descriptors image|both
         std::vector<double> sp;     // each view's predicted depth scale to the renderer's
         std::vector<float> filled = prior.depth;  // the renderer's depth where it has one, else the prediction's scaled
         std::vector<float> gt(truth.depth.size());  // the renderer's depth inside its silhouettes
@@ -333,10 +358,8 @@ int main(int argc, char** argv) try {
             std::vector<double> logd(pred.depth.size()), fgsum(pred.foreground.begin(), pred.foreground.end());
             std::vector<double> dsum(descriptors.size(), 0);
             auto add_desc = [&](const float* src, std::size_t dst_px) {
-              double nm = 0;
-              for (index_t j = 0; j < md; ++j) nm += double(src[j]) * src[j];
-              if (!(nm > 0) || !std::isfinite(nm)) return;
-              for (index_t j = 0; j < md; ++j) dsum[dst_px * md + j] += src[j] / std::sqrt(nm);
+              const double inv = inverse_length(src, md);
+              if (inv > 0) for (index_t j = 0; j < md; ++j) dsum[dst_px * md + j] += src[j] * inv;
             };
             for (std::size_t i = 0; i < logd.size(); ++i) logd[i] = std::log(std::max(1e-6f, pred.depth[i]));
             for (std::size_t i = 0; i < logd.size(); ++i) add_desc(descriptors.data() + i * md, i);
@@ -400,37 +423,18 @@ int main(int argc, char** argv) try {
               const double y = static_cast<double>((i - v * px) / static_cast<std::size_t>(size)) / size;
               filled[i] *= static_cast<float>(1 + waves * std::sin(9.4 * x + v) * std::cos(7.5 * y + 2 * v));
             }
-        if (w || inflate > 0) searched += n * loss::depth_scaled_error(filled.data(), gt.data(), n, static_cast<index_t>(px));
+        if (w || altered) searched += n * loss::depth_scaled_error(filled.data(), gt.data(), n, static_cast<index_t>(px));
+        index_t desc_dim = w ? w->config().geometry.match_dim : 0;
+        if (descriptor_source != "model")
+          descriptors = image_descriptors(desc_dim, rec, in, size, patch, patch_spacing, descriptors,
+                                          descriptor_source == "both" ? desc_dim : 0);
+        const geometry::OrbitDescriptors<float> desc{descriptors.empty() ? nullptr : descriptors.data(), desc_dim};
         for (const auto& source : sources) {
           const std::string &name = source.first, &from = source.second;  // a lambda cannot capture a binding (clang 14)
           auto pick = [&](int k) -> const Maps& { return from[static_cast<std::size_t>(k)] == 'r' ? truth : pred; };
           std::vector<float> E(12 * static_cast<std::size_t>(n));
           const auto t0 = std::chrono::steady_clock::now();
           const float* depth = from[1] == 'r' ? filled.data() : pred.depth.data();
-          geometry::OrbitDescriptors<float> desc{descriptors.empty() ? nullptr : descriptors.data(),
-                                                 w ? w->config().geometry.match_dim : 0};
-          if (descriptor_source != "model") {
-            if (image_desc.empty()) {
-              image_desc = patch_descriptors(rec, in, size, patch, patch_spacing);
-              const index_t pd = 3 * patch * patch, md = desc.dim;
-              if (descriptor_source == "both" && md > 0) {  // each half unit length: the cosine is the mean of the two
-                std::vector<float> joint(static_cast<std::size_t>(n) * px * static_cast<std::size_t>(md + pd), 0.f);
-                for (std::size_t i = 0; i < static_cast<std::size_t>(n) * px; ++i) {
-                  double nm = 0;
-                  for (index_t j = 0; j < md; ++j) nm += double(descriptors[i * md + j]) * descriptors[i * md + j];
-                  nm = nm > 0 ? std::sqrt(2 * nm) : 1;
-                  double np = 0;
-                  for (index_t j = 0; j < pd; ++j) np += double(image_desc[i * pd + j]) * image_desc[i * pd + j];
-                  if (np == 0) continue;  // a flat patch: no descriptor at all
-                  for (index_t j = 0; j < md; ++j) joint[i * (md + pd) + j] = static_cast<float>(descriptors[i * md + j] / nm);
-                  for (index_t j = 0; j < pd; ++j) joint[i * (md + pd) + md + j] = static_cast<float>(image_desc[i * pd + j] / std::sqrt(2 * np));
-                }
-                image_desc = std::move(joint);
-                image_dim = md + pd;
-              } else image_dim = pd;
-            }
-            desc = geometry::OrbitDescriptors<float>{image_desc.data(), image_dim};
-          }
           double found_cost = 0;
           geometry::cameras_from_orbit_search<float>(E.data(), images.data(), pick(0).foreground.data(), depth,
                                                      pick(2).K.data(), n, size, size, search, nullptr, &found_cost, desc);
