@@ -405,6 +405,42 @@ TEST_CASE("onednn gemm is within 2 K eps of the float64 product: every transpose
       }
 }
 
+TEST_CASE("onednn gemm: calls of one size with other strides, transposes, alpha or beta each get their own product",
+          "[gemm]") {
+  if constexpr (!have_onednn_gemm) FLEXSPLAT_SKIP("this build has no oneDNN: GemmBackend::onednn is not available");
+  ThreadPool one(1);
+  const index_t M = 64, N = 96, K = 128;  // above gemm_onednn_min_madds
+  REQUIRE(M * N * K >= gemm_onednn_min_madds);
+  struct Call {
+    Trans ta, tb;
+    index_t pad_a, pad_b, pad_c;
+    float alpha, beta;
+  };
+  // Each differs from the one before in one field only, twice over, so that a kernel kept for the wrong call shows.
+  const Call calls[] = {{Trans::no, Trans::no, 0, 0, 0, 1.0f, 0.0f},   {Trans::no, Trans::no, 5, 0, 0, 1.0f, 0.0f},
+                        {Trans::no, Trans::no, 5, 7, 0, 1.0f, 0.0f},   {Trans::no, Trans::no, 5, 7, 3, 1.0f, 0.0f},
+                        {Trans::no, Trans::no, 5, 7, 3, 0.5f, 0.0f},   {Trans::no, Trans::no, 5, 7, 3, 0.5f, 1.0f},
+                        {Trans::yes, Trans::no, 5, 7, 3, 0.5f, 1.0f},  {Trans::yes, Trans::yes, 5, 7, 3, 0.5f, 1.0f},
+                        {Trans::no, Trans::no, 0, 0, 0, 1.0f, 0.0f},   {Trans::yes, Trans::yes, 5, 7, 3, 0.5f, 1.0f}};
+  const double eps = std::numeric_limits<float>::epsilon();
+  for (int round = 0; round < 2; ++round)
+    for (const Call& cl : calls) {
+      const index_t lda = (cl.ta == Trans::no ? K : M) + cl.pad_a, ldb = (cl.tb == Trans::no ? N : K) + cl.pad_b;
+      const index_t ldc = N + cl.pad_c;
+      const auto A = random_vector<float>((cl.ta == Trans::no ? M : K) * lda, 81);
+      const auto B = random_vector<float>((cl.tb == Trans::no ? K : N) * ldb, 82);
+      const auto C0 = random_vector<float>(M * ldc, 83);
+      std::vector<float> c = C0, expected = C0;
+      gemm(GemmBackend::onednn, cl.ta, cl.tb, M, N, K, cl.alpha, A.data(), lda, B.data(), ldb, cl.beta, c.data(), ldc,
+           one);
+      naive_gemm(cl.ta, cl.tb, M, N, K, cl.alpha, A.data(), lda, B.data(), ldb, cl.beta, expected.data(), ldc);
+      INFO("round " << round << " ta " << int(cl.ta) << " tb " << int(cl.tb) << " pads " << cl.pad_a << ' '
+                    << cl.pad_b << ' ' << cl.pad_c << " alpha " << cl.alpha << " beta " << cl.beta);
+      // |a|, |b| <= 1, so the error is within 2 K eps K; a kernel of another call's shape misses by far more.
+      CHECK(max_abs_diff(c, expected) <= 2.0 * double(K) * eps * double(K));
+    }
+}
+
 TEST_CASE("onednn gemm: double products and small float ones stay on the fp32 fallback", "[gemm]") {
   if constexpr (!have_onednn_gemm) FLEXSPLAT_SKIP("this build has no oneDNN: GemmBackend::onednn is not available");
   const index_t n = 16;  // n^3 far below gemm_onednn_min_madds

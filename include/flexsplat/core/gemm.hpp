@@ -455,6 +455,23 @@ void blas_gemm(Trans ta, Trans tb, index_t M, index_t N, index_t K, T alpha, con
 #endif
 
 #if defined(FLEXSPLAT_HAVE_DNNL)
+// The fp32 matmul primitive of one call's shape, kept per thread: making its descriptor costs about as much as
+// multiplying a 32 x 288 x 64 product, and a training step repeats a few hundred shapes thousands of times.
+inline const dnnl::matmul& onednn_f32_matmul(index_t M, index_t N, index_t K, Trans ta, Trans tb, index_t lda,
+                                             index_t ldb, index_t ldc, float alpha, float beta) {
+  using Key = std::array<index_t, 10>;
+  thread_local std::map<Key, dnnl::matmul> kernels;
+  const Key key{M, N, K, index_t(ta), index_t(tb), ta == Trans::no ? blas_ld(M, K, lda) : blas_ld(K, M, lda),
+                tb == Trans::no ? blas_ld(K, N, ldb) : blas_ld(N, K, ldb), blas_ld(M, N, ldc),
+                index_t(std::bit_cast<std::uint32_t>(alpha)), index_t(std::bit_cast<std::uint32_t>(beta))};
+  if (auto it = kernels.find(key); it != kernels.end()) return it->second;
+  if (kernels.size() >= 4096) kernels.clear();  // bounded for callers whose shapes never repeat
+  const dnnl::matmul::primitive_desc pd(
+      dnnl::matmul::desc(onednn_f32(M, K, ta, lda), onednn_f32(K, N, tb, ldb), onednn_f32(M, N, Trans::no, ldc)),
+      onednn_attr(alpha, beta), onednn_engine());
+  return kernels.emplace(key, dnnl::matmul(pd)).first->second;
+}
+
 // C[:M, :N] = alpha op(A) op(B) + beta C on the calling thread with oneDNN's matmul. fp32: on the operands in place.
 // bf16: oneDNN reorders A (into the layout its matmul prefers) and B (in its own orientation) to bf16, rounding to
 // nearest even; the matmul accumulates in fp32 (AVX-512 BF16 kernels where the CPU has them).
@@ -472,8 +489,8 @@ inline void onednn_gemm(bool bf16, Trans ta, Trans tb, index_t M, index_t N, ind
     dnnl::memory a_in(a_f32, engine, const_cast<float*>(A)), b_in(b_f32, engine, const_cast<float*>(B));
     dnnl::memory c(c_f32, engine, C);
     if (!bf16) {
-      const dnnl::matmul::primitive_desc pd(dnnl::matmul::desc(a_f32, b_f32, c_f32), attr, engine);
-      dnnl::matmul(pd).execute(stream, {{DNNL_ARG_SRC, a_in}, {DNNL_ARG_WEIGHTS, b_in}, {DNNL_ARG_DST, c}});
+      onednn_f32_matmul(M, N, K, ta, tb, lda, ldb, ldc, alpha, beta)
+          .execute(stream, {{DNNL_ARG_SRC, a_in}, {DNNL_ARG_WEIGHTS, b_in}, {DNNL_ARG_DST, c}});
       stream.wait();
       return;
     }

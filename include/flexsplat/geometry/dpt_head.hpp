@@ -345,7 +345,7 @@ template <class T>
 void relu_mask(T* d, const T* activated, index_t n) {
   parallel_for((n + 8191) / 8192, [&](index_t c0, index_t c1, int) {
     for (index_t i = c0 * 8192, e = std::min(n, c1 * 8192); i < e; ++i)
-      if (!(activated[i] > T(0))) d[i] = T(0);
+      d[i] = activated[i] > T(0) ? d[i] : T(0);  // a select, not a branch: it vectorises
   });
 }
 
