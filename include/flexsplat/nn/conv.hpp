@@ -149,7 +149,7 @@ template <class T>
 void add_plane_sums(T* sums, const T* planes, index_t channels, index_t n) {
   parallel_for(channels, [&](index_t c0, index_t c1, int) {
     for (index_t c = c0; c < c1; ++c) {
-      // 16 interleaved partial sums, added in a fixed order: vectorised, and independent of the thread count.
+      // 16 interleaved partial sums: the loop vectorises.
       constexpr index_t lanes = 16;
       std::array<T, lanes> part{};
       const T* x = planes + c * n;
