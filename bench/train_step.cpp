@@ -2,17 +2,20 @@
 // backward through everything, AdamW): time per phase, and the GEMM-heavy phases' GFLOP/s next to the machine's SGEMM
 // rate measured in the same run.
 //   bench/train_step --recipe FILE.train.json [--state STATE] [--stage NAME] [--start STEP] [--steps K]
+//                    [--gemm-shapes N]
 //   bench/train_step [--config tiny|paper] [--views V] [--targets M] [--size N] [--gaussians N] [--steps K]
 //                    [--recompute] [--depth D]
 // --recipe: the steps `flexsplat train` runs for that recipe (its scenes, view counts, stage objective, batch) in one
 // process, from --state (a run's state.safetensors) or fresh weights; steps START.. (default: the state's step, else
 // the first step of --stage, default the last stage). Prints scenes/s, time and profiled FLOPs per phase, time per op family (self time:
-// a GEMM inside a convolution counts as GEMM) and the step as a fraction of the same run's SGEMM rate.
+// a GEMM inside a convolution counts as GEMM) and the step as a fraction of the same run's SGEMM rate. --gemm-shapes N:
+// the N GEMM shapes that took the most time, each also timed alone on warm operands (what the step's data flow costs).
 // tiny: the test configuration (28x28); paper: VGGT-1B layout with random weights, the paper's decoder, 20K Gaussians.
 // --depth D keeps D of the 24 DINO blocks and D aggregator block pairs (full widths), for machines whose memory does
 // not hold the full model's training state (params, grads and Adam moments: 16 bytes per parameter).
 #include <sys/resource.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -20,6 +23,7 @@
 #include <memory>
 #include <sstream>
 #include <string>
+#include <vector>
 
 #include <nlohmann/json.hpp>
 
@@ -56,7 +60,28 @@ struct RecipeOptions {
   std::string recipe, state, stage;
   long long start = -1;
   index_t steps = 10;
+  index_t gemm_shapes = 0;
 };
+
+// Best-of-3 GFLOP/s of one shape called repeatedly on one thread with operands that stay in cache.
+static double gemm_alone_gflops(const profile::GemmShape& g) {
+  const index_t lda = g.ta ? g.m : g.k, ldb = g.tb ? g.k : g.n;
+  std::vector<float> a(static_cast<std::size_t>(g.m * g.k), 0.5f), b(static_cast<std::size_t>(g.k * g.n), 0.25f),
+      c(static_cast<std::size_t>(g.m * g.n), 0.0f);
+  ThreadPool one(1);
+  const double flops = 2.0 * double(g.m) * double(g.n) * double(g.k);
+  const int reps = static_cast<int>(std::clamp(2e8 / std::max(flops, 1.0), 1.0, 200.0));
+  double best = 1e300;
+  for (int round = 0; round < 4; ++round) {  // round 0 warms caches and oneDNN's primitive
+    const auto t0 = std::chrono::steady_clock::now();
+    for (int r = 0; r < reps; ++r)
+      gemm<float>(g.ta ? Trans::yes : Trans::no, g.tb ? Trans::yes : Trans::no, g.m, g.n, g.k, 1.0f, a.data(), lda,
+                  b.data(), ldb, 1.0f, c.data(), g.n, one);
+    const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() / reps;
+    if (round > 0) best = std::min(best, s);
+  }
+  return flops / best / 1e9;
+}
 
 // The recipe's own steps in one process with one communicator (the global batch on this process, as one MPI rank).
 static int run_recipe(const RecipeOptions& ro) {
@@ -119,6 +144,7 @@ static int run_recipe(const RecipeOptions& ro) {
     const std::uint64_t step = start + static_cast<std::uint64_t>(std::max<index_t>(k, 0));
     if (k == 0) {
       profile::reset();
+      profile::set_gemm_shapes(ro.gemm_shapes > 0);
       profile::set_enabled(true);
     }
     const auto t0 = std::chrono::steady_clock::now();
@@ -138,6 +164,7 @@ static int run_recipe(const RecipeOptions& ro) {
     scenes += cfg.batch;
   }
   profile::set_enabled(false);
+  profile::set_gemm_shapes(false);
   const profile::Totals ops = profile::totals();
   const double n = double(ro.steps), wall_s = data_s + step_s;
   // Scenes side by side: every phase and op family is time summed over the threads, so shares are of the threads' time.
@@ -181,6 +208,24 @@ static int run_recipe(const RecipeOptions& ro) {
               (total_s - profiled) / total_s * 100, threads > 1 ? "  (with the threads' idle time)" : "");
   const double fwd = ops.seconds[int(profile::Op::attention_forward)], bwd = ops.seconds[int(profile::Op::attention_backward)];
   std::printf("\nattention backward / forward: %.2f\n", fwd > 0 ? bwd / fwd : 0.0);
+  if (ro.gemm_shapes > 0) {
+    const std::vector<profile::GemmShapeTotals> shapes = profile::gemm_shapes();
+    double all = 0;
+    for (const auto& g : shapes) all += g.seconds;
+    std::printf("\nGEMM shapes (%zu in all, %.1f ms/step of calls), the %lld with the most time; alone: the same call "
+                "repeated on one thread, operands in cache\n", shapes.size(), all / n * 1e3, (long long)ro.gemm_shapes);
+    std::printf("%-22s %4s %4s %10s %7s %10s %13s %13s\n", "M x N x K", "tA", "tB", "ms/step", "share", "calls/step",
+                "GFLOP/s step", "GFLOP/s alone");
+    for (std::size_t i = 0; i < shapes.size() && static_cast<index_t>(i) < ro.gemm_shapes; ++i) {
+      const auto& g = shapes[i];
+      const double flops = 2.0 * double(g.shape.m) * double(g.shape.n) * double(g.shape.k) * double(g.calls);
+      const std::string dims = std::to_string(g.shape.m) + " x " + std::to_string(g.shape.n) + " x " +
+                               std::to_string(g.shape.k);
+      std::printf("%-22s %4s %4s %10.2f %6.1f%% %10.1f %13.1f %13.1f\n", dims.c_str(), g.shape.ta ? "T" : "N",
+                  g.shape.tb ? "T" : "N", g.seconds / n * 1e3, all > 0 ? 100 * g.seconds / all : 0.0,
+                  double(g.calls) / n, g.seconds > 0 ? flops / g.seconds / 1e9 : 0.0, gemm_alone_gflops(g.shape));
+    }
+  }
   std::printf("peak RSS %.2f GB\n", peak_rss_gb());
   return 0;
 }
@@ -202,10 +247,12 @@ int main(int argc, char** argv) {
     else if (a == "--size" && i + 1 < argc) size = std::atol(argv[++i]);
     else if (a == "--gaussians" && i + 1 < argc) gaussians = std::atol(argv[++i]);
     else if (a == "--steps" && i + 1 < argc) steps = std::atol(argv[++i]), steps_given = true;
+    else if (a == "--gemm-shapes" && i + 1 < argc) ro.gemm_shapes = std::atol(argv[++i]);
     else if (a == "--recompute") recompute = true;
     else if (a == "--depth" && i + 1 < argc) depth = std::atol(argv[++i]);
     else {
       std::fprintf(stderr, "usage: %s --recipe FILE.train.json [--state STATE] [--stage NAME] [--start STEP] [--steps K]\n"
+                           "       [--gemm-shapes N]\n"
                            "       %s [--config tiny|paper] [--views V] [--targets M] [--size N] [--gaussians N] "
                            "[--steps K] [--recompute] [--depth D]\n", argv[0], argv[0]);
       return 2;
@@ -213,6 +260,8 @@ int main(int argc, char** argv) {
   }
   try {
     simd::require_cpu_supports_build();
+    require(ro.gemm_shapes >= 0, "train_step bench: --gemm-shapes must be >= 0, got ", ro.gemm_shapes);
+    require(ro.gemm_shapes == 0 || !ro.recipe.empty(), "train_step bench: --gemm-shapes needs --recipe");
     if (!ro.recipe.empty()) {
       ro.steps = steps_given ? steps : 10;
       require(ro.steps >= 1, "train_step bench: --steps must be >= 1");

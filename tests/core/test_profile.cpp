@@ -74,3 +74,38 @@ TEST_CASE("gemm reports its calls and 2 M N K FLOPs to the profiler", "[core][pr
   CHECK(c[0] == 3.0f);
   profile::reset();
 }
+
+TEST_CASE("gemm shapes: each call lands on its own M N K and transposes, only with shapes and the profiler on", "[core][profile]") {
+  std::vector<float> a(6 * 4, 1.0f), b(4 * 5, 1.0f), c(6 * 5, 0.0f);
+  profile::reset();
+  profile::set_enabled(true);
+  gemm(Trans::no, Trans::no, 6, 5, 4, 1.0f, a.data(), 4, b.data(), 5, 0.0f, c.data(), 5);  // shapes off: not kept
+  profile::set_gemm_shapes(true);
+  gemm(Trans::no, Trans::no, 6, 5, 4, 1.0f, a.data(), 4, b.data(), 5, 0.0f, c.data(), 5);
+  gemm(Trans::no, Trans::no, 6, 5, 4, 1.0f, a.data(), 4, b.data(), 5, 0.0f, c.data(), 5);
+  gemm(Trans::yes, Trans::no, 6, 5, 4, 1.0f, a.data(), 6, b.data(), 5, 0.0f, c.data(), 5);
+  gemm(Trans::no, Trans::yes, 5, 6, 4, 1.0f, a.data(), 4, b.data(), 4, 0.0f, c.data(), 6);
+  profile::set_enabled(false);
+  gemm(Trans::no, Trans::no, 6, 5, 4, 1.0f, a.data(), 4, b.data(), 5, 0.0f, c.data(), 5);  // profiler off: not kept
+  const std::vector<profile::GemmShapeTotals> shapes = profile::gemm_shapes();
+  profile::set_gemm_shapes(false);
+  REQUIRE(shapes.size() == 3);
+  auto find = [&](profile::GemmShape s) -> const profile::GemmShapeTotals* {
+    for (const auto& g : shapes)
+      if (g.shape == s) return &g;
+    return nullptr;
+  };
+  const auto* plain = find({6, 5, 4, false, false});
+  const auto* ta = find({6, 5, 4, true, false});
+  const auto* tb = find({5, 6, 4, false, true});
+  REQUIRE(plain);
+  REQUIRE(ta);
+  REQUIRE(tb);
+  CHECK(plain->calls == 2);
+  CHECK(ta->calls == 1);
+  CHECK(tb->calls == 1);
+  for (std::size_t i = 1; i < shapes.size(); ++i) CHECK(shapes[i - 1].seconds >= shapes[i].seconds);
+  CHECK(plain->seconds > 0);
+  profile::reset();
+  CHECK(profile::gemm_shapes().empty());
+}

@@ -615,6 +615,7 @@ void gemm(GemmBackend backend, Trans ta, Trans tb, index_t M, index_t N, index_t
           const T* B, index_t ldb, T beta, T* C, index_t ldc, ThreadPool& pool = global_pool()) {
   if (M <= 0 || N <= 0) return;
   const profile::Scope timed(profile::Op::gemm, 2.0 * double(M) * double(N) * double(K));
+  const profile::GemmShapeScope shape({M, N, K, ta == Trans::yes, tb == Trans::yes});
   require(backend != GemmBackend::blas || have_blas, "gemm: the BLAS backend was requested but this build has none");
   require(backend != GemmBackend::bf16 || have_bf16_gemm, "gemm: bf16 was requested but this build has no oneDNN");
   require(backend != GemmBackend::onednn || have_onednn_gemm, "gemm: oneDNN was requested but this build has none");

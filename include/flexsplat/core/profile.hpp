@@ -3,10 +3,17 @@
 // summed over threads. Off by default; a disabled scope costs one relaxed atomic load. bench/train_step turns it on.
 //   profile::set_enabled(true); ... profile::Scope s(profile::Op::gemm, 2.0 * m * n * k); ...
 //   const profile::Totals t = profile::totals();
+// With set_gemm_shapes(true) as well, every gemm() call's wall time is also kept per shape (gemm_shapes()).
+#include <algorithm>
 #include <array>
 #include <atomic>
 #include <chrono>
+#include <compare>
 #include <cstdint>
+#include <map>
+#include <mutex>
+#include <utility>
+#include <vector>
 
 namespace flexsplat {
 inline namespace v0 {
@@ -65,6 +72,24 @@ inline thread_local Frame* current = nullptr;
 // The FLOPs of the scopes opened on this thread.
 inline thread_local double thread_flops = 0;
 
+// One GEMM shape: op(A) is m x k, op(B) k x n; ta / tb whether A / B are stored transposed.
+struct GemmShapeKey {
+  std::int64_t m = 0, n = 0, k = 0;
+  bool ta = false, tb = false;
+  auto operator<=>(const GemmShapeKey&) const = default;
+};
+
+struct ShapeTable {
+  std::atomic<bool> on{false};
+  std::mutex mutex;
+  std::map<GemmShapeKey, std::pair<std::uint64_t, double>> totals;  // calls, seconds
+};
+
+inline ShapeTable& shape_table() {
+  static ShapeTable t;
+  return t;
+}
+
 inline void add_time(Op op, std::chrono::steady_clock::duration d) {
   counters().nanoseconds[static_cast<int>(op)].fetch_add(
       std::chrono::duration_cast<std::chrono::nanoseconds>(d).count(), std::memory_order_relaxed);
@@ -75,7 +100,14 @@ inline void add_time(Op op, std::chrono::steady_clock::duration d) {
 inline void set_enabled(bool on) { detail::counters().enabled.store(on, std::memory_order_relaxed); }
 inline bool enabled() { return detail::counters().enabled.load(std::memory_order_relaxed); }
 
+inline void set_gemm_shapes(bool on) { detail::shape_table().on.store(on, std::memory_order_relaxed); }
+
 inline void reset() {
+  {
+    auto& t = detail::shape_table();
+    const std::lock_guard lock(t.mutex);
+    t.totals.clear();
+  }
   auto& c = detail::counters();
   for (int i = 0; i < op_count; ++i) {
     c.nanoseconds[i].store(0, std::memory_order_relaxed);
@@ -97,6 +129,55 @@ inline Totals totals() {
   }
   return t;
 }
+
+using GemmShape = detail::GemmShapeKey;
+
+struct GemmShapeTotals {
+  GemmShape shape;
+  std::uint64_t calls = 0;
+  double seconds = 0;  // wall time of the calls, summed over the threads that made them
+};
+
+// The shapes gemm() ran while shapes were on, the most time first.
+inline std::vector<GemmShapeTotals> gemm_shapes() {
+  auto& t = detail::shape_table();
+  std::vector<GemmShapeTotals> out;
+  {
+    const std::lock_guard lock(t.mutex);
+    for (const auto& [shape, v] : t.totals) out.push_back({shape, v.first, v.second});
+  }
+  std::sort(out.begin(), out.end(), [](const GemmShapeTotals& a, const GemmShapeTotals& b) {
+    return a.seconds != b.seconds ? a.seconds > b.seconds : a.shape < b.shape;
+  });
+  return out;
+}
+
+// Adds its lifetime to its shape's totals when the profiler and the shape table are both on.
+class GemmShapeScope {
+public:
+  explicit GemmShapeScope(GemmShape shape) {
+    if (!enabled() || !detail::shape_table().on.load(std::memory_order_relaxed)) return;
+    active_ = true;
+    shape_ = shape;
+    since_ = std::chrono::steady_clock::now();
+  }
+  GemmShapeScope(const GemmShapeScope&) = delete;
+  GemmShapeScope& operator=(const GemmShapeScope&) = delete;
+  ~GemmShapeScope() {
+    if (!active_) return;
+    const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - since_).count();
+    auto& t = detail::shape_table();
+    const std::lock_guard lock(t.mutex);
+    auto& v = t.totals[shape_];
+    v.first += 1;
+    v.second += s;
+  }
+
+private:
+  bool active_ = false;
+  GemmShape shape_;
+  std::chrono::steady_clock::time_point since_;
+};
 
 // Times its lifetime as `op` on this thread, minus the nested scopes' time; `flops` are added to the family.
 class Scope {
