@@ -29,6 +29,18 @@ TEST_CASE("train config: structured_inputs and point_weight are read, checked an
   CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("has match_coarse_weight 1 without match_weight"));
 }
 
+TEST_CASE("train config: decoder_camera_noise_deg is read, needs decoder_true_cameras and at most 180", "[train][config]") {
+  nlohmann::json j = {{"model", "tiny"}, {"stages", {{{"name", "joint"}, {"decoder_camera_noise_deg", 10}}}}};
+  CHECK_THROWS_WITH(model::parse_train_config(j),
+                    Catch::Contains("stage 'joint' has decoder_camera_noise_deg 10 without decoder_true_cameras"));
+  j["stages"][0]["decoder_true_cameras"] = true;
+  CHECK(model::parse_train_config(j).stages[0].step.decoder_camera_noise_deg == 10);
+  j["stages"][0]["decoder_camera_noise_deg"] = 200;
+  CHECK_THROWS_WITH(model::parse_train_config(j), Catch::Contains("decoder_camera_noise_deg"));
+  j["stages"][0].erase("decoder_camera_noise_deg");
+  CHECK(model::parse_train_config(j).stages[0].step.decoder_camera_noise_deg == 0);
+}
+
 TEST_CASE("train config: the baseline curriculum grows linearly, then holds, and is checked", "[train][config]") {
   nlohmann::json j = {{"model", "tiny"}, {"structured_inputs", false},
                       {"curriculum", {{"baseline_deg", {20, 180}}, {"steps", 100u}}}};

@@ -22,7 +22,7 @@ inline constexpr std::uint64_t child_seed(std::uint64_t seed, std::uint64_t inde
 }
 
 // Purpose tags keep independent streams of one object apart (shape vs cameras vs batch sampling).
-enum class Stream : std::uint64_t { shape = 1, light = 2, cameras = 3, batch = 4, augment = 5 };
+enum class Stream : std::uint64_t { shape = 1, light = 2, cameras = 3, batch = 4, augment = 5, camera_noise = 6 };
 
 inline constexpr std::uint64_t stream_seed(std::uint64_t seed, Stream stream) noexcept {
   return child_seed(seed, 0x5eed0000ULL + static_cast<std::uint64_t>(stream));

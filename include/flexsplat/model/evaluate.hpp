@@ -221,28 +221,6 @@ inline std::uint64_t object_seed(const std::string& name, std::uint64_t seed) {
   return seed ^ h;
 }
 
-// Rotation noise of `deg` degrees on each camera of w2c [V, 3, 4]: a rotation by exactly deg about an axis drawn
-// uniformly on the sphere (a normalised standard-normal 3-vector, std::mt19937_64 seeded with `seed`, views in
-// order), applied about the camera's own centre: [R | t] -> [Rn R | Rn t].
-template <class T>
-void rotation_noise(T* w2c, index_t views, double deg, std::uint64_t seed) {
-  require(std::isfinite(deg) && deg >= 0 && deg <= 180, "rotation noise: ", deg, " degrees is not in [0, 180]");
-  std::mt19937_64 rng(seed);
-  std::normal_distribution<double> normal;
-  for (index_t v = 0; v < views; ++v) {
-    Eigen::Vector3d axis;
-    do axis = Eigen::Vector3d(normal(rng), normal(rng), normal(rng));
-    while (axis.norm() < 1e-9);
-    const Eigen::Matrix3d Rn = Eigen::AngleAxisd(deg * std::numbers::pi / 180.0, axis.normalized()).toRotationMatrix();
-    Eigen::Matrix<double, 3, 4> m;
-    for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 4; ++c) m(r, c) = static_cast<double>(w2c[12 * v + 4 * r + c]);
-    m = (Rn * m).eval();
-    for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 4; ++c) w2c[12 * v + 4 * r + c] = static_cast<T>(m(r, c));
-  }
-}
-
 // The folder's own cameras of the input views `in` in place of the predicted ones (g at the model's size): w2c
 // relative to the first input view, K through the model's window, translations in the predicted depth's units (the
 // median over the input views' surface pixels of predicted / true depth, which is returned), so that the decoder's

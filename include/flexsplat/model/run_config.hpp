@@ -161,6 +161,9 @@ inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where)
   s.step.appearance = k.boolean("appearance", true);
   s.step.train_geometry = k.boolean("train_geometry", true);
   s.step.decoder_true_cameras = k.boolean("decoder_true_cameras", false);
+  s.step.decoder_camera_noise_deg = k.number("decoder_camera_noise_deg", 0.0, 0, 180);
+  require(s.step.decoder_camera_noise_deg == 0 || s.step.decoder_true_cameras, "train config: stage '", s.name,
+          "' has decoder_camera_noise_deg ", s.step.decoder_camera_noise_deg, " without decoder_true_cameras");
   s.step.camera_weight = k.number("camera_weight", 0.0, 0, 1e6);
   s.step.relative_camera_weight = k.number("relative_camera_weight", 0.0, 0, 1e6);
   s.step.depth_weight = k.number("depth_weight", 0.0, 0, 1e6);

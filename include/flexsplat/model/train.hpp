@@ -51,6 +51,7 @@ struct TrainExample {
   std::vector<std::array<T, 9>> target_K;
   std::vector<std::array<T, 12>> target_w2c;
   std::array<T, 3> background{1, 1, 1};
+  std::uint64_t seed = 0;        // the scene's own draws in the step (StepConfig::decoder_camera_noise_deg)
 };
 
 // Ground-truth correspondences a training example keeps: about `samples` per scene (the run config's match_samples)
@@ -143,6 +144,9 @@ struct StepConfig {
   // forcing): the appearance side learns to use every view while the cameras are still poor, and the render loss then
   // sends no gradient to the cameras (only the camera, pose and match losses train them).
   bool decoder_true_cameras = false;
+  // With decoder_true_cameras: views 2..V of the cameras the decoder sees turned by this many degrees about their own
+  // centres (rotation_noise, seeded by the scene), so that it learns from cameras as far off as the ones it will get.
+  double decoder_camera_noise_deg = 0;
   index_t gaussians = 0;             // 0: the configuration's budget for the view count
   double max_grad_norm = 1.0;        // <= 0: no clipping
   train::AdamWConfig adamw;
@@ -325,6 +329,8 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
       ws.true_camera_geometry = g;
       std::copy(e.gt_extrinsics.begin(), e.gt_extrinsics.end(), ws.true_camera_geometry.extrinsics.begin());
       std::copy(e.gt_K.begin(), e.gt_K.end(), ws.true_camera_geometry.K.begin());
+      if (sc.decoder_camera_noise_deg > 0 && V > 1)  // the first view is the frame: it stays
+        rotation_noise(ws.true_camera_geometry.extrinsics.data() + 12, V - 1, sc.decoder_camera_noise_deg, e.seed);
       seen = &ws.true_camera_geometry;
     }
     ws.views.clear();

@@ -46,7 +46,9 @@ inline TrainExample<float> make_train_scene(const TrainData& d, const model::Tra
     o.crop = static_cast<int>(c.model.image_h);
     s = data::sample_batch(d.objects, 1, c.seed, index, o);
   }
-  return make_train_example<float>(s[0], c.model, c.match_samples);
+  TrainExample<float> e = make_train_example<float>(s[0], c.model, c.match_samples);
+  e.seed = data::child_seed(data::stream_seed(c.seed, data::Stream::camera_noise), index);
+  return e;
 }
 
 // Scenes `scenes` (global indices) of step `step`, made side by side as train_step runs them (run_scenes).
