@@ -25,20 +25,28 @@ inline std::vector<GemmBackend> fp32_gemm_backends() {
   return all;
 }
 
-inline double sgemm_gflops(GemmBackend backend = best_gemm_backend(), int reps = 5, ThreadPool& pool = global_pool()) {
-  const index_t M = 2048, N = 2048, K = 1024;
+// GFLOP/s of C = op(A) op(B) + beta C (M x N x K, dense operands of fixed patterns) on `backend`: the best of `reps`
+// rounds of `calls` calls each, after one uncounted round (caches, oneDNN's primitive).
+inline double gemm_gflops(index_t M, index_t N, index_t K, Trans ta, Trans tb, float beta, GemmBackend backend,
+                          int reps, int calls, ThreadPool& pool = global_pool()) {
   std::vector<float> a(M * K), b(N * K), c(M * N);
   for (std::size_t i = 0; i < a.size(); ++i) a[i] = float(i % 7) * 0.125f - 0.375f;
   for (std::size_t i = 0; i < b.size(); ++i) b[i] = float(i % 5) * 0.125f - 0.25f;
-  auto run = [&] { gemm(backend, Trans::no, Trans::yes, M, N, K, 1.0f, a.data(), K, b.data(), K, 0.0f, c.data(), N, pool); };
-  run();  // warm-up
-  double best = 1e300;
-  for (int r = 0; r < reps; ++r) {
+  const index_t lda = ta == Trans::yes ? M : K, ldb = tb == Trans::yes ? K : N;
+  auto round = [&] {
     const auto t0 = std::chrono::steady_clock::now();
-    run();
-    best = std::min(best, std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
-  }
+    for (int i = 0; i < calls; ++i)
+      gemm(backend, ta, tb, M, N, K, 1.0f, a.data(), lda, b.data(), ldb, beta, c.data(), N, pool);
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() / calls;
+  };
+  round();  // warm-up
+  double best = 1e300;
+  for (int r = 0; r < reps; ++r) best = std::min(best, round());
   return 2.0 * double(M) * double(N) * double(K) / best * 1e-9;
+}
+
+inline double sgemm_gflops(GemmBackend backend = best_gemm_backend(), int reps = 5, ThreadPool& pool = global_pool()) {
+  return gemm_gflops(2048, 2048, 1024, Trans::no, Trans::yes, 0.0f, backend, reps, 1, pool);
 }
 
 struct SgemmRate {

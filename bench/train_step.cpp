@@ -63,24 +63,13 @@ struct RecipeOptions {
   index_t gemm_shapes = 0;
 };
 
-// Best-of-3 GFLOP/s of one shape called repeatedly on one thread with operands that stay in cache.
+// One shape's GFLOP/s called repeatedly on one thread with operands that stay in cache (best of 3 rounds).
 static double gemm_alone_gflops(const profile::GemmShape& g) {
-  const index_t lda = g.ta ? g.m : g.k, ldb = g.tb ? g.k : g.n;
-  std::vector<float> a(static_cast<std::size_t>(g.m * g.k), 0.5f), b(static_cast<std::size_t>(g.k * g.n), 0.25f),
-      c(static_cast<std::size_t>(g.m * g.n), 0.0f);
   ThreadPool one(1);
   const double flops = 2.0 * double(g.m) * double(g.n) * double(g.k);
-  const int reps = static_cast<int>(std::clamp(2e8 / std::max(flops, 1.0), 1.0, 200.0));
-  double best = 1e300;
-  for (int round = 0; round < 4; ++round) {  // round 0 warms caches and oneDNN's primitive
-    const auto t0 = std::chrono::steady_clock::now();
-    for (int r = 0; r < reps; ++r)
-      gemm<float>(g.ta ? Trans::yes : Trans::no, g.tb ? Trans::yes : Trans::no, g.m, g.n, g.k, 1.0f, a.data(), lda,
-                  b.data(), ldb, 1.0f, c.data(), g.n, one);
-    const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() / reps;
-    if (round > 0) best = std::min(best, s);
-  }
-  return flops / best / 1e9;
+  const int calls = static_cast<int>(std::clamp(2e8 / std::max(flops, 1.0), 1.0, 200.0));
+  return bench::gemm_gflops(g.m, g.n, g.k, g.ta ? Trans::yes : Trans::no, g.tb ? Trans::yes : Trans::no, 1.0f,
+                            default_gemm_backend(), 3, calls, one);
 }
 
 // The recipe's own steps in one process with one communicator (the global batch on this process, as one MPI rank).

@@ -50,6 +50,13 @@ struct Totals {
   std::array<std::uint64_t, op_count> calls{};
 };
 
+// One GEMM shape: op(A) is m x k, op(B) k x n; ta / tb whether A / B are stored transposed.
+struct GemmShape {
+  std::int64_t m = 0, n = 0, k = 0;
+  bool ta = false, tb = false;
+  auto operator<=>(const GemmShape&) const = default;
+};
+
 namespace detail {
 
 struct Counters {
@@ -72,17 +79,10 @@ inline thread_local Frame* current = nullptr;
 // The FLOPs of the scopes opened on this thread.
 inline thread_local double thread_flops = 0;
 
-// One GEMM shape: op(A) is m x k, op(B) k x n; ta / tb whether A / B are stored transposed.
-struct GemmShapeKey {
-  std::int64_t m = 0, n = 0, k = 0;
-  bool ta = false, tb = false;
-  auto operator<=>(const GemmShapeKey&) const = default;
-};
-
 struct ShapeTable {
   std::atomic<bool> on{false};
   std::mutex mutex;
-  std::map<GemmShapeKey, std::pair<std::uint64_t, double>> totals;  // calls, seconds
+  std::map<GemmShape, std::pair<std::uint64_t, double>> totals;  // calls, seconds
 };
 
 inline ShapeTable& shape_table() {
@@ -129,8 +129,6 @@ inline Totals totals() {
   }
   return t;
 }
-
-using GemmShape = detail::GemmShapeKey;
 
 struct GemmShapeTotals {
   GemmShape shape;

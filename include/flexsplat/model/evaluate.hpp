@@ -11,8 +11,6 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
-#include <numbers>
-#include <random>
 #include <string>
 #include <vector>
 
