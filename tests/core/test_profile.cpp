@@ -76,7 +76,8 @@ TEST_CASE("gemm reports its calls and 2 M N K FLOPs to the profiler", "[core][pr
 }
 
 TEST_CASE("gemm shapes: each call lands on its own M N K and transposes, only with shapes and the profiler on", "[core][profile]") {
-  std::vector<float> a(6 * 4, 1.0f), b(4 * 5, 1.0f), c(6 * 5, 0.0f);
+  // b holds 6 x 4 for the transposed-B call (N = 6, K = 4), more than the 4 x 5 of the others.
+  std::vector<float> a(6 * 4, 1.0f), b(6 * 4, 1.0f), c(6 * 5, 0.0f);
   profile::reset();
   profile::set_enabled(true);
   gemm(Trans::no, Trans::no, 6, 5, 4, 1.0f, a.data(), 4, b.data(), 5, 0.0f, c.data(), 5);  // shapes off: not kept
