@@ -29,17 +29,14 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
-#include <cstdlib>
 #include <map>
 #include <memory>
 #include <numeric>
 #include <random>
-#include <sstream>
 #include <string>
 #include <vector>
 
 #include "flexsplat/data/dataset.hpp"
-#include "flexsplat/geometry/epipolar.hpp"
 #include "flexsplat/geometry/orbit_search.hpp"
 #include "flexsplat/image/image_io.hpp"
 #include "flexsplat/image/layout.hpp"
@@ -216,8 +213,6 @@ std::vector<float> image_descriptors(index_t& dim, const data::ObjectRecord& rec
 
 struct Errors {
   std::vector<double> rotation;
-  std::vector<double> epipolar, epipolar_truth;  // --epipolar: after refine_cameras_epipolar from the found, the true cameras
-  std::vector<double> inliers;                    // --epipolar: matches within 2 px of the true cameras' epipolar lines
   double seconds = 0;
   int truth_cheaper = 0, off = 0, off_truth_cheaper = 0;  // sets whose true cameras cost less than the found ones
 };
@@ -237,8 +232,6 @@ int main(int argc, char** argv) try {
   std::string descriptor_source = "model";
   int patch = 5;
   bool ensemble = false;
-  bool epipolar = false;
-  geometry::EpipolarRefineConfig epi;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     const bool more = i + 1 < argc;
@@ -261,15 +254,6 @@ int main(int argc, char** argv) try {
     else if (a == "--depth-waves" && more) waves = std::stod(argv[++i]);
     else if (a == "--depth-inflate" && more) inflate = std::stod(argv[++i]);
     else if (a == "--order-ensemble") ensemble = true;
-    else if (a == "--epipolar") epipolar = true;
-    else if (a == "--epipolar-weight" && more) search.epipolar_weight = std::stod(argv[++i]);
-    else if (a == "--epipolar-scale" && more) search.epipolar_scale_px = std::stod(argv[++i]);
-    else if (a == "--epipolar-cosine" && more) epi.min_cosine = std::stod(argv[++i]);
-    else if (a == "--epipolar-scales" && more) {
-      epi.scales_px.clear();
-      std::stringstream ss(argv[++i]);
-      for (std::string t; std::getline(ss, t, ',');) epi.scales_px.push_back(std::stod(t));
-    }
     else if (a == "--descriptors" && more) descriptor_source = argv[++i];
     else if (a == "--patch" && more) patch = std::stoi(argv[++i]);
     else if (a == "--patch-spacing" && more) patch_spacing = std::stod(argv[++i]);
@@ -469,31 +453,6 @@ int main(int argc, char** argv) try {
                                                                   depth, pick(2).K.data(), n, size, size, search, desc) <
                                found_cost;
           errors[name].truth_cheaper += cheaper;
-          if (epipolar && !descriptors.empty()) {
-            const std::vector<geometry::EpipolarPair> pairs = geometry::epipolar_matches<float>(
-                pick(0).foreground.data(), descriptors.data(), desc_dim, pick(2).K.data(), n, size, size, epi);
-            auto error_of = [&](const std::vector<float>& cams) {
-              const std::vector<double> q(cams.begin(), cams.end());
-              double err = 0;
-              for (int v = 1; v < n; ++v) err += model::relative_rotation_error_deg(q.data(), q.data() + 12 * v, gt.data(), gt.data() + 12 * v);
-              return err / (n - 1);
-            };
-            std::vector<float> R1 = E, R2 = truth_E;
-            geometry::refine_cameras_epipolar<float>(R1.data(), pairs, n, epi);
-            geometry::refine_cameras_epipolar<float>(R2.data(), pairs, n, epi);
-            if (std::getenv("EPI_DEBUG"))
-              std::fprintf(stderr, "%s n=%d found %.1f -> %.1f (cost %.3f -> %.3f), truth -> %.1f (cost %.3f -> %.3f)\n",
-                           rec.name.c_str(), n, error_of(E), error_of(R1), geometry::epipolar_cost<float>(E.data(), pairs, n, 1.0),
-                           geometry::epipolar_cost<float>(R1.data(), pairs, n, 1.0), error_of(R2),
-                           geometry::epipolar_cost<float>(truth_E.data(), pairs, n, 1.0), geometry::epipolar_cost<float>(R2.data(), pairs, n, 1.0));
-            errors[name].epipolar.push_back(error_of(R1));
-            errors[name].epipolar_truth.push_back(error_of(R2));
-            // The share of matches the true cameras explain within 2 px.
-            std::size_t total = 0, good = 0;
-            for (const auto& pr : pairs)
-              for (const double px_err : geometry::epipolar_errors_px<float>(truth_E.data(), pr)) good += px_err < 2, ++total;
-            errors[name].inliers.push_back(total ? static_cast<double>(good) / static_cast<double>(total) : 0);
-          }
           if (e / (n - 1) > 15) ++errors[name].off, errors[name].off_truth_cheaper += cheaper;
         }
       }
@@ -506,19 +465,6 @@ int main(int argc, char** argv) try {
                   e.rotation.size(), median(e.rotation), mean, static_cast<long long>(within), e.rotation.size(),
                   e.seconds / static_cast<double>(e.rotation.size()), e.truth_cheaper, e.rotation.size(),
                   e.off_truth_cheaper, e.off);
-      if (!e.epipolar.empty()) {
-        auto within15 = [](const std::vector<double>& x) { return std::count_if(x.begin(), x.end(), [](double y) { return y <= 15; }); };
-        std::printf("| %d | %s, epipolar refinement: from the found cameras | %zu | %.1f° | %.1f° | %lld / %zu | | |\n", n,
-                    name.c_str(), e.epipolar.size(), median(e.epipolar),
-                    std::accumulate(e.epipolar.begin(), e.epipolar.end(), 0.0) / static_cast<double>(e.epipolar.size()),
-                    static_cast<long long>(within15(e.epipolar)), e.epipolar.size());
-        std::printf("| %d | %s, epipolar refinement: from the true cameras | %zu | %.1f° | %.1f° | %lld / %zu | | |\n", n,
-                    name.c_str(), e.epipolar_truth.size(), median(e.epipolar_truth),
-                    std::accumulate(e.epipolar_truth.begin(), e.epipolar_truth.end(), 0.0) / static_cast<double>(e.epipolar_truth.size()),
-                    static_cast<long long>(within15(e.epipolar_truth)), e.epipolar_truth.size());
-        std::printf("| %d | %s: mutual matches within 2 px of the true epipolar lines | %.3f (mean over sets) | | | | | |\n", n,
-                    name.c_str(), std::accumulate(e.inliers.begin(), e.inliers.end(), 0.0) / static_cast<double>(e.inliers.size()));
-      }
     }
     if (!w && altered)
       std::printf("| %d | depth error of the depth searched (each view scaled): %.3f |\n", n,

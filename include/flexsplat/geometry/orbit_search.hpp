@@ -19,7 +19,6 @@
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/geometry/descriptor.hpp"
-#include "flexsplat/geometry/epipolar.hpp"
 #include "flexsplat/geometry/unproject.hpp"
 
 namespace flexsplat {
@@ -42,12 +41,6 @@ struct OrbitSearchConfig {
   // head's own likelihood against a uniform guess, evidence for a placement and against it.
   double descriptor_weight = 0;
   double descriptor_temperature = 0.1;  // loss/match.hpp's default
-  // With OrbitDescriptors given and > 0: every pair of views adds this times the mean Geman-McClure cost e^2 / (e^2 +
-  // s^2) of its descriptors' mutual nearest neighbours (geometry/epipolar.hpp), e their Sampson error in pixels and
-  // s = epipolar_scale_px: evidence that reads no depth, so a depth whose shape is off does not move it.
-  double epipolar_weight = 0;
-  double epipolar_scale_px = 2;
-  double epipolar_min_cosine = 0.5;  // mutual neighbours below this cosine are not matches
   // > 0: every sampled point may lie anywhere within this relative range of its depth along its ray (depth_candidates
   // evenly spaced depths, the cheapest counts) and the other view's surface is as uncertain (its tolerance grows by
   // the range): predicted depth is trusted to a range, the views' silhouettes, surfaces and colours choose within it
@@ -97,7 +90,6 @@ struct View {
   // without descriptors)
   std::vector<std::vector<double>> log_sum;
   double log_objects = 0;           // log of the number of object pixels (with descriptors)
-  std::vector<EpipolarPair> epipolar;  // matches with each other view, a = this view's slot, b = the other's
   double distance = 1;              // from the camera to the orbit centre along the optical axis
 };
 
@@ -246,22 +238,10 @@ inline double pair_cost(const View& a, const Placed& pa, const View& b, const Pl
   return sum / static_cast<double>(n);
 }
 
-// The epipolar term of view a placed at pa against view b placed at pb (0 without matches between them).
-inline double epipolar_pair_cost(const View& a, const Placed& pa, index_t b, const Placed& pb, const OrbitSearchConfig& cfg) {
-  if (cfg.epipolar_weight <= 0) return 0;
-  for (const EpipolarPair& pr : a.epipolar)
-    if (pr.b == b)
-      return cfg.epipolar_weight * epipolar_detail::pair_cost(pr, {pa.R, -(glm::transpose(pa.R) * pa.t)},
-                                                              {pb.R, -(glm::transpose(pb.R) * pb.t)}, cfg.epipolar_scale_px);
-  return 0;
-}
-
 // Cost of view v against the views in `others` (both directions).
 inline double view_cost(const std::vector<View>& views, const std::vector<Placed>& placed, index_t v, const Placed& pv,
                         const OrbitSearchConfig& cfg) {
   double c = 0;
-  for (const EpipolarPair& pr : views[static_cast<std::size_t>(v)].epipolar)
-    c += epipolar_pair_cost(views[static_cast<std::size_t>(v)], pv, pr.b, placed[static_cast<std::size_t>(pr.b)], cfg);
   for (index_t o = 0; o < static_cast<index_t>(views.size()); ++o) {
     if (o == v) continue;
     const std::size_t so = static_cast<std::size_t>(o), sv = static_cast<std::size_t>(v);
@@ -344,9 +324,6 @@ inline double total_cost(const std::vector<View>& views, const std::vector<Place
   for (std::size_t a = 0; a < views.size(); ++a)
     for (std::size_t b = 0; b < views.size(); ++b)
       if (a != b) c += pair_cost(views[a], placed[a], views[b], placed[b], cfg);
-  for (std::size_t a = 0; a < views.size(); ++a)
-    for (std::size_t b = a + 1; b < views.size(); ++b)
-      c += epipolar_pair_cost(views[a], placed[a], static_cast<index_t>(b), placed[b], cfg);
   return c;
 }
 
@@ -357,7 +334,6 @@ inline void check_search_input(const char* who, index_t frames, index_t height, 
   require(cfg.samples >= 1 && cfg.elevation_step_deg > 0 && cfg.azimuth_step_deg > 0 && cfg.silhouette_px > 0 &&
               cfg.depth_tolerance > 0 && cfg.depth_range >= 0 && cfg.depth_range < 0.5 && cfg.depth_candidates >= 2 &&
               cfg.colour_weight >= 0 && cfg.descriptor_weight >= 0 && cfg.descriptor_temperature > 0 &&
-              cfg.epipolar_weight >= 0 && cfg.epipolar_scale_px > 0 && std::isfinite(cfg.epipolar_scale_px) &&
               descriptor_dim >= 0 &&
               cfg.elevation_max_deg >= cfg.elevation_min_deg &&
               cfg.elevation_max_deg < 89 && cfg.elevation_min_deg > -89,
@@ -365,8 +341,7 @@ inline void check_search_input(const char* who, index_t frames, index_t height, 
           cfg.azimuth_step_deg, " deg, elevations ", cfg.elevation_min_deg, " .. ", cfg.elevation_max_deg,
           ", depth range ", cfg.depth_range, " in [0, 0.5) with ", cfg.depth_candidates, " >= 2 candidates, colour and "
           "descriptor weights ", cfg.colour_weight, ", ", cfg.descriptor_weight, " >= 0, descriptor temperature ",
-          cfg.descriptor_temperature, " > 0, epipolar weight ", cfg.epipolar_weight, " >= 0 at scale ",
-          cfg.epipolar_scale_px, " px > 0, descriptor width ", descriptor_dim, ")");
+          cfg.descriptor_temperature, " > 0, descriptor width ", descriptor_dim, ")");
 }
 
 // Every view prepared; returns which have object pixels. With the first view usable, `act` holds the usable views
@@ -387,20 +362,6 @@ std::vector<bool> prepare_views(std::vector<View>& act, std::vector<index_t>& ac
     if (usable[static_cast<std::size_t>(f)]) active.push_back(f), act.push_back(std::move(views[static_cast<std::size_t>(f)]));
   const index_t A = static_cast<index_t>(act.size());
   for (index_t a = 0; a < A; ++a) act[static_cast<std::size_t>(a)].slot = a;
-  if (descriptors.data && descriptors.dim > 0 && cfg.epipolar_weight > 0) {
-    EpipolarRefineConfig ec;
-    ec.min_foreground = cfg.min_foreground, ec.min_cosine = cfg.epipolar_min_cosine;
-    std::vector<index_t> slot_of(static_cast<std::size_t>(frames), -1);
-    for (index_t a = 0; a < A; ++a) slot_of[static_cast<std::size_t>(active[static_cast<std::size_t>(a)])] = a;
-    for (EpipolarPair& pr : epipolar_matches(foreground, descriptors.data, descriptors.dim, intrinsics, frames, height,
-                                             width, ec)) {
-      const index_t sa = slot_of[static_cast<std::size_t>(pr.a)], sb = slot_of[static_cast<std::size_t>(pr.b)];
-      if (sa < 0 || sb < 0 || pr.xa.empty()) continue;
-      act[static_cast<std::size_t>(sb)].epipolar.push_back({sb, sa, pr.xb, pr.xa, pr.focal});
-      pr.a = sa, pr.b = sb;
-      act[static_cast<std::size_t>(sa)].epipolar.push_back(std::move(pr));
-    }
-  }
   if (descriptors.data && descriptors.dim > 0 && cfg.descriptor_weight > 0)
     for (View& a : act) {
       a.log_sum.resize(static_cast<std::size_t>(A));
@@ -448,7 +409,6 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
   // depths with wider tolerances.
   OrbitSearchConfig coarse = cfg;
   coarse.silhouette_px *= cfg.coarse_tolerance, coarse.depth_tolerance *= cfg.coarse_tolerance;
-  coarse.epipolar_scale_px *= cfg.coarse_tolerance;
   // The grid's cells, elevation-major.
   const index_t cells = static_cast<index_t>(elevations.size() * azimuths.size());
   auto cell_pose = [&](OrbitPose p, index_t cell) {
@@ -512,8 +472,7 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
         for (index_t o = 0; o < v; ++o) {
           const std::size_t so = static_cast<std::size_t>(o);
           c += pair_cost(act[static_cast<std::size_t>(v)], q, act[so], b.placed[so], coarse) +
-               pair_cost(act[so], b.placed[so], act[static_cast<std::size_t>(v)], q, coarse) +
-               epipolar_pair_cost(act[static_cast<std::size_t>(v)], q, o, b.placed[so], coarse);
+               pair_cost(act[so], b.placed[so], act[static_cast<std::size_t>(v)], q, coarse);
         }
         cand[static_cast<std::size_t>(k)] = {c, bi, p, q};
       }
