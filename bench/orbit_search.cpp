@@ -10,7 +10,8 @@
 //                     [--descriptor-weight 0 (with --model: its match head's descriptors)]
 //                     [--descriptor-temperature 0.1] [--occluded-cost 0.1] [--samples 256] [--depth-range 0] [--depth-candidates 5]
 //                     [--depth-blend 0 | --depth-grid N] [--depth-waves 0] [--depth-inflate 0]
-//                     [--descriptors model|image|both] [--patch 5] [--patch-spacing 2] [--order-ensemble] OBJECT_DIR...
+//                     [--descriptors model|image|both] [--patch 5] [--patch-spacing 2] [--order-ensemble]
+//                     [--refine-depth-grid G] [--cost-parts] OBJECT_DIR...
 //   e.g. `build/bench/orbit_search ../shared/data/objects/*`
 // --inputs keeps only those input codes (silhouettes, depth, intrinsics from the renderer r or the model m); the other
 // options set the search's OrbitSearchConfig fields of the same names (how tolerant it is of the predictions' errors).
@@ -23,6 +24,9 @@
 // --depth-inflate k: the renderer's depth given to the search is each silhouette inflated into a shell (inflated_depth).
 // --descriptors image|both: the search's descriptors are patch correlations of the photos at their own resolution
 // (patch_descriptors, P = --patch samples --patch-spacing photo pixels apart), alone or beside the model's.
+// --refine-depth-grid G (G >= 2): one more column, the sets whose true cameras cost less than the found ones once each
+// view's depth is corrected by a G x G grid fitted to the search's objective at either placement (depth_refined_cost).
+// --cost-parts: a table of the objective's parts (geometry::OrbitCostParts) at the found and the true cameras.
 // --order-ensemble (with --model): the model's depth, object probability and descriptors averaged over the V cyclic
 // orders of the views.
 #include <algorithm>
@@ -35,6 +39,8 @@
 #include <random>
 #include <string>
 #include <vector>
+
+#include <glm/gtc/matrix_transform.hpp>
 
 #include "flexsplat/data/dataset.hpp"
 #include "flexsplat/geometry/orbit_search.hpp"
@@ -215,7 +221,92 @@ struct Errors {
   std::vector<double> rotation;
   double seconds = 0;
   int truth_cheaper = 0, off = 0, off_truth_cheaper = 0;  // sets whose true cameras cost less than the found ones
+  int grid_truth_cheaper = 0, grid_off_truth_cheaper = 0;  // the same with depth grids fitted (--refine-depth-grid)
+  geometry::OrbitCostParts found_parts, truth_parts, off_found_parts, off_truth_parts;  // summed over the sets (--cost-parts)
 };
+
+
+// The search's objective at fixed cameras E once each view's depth is multiplied by exp of a G x G grid (bilinear
+// between the cells' centres, within +-0.3), the grids fitted to that objective by coordinate descent: whether depth
+// corrected by the views themselves would make the true cameras the cheaper placement. base_cost: before the grids.
+template <class T>
+double depth_refined_cost(const T* E, const T* images, const T* fg, const T* depth, const T* K, index_t n, index_t size,
+                          const geometry::OrbitSearchConfig& cfg, const geometry::OrbitDescriptors<T>& desc, int G,
+                          double* base_cost) {
+  using namespace geometry::orbit_detail;
+  std::vector<View> act;
+  std::vector<index_t> active;
+  prepare_views(act, active, images, fg, depth, K, n, size, size, cfg, desc);
+  const std::size_t A = act.size();
+  if (A < 2) return 0;
+  std::vector<Placed> placed(A);
+  for (std::size_t a = 0; a < A; ++a) {
+    const Camera cam = camera_from_arrays(K + 9 * active[a], E + 12 * active[a], static_cast<int>(size), static_cast<int>(size));
+    placed[a].R = cam.R, placed[a].t = cam.t;
+  }
+  std::vector<std::vector<float>> base_depth(A);
+  std::vector<std::vector<double>> base_point(A), point_x(A), point_y(A);
+  std::vector<std::vector<double>> grid(A, std::vector<double>(static_cast<std::size_t>(G * G), 0.0));
+  for (std::size_t a = 0; a < A; ++a) {
+    base_depth[a] = act[a].depth, base_point[a] = act[a].point;
+    for (std::size_t i = 0; i < act[a].point.size() / 3; ++i) {
+      const double X = act[a].point[3 * i], Y = act[a].point[3 * i + 1], Z = act[a].point[3 * i + 2];
+      point_x[a].push_back(act[a].fx * X / Z + act[a].cx), point_y[a].push_back(act[a].fy * Y / Z + act[a].cy);
+    }
+  }
+  const double cell = static_cast<double>(size) / G;
+  auto factor = [&](std::size_t a, double x, double y) {
+    const double gx = std::clamp((x + 0.5) / cell - 0.5, 0.0, G - 1.0), gy = std::clamp((y + 0.5) / cell - 0.5, 0.0, G - 1.0);
+    const int x0 = std::min(static_cast<int>(gx), G - 2), y0 = std::min(static_cast<int>(gy), G - 2);
+    const double ax = gx - x0, ay = gy - y0;
+    const auto& g = grid[a];
+    const double l = (1 - ax) * (1 - ay) * g[static_cast<std::size_t>(y0 * G + x0)] + ax * (1 - ay) * g[static_cast<std::size_t>(y0 * G + x0 + 1)] +
+                     (1 - ax) * ay * g[static_cast<std::size_t>((y0 + 1) * G + x0)] + ax * ay * g[static_cast<std::size_t>((y0 + 1) * G + x0 + 1)];
+    return std::exp(l);
+  };
+  auto apply = [&](std::size_t a) {
+    View& v = act[a];
+    for (index_t y = 0; y < size; ++y)
+      for (index_t x = 0; x < size; ++x) {
+        const std::size_t p = static_cast<std::size_t>(y * size + x);
+        v.depth[p] = static_cast<float>(base_depth[a][p] * factor(a, static_cast<double>(x), static_cast<double>(y)));
+      }
+    for (std::size_t i = 0; i < point_x[a].size(); ++i) {
+      const double f = factor(a, point_x[a][i], point_y[a][i]);
+      for (int k = 0; k < 3; ++k) v.point[3 * i + static_cast<std::size_t>(k)] = base_point[a][3 * i + static_cast<std::size_t>(k)] * f;
+    }
+  };
+  // Grid nodes next to an object pixel.
+  std::vector<std::vector<int>> nodes(A);
+  for (std::size_t a = 0; a < A; ++a)
+    for (int gy = 0; gy < G; ++gy)
+      for (int gx = 0; gx < G; ++gx) {
+        bool near = false;
+        for (index_t y = 0; y < size && !near; ++y)
+          for (index_t x = 0; x < size && !near; ++x)
+            near = act[a].mask[static_cast<std::size_t>(y * size + x)] && std::abs((x + 0.5) / cell - 0.5 - gx) < 1 &&
+                   std::abs((y + 0.5) / cell - 0.5 - gy) < 1;
+        if (near) nodes[a].push_back(gy * G + gx);
+      }
+  if (base_cost) *base_cost = total_cost(act, placed, cfg);
+  for (const double step : {0.08, 0.04, 0.02, 0.01})
+    for (int sweep = 0; sweep < 2; ++sweep)
+      for (std::size_t a = 0; a < A; ++a)
+        for (const int node : nodes[a]) {
+          double& g = grid[a][static_cast<std::size_t>(node)];
+          const double keep = g, cur = view_cost(act, placed, static_cast<index_t>(a), placed[a], cfg);
+          double best = cur, best_g = keep;
+          for (const double sign : {1.0, -1.0}) {
+            g = std::clamp(keep + sign * step, -0.3, 0.3);
+            apply(a);
+            const double c = view_cost(act, placed, static_cast<index_t>(a), placed[a], cfg);
+            if (c < best) best = c, best_g = g;
+          }
+          g = best_g;
+          apply(a);
+        }
+  return total_cost(act, placed, cfg);
+}
 
 }  // namespace
 
@@ -226,6 +317,8 @@ int main(int argc, char** argv) try {
   std::vector<std::string> dirs;
   std::string model_path, keep;
   geometry::OrbitSearchConfig search;
+  int refine_grid = 0;  // --refine-depth-grid G
+  bool cost_parts = false;
   double blend = 0;
   int grid = 0;
   double waves = 0, inflate = 0, patch_spacing = 2;
@@ -249,6 +342,8 @@ int main(int argc, char** argv) try {
     else if (a == "--descriptor-temperature" && more) search.descriptor_temperature = std::stod(argv[++i]);
     else if (a == "--occluded-cost" && more) search.occluded_cost = std::stod(argv[++i]);
     else if (a == "--samples" && more) search.samples = std::stoll(argv[++i]);
+    else if (a == "--refine-depth-grid" && more) refine_grid = std::stoi(argv[++i]);
+    else if (a == "--cost-parts") cost_parts = true;
     else if (a == "--depth-blend" && more) blend = std::stod(argv[++i]);
     else if (a == "--depth-grid" && more) grid = std::stoi(argv[++i]);
     else if (a == "--depth-waves" && more) waves = std::stod(argv[++i]);
@@ -272,7 +367,8 @@ int main(int argc, char** argv) try {
           "[--inputs mmm,rrr,...] [--depth-tolerance X] [--silhouette-px X] [--colour-weight X] [--descriptor-weight X] "
           "[--descriptor-temperature X] [--occluded-cost X] [--samples N] [--depth-range X] "
           "[--depth-candidates N] [--depth-blend A | --depth-grid N] [--depth-waves A] [--depth-inflate k] "
-          "[--descriptors model|image|both] [--patch P] [--patch-spacing S] [--order-ensemble] OBJECT_DIR...");
+          "[--descriptors model|image|both] [--patch P] [--patch-spacing S] [--order-ensemble] [--refine-depth-grid G] [--cost-parts] "
+          "OBJECT_DIR...");
   require(blend >= 0 && blend <= 1 && (blend == 0 || !model_path.empty()), "orbit_search: --depth-blend ", blend,
           " must be in [0, 1] and needs --model");
   require(grid >= 0 && (grid == 0 || (!model_path.empty() && blend == 0)), "orbit_search: --depth-grid ", grid,
@@ -283,6 +379,8 @@ int main(int argc, char** argv) try {
   require(descriptor_source == "model" || descriptor_source == "image" || (descriptor_source == "both" && !model_path.empty()),
           "orbit_search: --descriptors '", descriptor_source, "' must be model, image or both (both needs --model)");
   require(!ensemble || !model_path.empty(), "orbit_search: --order-ensemble needs --model");
+  require(refine_grid == 0 || (refine_grid >= 2 && refine_grid <= 64), "orbit_search: --refine-depth-grid ", refine_grid,
+          " must be in [2, 64]");
   require(patch >= 1 && patch <= 15 && patch_spacing > 0 && patch_spacing <= 16, "orbit_search: --patch ", patch,
           " must be in [1, 15] and --patch-spacing ", patch_spacing, " in (0, 16]");
   std::unique_ptr<model::FlexSplatWeights<float>> w;
@@ -309,8 +407,9 @@ int main(int argc, char** argv) try {
   std::mt19937 rng(seed);
   const bool altered = blend > 0 || grid > 0 || waves > 0 || inflate > 0;  // the renderer's depth searched is not the renderer's own
   std::printf("| views | inputs | sets | median error | mean error | within 15° | seconds per set | true cameras cost less: all "
-              "sets, sets off by > 15° |\n|---|---|---|---|---|---|---|---|\n");
-  std::vector<std::string> quality;
+              "sets, sets off by > 15° |%s\n|---|---|---|---|---|---|---|---|%s\n",
+              refine_grid > 0 ? " the same with depth grids fitted |" : "", refine_grid > 0 ? "---|" : "");
+  std::vector<std::string> quality, parts_rows;
   for (const int n : counts) {
     std::map<std::string, Errors> errors;
     double iou = 0, shape = 0, flat = 0, focal = 0, searched = 0;
@@ -452,6 +551,29 @@ int main(int argc, char** argv) try {
           const bool cheaper = geometry::orbit_search_cost<float>(truth_E.data(), images.data(), pick(0).foreground.data(),
                                                                   depth, pick(2).K.data(), n, size, size, search, desc) <
                                found_cost;
+          if (cost_parts) {
+            geometry::OrbitCostParts f, t;
+            geometry::orbit_search_cost<float>(E.data(), images.data(), pick(0).foreground.data(), depth, pick(2).K.data(),
+                                               n, size, size, search, desc, &f);
+            geometry::orbit_search_cost<float>(truth_E.data(), images.data(), pick(0).foreground.data(), depth,
+                                               pick(2).K.data(), n, size, size, search, desc, &t);
+            Errors& er = errors[name];
+            auto add = [](geometry::OrbitCostParts& to, const geometry::OrbitCostParts& x) {
+              to.off_image += x.off_image, to.silhouette += x.silhouette, to.free_space += x.free_space;
+              to.occluded += x.occluded, to.colour += x.colour, to.descriptor += x.descriptor;
+            };
+            add(er.found_parts, f), add(er.truth_parts, t);
+            if (e / (n - 1) > 15) add(er.off_found_parts, f), add(er.off_truth_parts, t);
+          }
+          if (refine_grid > 0) {
+            auto refined = [&](const float* X) {
+              return depth_refined_cost<float>(X, images.data(), pick(0).foreground.data(), depth, pick(2).K.data(), n,
+                                               size, search, desc, refine_grid, nullptr);
+            };
+            const bool grid_cheaper = refined(truth_E.data()) < refined(E.data());
+            errors[name].grid_truth_cheaper += grid_cheaper;
+            if (e / (n - 1) > 15) errors[name].grid_off_truth_cheaper += grid_cheaper;
+          }
           errors[name].truth_cheaper += cheaper;
           if (e / (n - 1) > 15) ++errors[name].off, errors[name].off_truth_cheaper += cheaper;
         }
@@ -461,10 +583,25 @@ int main(int argc, char** argv) try {
       const Errors& e = errors[name];
       const double mean = std::accumulate(e.rotation.begin(), e.rotation.end(), 0.0) / static_cast<double>(e.rotation.size());
       const auto within = std::count_if(e.rotation.begin(), e.rotation.end(), [](double x) { return x <= 15; });
-      std::printf("| %d | %s | %zu | %.1f° | %.1f° | %lld / %zu | %.2f | %d / %zu, %d / %d |\n", n, name.c_str(),
+      std::printf("| %d | %s | %zu | %.1f° | %.1f° | %lld / %zu | %.2f | %d / %zu, %d / %d |", n, name.c_str(),
                   e.rotation.size(), median(e.rotation), mean, static_cast<long long>(within), e.rotation.size(),
                   e.seconds / static_cast<double>(e.rotation.size()), e.truth_cheaper, e.rotation.size(),
                   e.off_truth_cheaper, e.off);
+      if (refine_grid > 0)
+        std::printf(" %d / %zu, %d / %d |", e.grid_truth_cheaper, e.rotation.size(), e.grid_off_truth_cheaper, e.off);
+      std::printf("\n");
+      if (cost_parts) {
+        auto row = [&](const char* what, const geometry::OrbitCostParts& x, double sets) {
+          char line[320];
+          std::snprintf(line, sizeof line, "| %d | %s | %s | %.0f | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f |", n,
+                        name.c_str(), what, sets, x.off_image / sets, x.silhouette / sets, x.free_space / sets,
+                        x.occluded / sets, x.colour / sets, x.descriptor / sets, x.total() / sets);
+          parts_rows.push_back(line);
+        };
+        const double all = static_cast<double>(e.rotation.size());
+        row("found", e.found_parts, all), row("truth", e.truth_parts, all);
+        if (e.off > 0) row("found, sets off by > 15°", e.off_found_parts, e.off), row("truth, sets off by > 15°", e.off_truth_parts, e.off);
+      }
     }
     if (!w && altered)
       std::printf("| %d | depth error of the depth searched (each view scaled): %.3f |\n", n,
@@ -482,6 +619,11 @@ int main(int argc, char** argv) try {
     std::printf("\n| views | silhouette IoU | depth error (each view scaled) | same for a constant depth |%s focal error "
                 "|\n|---|---|---|---|%s---|\n", altered ? " same for the renderer's depth searched |" : "", altered ? "---|" : "");
     for (const auto& l : quality) std::printf("%s\n", l.c_str());
+  }
+  if (!parts_rows.empty()) {
+    std::printf("\nThe objective's parts, mean per set (geometry::OrbitCostParts):\n\n| views | inputs | cameras | sets | off image "
+                "| silhouette | free space | occluded | colour | descriptor | total |\n|---|---|---|---|---|---|---|---|---|---|---|\n");
+    for (const auto& l : parts_rows) std::printf("%s\n", l.c_str());
   }
   return 0;
 } catch (const std::exception& e) {

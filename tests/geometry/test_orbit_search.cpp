@@ -121,6 +121,47 @@ TEST_CASE("orbit search cost: what the search reports, in any world frame, and h
   CHECK_THROWS_WITH(cost_of(broken), Catch::Contains("orbit_search_cost: view 1 extrinsics[0,3] = nan is not finite"));
 }
 
+TEST_CASE("orbit search cost: its parts sum to it and say what a turned view breaks", "[geometry][orbit]") {
+  const std::vector<std::pair<double, double>> orbit{{20, 0}, {35, 97}, {12, 183}};
+  const Views v = render_views(3, orbit, 48);
+  // Descriptors: each pixel's colour, so that the descriptor term takes part.
+  const index_t px = v.size * v.size;
+  std::vector<float> desc(static_cast<std::size_t>(v.n * px * 3));
+  for (index_t f = 0; f < v.n; ++f)
+    for (index_t p = 0; p < px; ++p)
+      for (index_t k = 0; k < 3; ++k) desc[static_cast<std::size_t>((f * px + p) * 3 + k)] = v.images[static_cast<std::size_t>((f * 3 + k) * px + p)];
+  geometry::OrbitSearchConfig cfg;
+  cfg.depth_range = 0.1, cfg.descriptor_weight = 0.5;
+  const geometry::OrbitDescriptors<float> d{desc.data(), 3};
+  const std::vector<float> truth(v.w2c.begin(), v.w2c.end());
+  std::vector<float> turned = truth;
+  const glm::dmat3 Y = glm::dmat3(glm::rotate(glm::dmat4(1.0), 25 * std::numbers::pi / 180, glm::dvec3(0, 1, 0)));
+  Camera cam = camera_from_arrays(v.K.data() + 9, truth.data() + 12, v.size, v.size);
+  cam.R = Y * cam.R, cam.t = Y * cam.t;
+  camera_arrays<float>(cam, nullptr, turned.data() + 12);
+  geometry::OrbitCostParts at_truth, at_turned;
+  const double c_truth = geometry::orbit_search_cost<float>(truth.data(), v.images.data(), v.foreground.data(), v.depth.data(),
+                                                            v.K.data(), v.n, v.size, v.size, cfg, d, &at_truth);
+  const double c_turned = geometry::orbit_search_cost<float>(turned.data(), v.images.data(), v.foreground.data(),
+                                                             v.depth.data(), v.K.data(), v.n, v.size, v.size, cfg, d, &at_turned);
+  // Without parts the same cost, to the bit.
+  CHECK(c_truth == geometry::orbit_search_cost<float>(truth.data(), v.images.data(), v.foreground.data(), v.depth.data(),
+                                                      v.K.data(), v.n, v.size, v.size, cfg, d));
+  INFO("truth " << c_truth << ": off image " << at_truth.off_image << ", silhouette " << at_truth.silhouette
+                << ", free space " << at_truth.free_space << ", occluded " << at_truth.occluded << ", colour "
+                << at_truth.colour << ", descriptor " << at_truth.descriptor << "; turned " << c_turned << ": "
+                << at_turned.off_image << ", " << at_turned.silhouette << ", " << at_turned.free_space << ", "
+                << at_turned.occluded << ", " << at_turned.colour << ", " << at_turned.descriptor);
+  CHECK(at_truth.total() == Approx(c_truth).margin(1e-9));
+  CHECK(at_turned.total() == Approx(c_turned).margin(1e-9));
+  CHECK(at_truth.descriptor < 0);  // exact descriptors on exact surfaces: a reward
+  CHECK(at_truth.silhouette + at_truth.free_space < 0.1 * (at_turned.silhouette + at_turned.free_space));
+  geometry::OrbitCostParts twice = at_truth;  // parts add to what they hold
+  geometry::orbit_search_cost<float>(truth.data(), v.images.data(), v.foreground.data(), v.depth.data(), v.K.data(), v.n,
+                                     v.size, v.size, cfg, d, &twice);
+  CHECK(twice.total() == Approx(2 * c_truth).margin(1e-9));
+}
+
 TEST_CASE("orbit search: a view without object pixels stays at the first camera, unsolved, and bad input is refused",
           "[geometry][orbit]") {
   Views v = render_views(5, {{20, 0}, {30, 120}, {10, 240}}, 48);

@@ -66,6 +66,18 @@ struct OrbitDescriptors {
   index_t dim = 0;
 };
 
+// The search's objective split by what each sampled point's cost came from (orbit_search_cost's `parts`): the parts
+// sum to the cost. A point counts where it lands at its cheapest depth candidate.
+struct OrbitCostParts {
+  double off_image = 0;   // behind the other camera or outside its image: 1 each
+  double silhouette = 0;  // outside the other view's silhouette
+  double free_space = 0;  // in front of the other view's surface
+  double occluded = 0;    // behind it (occluded_cost)
+  double colour = 0;      // on it: the colour difference
+  double descriptor = 0;  // on it: minus the descriptor reward
+  double total() const { return off_image + silhouette + free_space + occluded + colour + descriptor; }
+};
+
 // One view's orbit parameters (radians; distance in depth units).
 struct OrbitPose {
   double elevation = 0, azimuth = 0, roll = 0, distance = 1;
@@ -185,8 +197,9 @@ inline double descriptor_reward(const View& a, index_t i, const View& b, std::si
   return static_cast<double>(static_cast<float>(std::clamp(r, -1.0, 1.0)));
 }
 
-// Mean cost of view a's sampled points seen from view b.
-inline double pair_cost(const View& a, const Placed& pa, const View& b, const Placed& pb, const OrbitSearchConfig& cfg) {
+// Mean cost of view a's sampled points seen from view b; parts (may be null) receives it split by kind.
+inline double pair_cost(const View& a, const Placed& pa, const View& b, const Placed& pb, const OrbitSearchConfig& cfg,
+                        OrbitCostParts* parts = nullptr) {
   const index_t n = static_cast<index_t>(a.point.size() / 3);
   if (n == 0) return 0;
   const glm::dmat3 M = pb.R * glm::transpose(pa.R);
@@ -196,29 +209,36 @@ inline double pair_cost(const View& a, const Placed& pa, const View& b, const Pl
                               ? a.log_sum[static_cast<std::size_t>(b.slot)].data()
                               : nullptr;
   const double floor = log_sum ? -cfg.descriptor_weight : 0;  // the cheapest a point can be
-  // Cost of view a's point i placed at Y in view b's frame.
-  auto point_cost = [&](index_t i, const glm::dvec3& Y) -> double {
-    if (!(Y.z > 1e-9)) return 1;
+  // Cost of view a's point i placed at Y in view b's frame; into `part` (may be null) by kind, times w.
+  auto point_cost = [&](index_t i, const glm::dvec3& Y, OrbitCostParts* part = nullptr, double w = 0) -> double {
+    auto put = [&](double OrbitCostParts::*field, double c) {
+      if (part) part->*field += w * c;
+      return c;
+    };
+    if (!(Y.z > 1e-9)) return put(&OrbitCostParts::off_image, 1);
     const double u = b.fx * Y.x / Y.z + b.cx, v = b.fy * Y.y / Y.z + b.cy;
     const double ur = std::round(u), vr = std::round(v);
-    if (!(ur >= 0 && vr >= 0 && ur < static_cast<double>(b.w) && vr < static_cast<double>(b.h))) return 1;
+    if (!(ur >= 0 && vr >= 0 && ur < static_cast<double>(b.w) && vr < static_cast<double>(b.h)))
+      return put(&OrbitCostParts::off_image, 1);
     const std::size_t pix = static_cast<std::size_t>(static_cast<index_t>(vr) * b.w + static_cast<index_t>(ur));
     const double out = static_cast<double>(b.outside[pix]);
-    if (out > 0) return std::min(out / cfg.silhouette_px, 1.0);
+    if (out > 0) return put(&OrbitCostParts::silhouette, std::min(out / cfg.silhouette_px, 1.0));
     // View b's depth is trusted to the same range as view a's.
     const double z = static_cast<double>(b.depth[pix]), tol = (cfg.depth_tolerance + cfg.depth_range) * z;
-    if (Y.z < z - tol) return std::min((z - tol - Y.z) / tol, 1.0);  // free space of view b holds a surface point
-    if (Y.z > z + tol) return cfg.occluded_cost;
+    if (Y.z < z - tol)  // free space of view b holds a surface point
+      return put(&OrbitCostParts::free_space, std::min((z - tol - Y.z) / tol, 1.0));
+    if (Y.z > z + tol) return put(&OrbitCostParts::occluded, cfg.occluded_cost);
     double c = 0;
     if (colours) {
       double diff = 0;
       for (int k = 0; k < 3; ++k)
         diff += std::abs(static_cast<double>(a.point_colour[static_cast<std::size_t>(3 * i + k)]) -
                          static_cast<double>(b.colour[3 * pix + static_cast<std::size_t>(k)]));
-      c += cfg.colour_weight * diff / 3;
+      c += put(&OrbitCostParts::colour, cfg.colour_weight * diff / 3);
     }
     if (log_sum)
-      c -= cfg.descriptor_weight * descriptor_reward(a, i, b, pix, log_sum[static_cast<std::size_t>(i)], cfg.descriptor_temperature);
+      c += put(&OrbitCostParts::descriptor,
+               -cfg.descriptor_weight * descriptor_reward(a, i, b, pix, log_sum[static_cast<std::size_t>(i)], cfg.descriptor_temperature));
     return c;
   };
   const index_t candidates = cfg.depth_range > 0 ? cfg.depth_candidates : 1;
@@ -226,13 +246,15 @@ inline double pair_cost(const View& a, const Placed& pa, const View& b, const Pl
   for (index_t i = 0; i < n; ++i) {
     const glm::dvec3 X(a.point[static_cast<std::size_t>(3 * i)], a.point[static_cast<std::size_t>(3 * i + 1)],
                        a.point[static_cast<std::size_t>(3 * i + 2)]);
-    double best = std::numeric_limits<double>::infinity();
+    double best = std::numeric_limits<double>::infinity(), best_along = 1;
     for (index_t k = 0; k < candidates && best > floor; ++k) {
       const double along = candidates == 1 ? 1.0
                                            : 1.0 + cfg.depth_range * (2.0 * static_cast<double>(k) /
                                                                           static_cast<double>(candidates - 1) - 1.0);
-      best = std::min(best, point_cost(i, M * (along * X) + m));
+      const double c = point_cost(i, M * (along * X) + m);
+      if (c < best) best = c, best_along = along;
     }
+    if (parts) point_cost(i, M * (best_along * X) + m, parts, 1.0 / static_cast<double>(n));
     sum += best;
   }
   return sum / static_cast<double>(n);
@@ -319,11 +341,12 @@ bool prepare_view(View& v, const T* images, const T* foreground, const T* depth,
 }
 
 // Sum of every ordered pair's cost.
-inline double total_cost(const std::vector<View>& views, const std::vector<Placed>& placed, const OrbitSearchConfig& cfg) {
+inline double total_cost(const std::vector<View>& views, const std::vector<Placed>& placed, const OrbitSearchConfig& cfg,
+                         OrbitCostParts* parts = nullptr) {
   double c = 0;
   for (std::size_t a = 0; a < views.size(); ++a)
     for (std::size_t b = 0; b < views.size(); ++b)
-      if (a != b) c += pair_cost(views[a], placed[a], views[b], placed[b], cfg);
+      if (a != b) c += pair_cost(views[a], placed[a], views[b], placed[b], cfg, parts);
   return c;
 }
 
@@ -557,11 +580,12 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
 // The search's objective for given cameras: the sum of the pair costs over ordered pairs of the usable views, what
 // cameras_from_orbit_search minimises and reports through cost_out (0 for one view or an unusable first view).
 // extrinsics [S, 3, 4] world-to-camera, any world frame, translations in the depth's units; the other inputs as the
-// search's. To compare a found placement with another, e.g. the truth's.
+// search's. To compare a found placement with another, e.g. the truth's. parts (may be null) receives the cost split by
+// kind (added to what it holds).
 template <class T>
 double orbit_search_cost(const T* extrinsics, const T* images, const T* foreground, const T* depth, const T* intrinsics,
                          index_t frames, index_t height, index_t width, const OrbitSearchConfig& cfg = {},
-                         const OrbitDescriptors<T>& descriptors = {}) {
+                         const OrbitDescriptors<T>& descriptors = {}, OrbitCostParts* parts = nullptr) {
   using namespace orbit_detail;
   check_search_input("orbit_search_cost", frames, height, width, cfg, descriptors.dim);
   std::vector<View> act;
@@ -577,7 +601,7 @@ double orbit_search_cost(const T* extrinsics, const T* images, const T* foregrou
     const Camera cam = camera_from_arrays(intrinsics + 9 * active[a], E, static_cast<int>(width), static_cast<int>(height));
     placed[a].R = cam.R, placed[a].t = cam.t;
   }
-  return total_cost(act, placed, cfg);
+  return total_cost(act, placed, cfg, parts);
 }
 
 }  // namespace geometry
