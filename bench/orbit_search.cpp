@@ -10,8 +10,8 @@
 //                     [--descriptor-weight 0 (with --model: its match head's descriptors)]
 //                     [--descriptor-temperature 0.1] [--occluded-cost 0.1] [--samples 256] [--depth-range 0] [--depth-candidates 5]
 //                     [--depth-blend 0 | --depth-grid N] [--depth-waves 0] [--depth-inflate 0]
-//                     [--descriptors model|image|both] [--patch 5] [--patch-spacing 2] [--order-ensemble]
-//                     [--refine-depth-grid G] [--cost-parts] OBJECT_DIR...
+//                     [--descriptors model|image|both|oracle] [--patch 5] [--patch-spacing 2] [--order-ensemble]
+//                     [--oracle-wrong 0] [--refine-depth-grid G] [--cost-parts] OBJECT_DIR...
 //   e.g. `build/bench/orbit_search ../shared/data/objects/*`
 // --inputs keeps only those input codes (silhouettes, depth, intrinsics from the renderer r or the model m); the other
 // options set the search's OrbitSearchConfig fields of the same names (how tolerant it is of the predictions' errors).
@@ -23,7 +23,9 @@
 // (x, y in [0, 1) across view v): smooth relative errors of up to A, as a learned depth's shape errors, known exactly.
 // --depth-inflate k: the renderer's depth given to the search is each silhouette inflated into a shell (inflated_depth).
 // --descriptors image|both: the search's descriptors are patch correlations of the photos at their own resolution
-// (patch_descriptors, P = --patch samples --patch-spacing photo pixels apart), alone or beside the model's.
+// (patch_descriptors, P = --patch samples --patch-spacing photo pixels apart), alone or beside the model's; oracle:
+// features of each pixel's true world point (oracle_descriptors), what descriptors that find every correspondence give;
+// --oracle-wrong q: a share q of them moved to other object pixels.
 // --refine-depth-grid G (G >= 2): one more column, the sets whose true cameras cost less than the found ones once each
 // view's depth is corrected by a G x G grid fitted to the search's objective at either placement (depth_refined_cost).
 // --cost-parts: a table of the objective's parts (geometry::OrbitCostParts) at the found and the true cameras.
@@ -195,6 +197,61 @@ double inverse_length(const float* d, index_t dim) {
   return sq > 0 && std::isfinite(sq) ? 1 / std::sqrt(sq) : 0;
 }
 
+// --descriptors oracle: random Fourier features of each pixel's true world point (the renderer's depth and cameras),
+// so that two pixels' cosine is about exp(-|x - y|^2 / (2 s^2)), s 3 % of the median depth: descriptors that find
+// every true correspondence and nothing else; zero off the true silhouette.
+std::vector<float> oracle_descriptors(index_t& dim, const Maps& truth, const model::PosedViews& pv, int n, int size,
+                                      double wrong) {
+  constexpr index_t D = 64;
+  dim = D;
+  const std::size_t px = static_cast<std::size_t>(size) * static_cast<std::size_t>(size);
+  std::vector<double> z;
+  for (std::size_t i = 0; i < truth.depth.size(); ++i)
+    if (truth.foreground[i] > 0.5f) z.push_back(truth.depth[i]);
+  require(!z.empty(), "orbit_search: --descriptors oracle: no object pixels in the renderer's views");
+  const double sigma = 0.03 * median(z);
+  std::mt19937 rng(1234);
+  std::normal_distribution<double> normal(0.0, 1.0 / sigma);
+  std::uniform_real_distribution<double> phase(0.0, 2 * std::numbers::pi);
+  std::vector<glm::dvec3> w(D);
+  std::vector<double> b(D);
+  for (index_t k = 0; k < D; ++k) w[static_cast<std::size_t>(k)] = glm::dvec3(normal(rng), normal(rng), normal(rng)), b[static_cast<std::size_t>(k)] = phase(rng);
+  std::vector<float> out(static_cast<std::size_t>(n) * px * D, 0.f);
+  for (int v = 0; v < n; ++v) {
+    const std::vector<double> cam = geometry::camera_frame_points(truth.depth.data(), truth.K.data(), v, size, size);
+    const float* E = pv.w2c.data() + 12 * v;
+    for (std::size_t p = 0; p < px; ++p) {
+      if (!(truth.foreground[static_cast<std::size_t>(v) * px + p] > 0.5f)) continue;
+      glm::dvec3 X(cam[3 * p], cam[3 * p + 1], cam[3 * p + 2]), Y(0.0);
+      for (int r = 0; r < 3; ++r) X[r] -= E[4 * r + 3];
+      for (int c = 0; c < 3; ++c)
+        for (int r = 0; r < 3; ++r) Y[c] += static_cast<double>(E[4 * r + c]) * X[r];  // R^T (x - t)
+      float* o = out.data() + (static_cast<std::size_t>(v) * px + p) * D;
+      for (index_t k = 0; k < D; ++k) o[k] = static_cast<float>(std::cos(glm::dot(w[static_cast<std::size_t>(k)], Y) + b[static_cast<std::size_t>(k)]));
+    }
+  }
+  // A fraction `wrong` of each view's object pixels takes another object pixel's descriptor: a matcher that finds that
+  // share of the correspondences elsewhere on the object.
+  if (wrong > 0) {
+    std::uniform_real_distribution<double> coin(0.0, 1.0);
+    for (int v = 0; v < n; ++v) {
+      std::vector<std::size_t> object;
+      for (std::size_t p = 0; p < px; ++p)
+        if (truth.foreground[static_cast<std::size_t>(v) * px + p] > 0.5f) object.push_back(p);
+      const std::vector<float> kept(out.begin() + static_cast<std::ptrdiff_t>(static_cast<std::size_t>(v) * px * D),
+                                    out.begin() + static_cast<std::ptrdiff_t>(static_cast<std::size_t>(v + 1) * px * D));
+      std::uniform_int_distribution<std::size_t> pick(0, object.size() - 1);
+      for (const std::size_t p : object) {
+        if (coin(rng) >= wrong) continue;
+        const std::size_t q = object[pick(rng)];
+        std::copy(kept.begin() + static_cast<std::ptrdiff_t>(q * D), kept.begin() + static_cast<std::ptrdiff_t>((q + 1) * D),
+                  out.begin() + static_cast<std::ptrdiff_t>((static_cast<std::size_t>(v) * px + p) * D));
+      }
+    }
+  }
+  return out;
+}
+
 // The descriptors the search reads, --descriptors image|both: the patch descriptors alone, or beside the model's
 // [pixels, md] ones with each half of unit length over 2^0.5, so that the cosine is the mean of the two (zero where
 // the patch is flat).
@@ -319,6 +376,7 @@ int main(int argc, char** argv) try {
   geometry::OrbitSearchConfig search;
   int refine_grid = 0;  // --refine-depth-grid G
   bool cost_parts = false;
+  double oracle_wrong = 0;  // --oracle-wrong q
   double blend = 0;
   int grid = 0;
   double waves = 0, inflate = 0, patch_spacing = 2;
@@ -344,6 +402,7 @@ int main(int argc, char** argv) try {
     else if (a == "--samples" && more) search.samples = std::stoll(argv[++i]);
     else if (a == "--refine-depth-grid" && more) refine_grid = std::stoi(argv[++i]);
     else if (a == "--cost-parts") cost_parts = true;
+    else if (a == "--oracle-wrong" && more) oracle_wrong = std::stod(argv[++i]);
     else if (a == "--depth-blend" && more) blend = std::stod(argv[++i]);
     else if (a == "--depth-grid" && more) grid = std::stoi(argv[++i]);
     else if (a == "--depth-waves" && more) waves = std::stod(argv[++i]);
@@ -367,8 +426,8 @@ int main(int argc, char** argv) try {
           "[--inputs mmm,rrr,...] [--depth-tolerance X] [--silhouette-px X] [--colour-weight X] [--descriptor-weight X] "
           "[--descriptor-temperature X] [--occluded-cost X] [--samples N] [--depth-range X] "
           "[--depth-candidates N] [--depth-blend A | --depth-grid N] [--depth-waves A] [--depth-inflate k] "
-          "[--descriptors model|image|both] [--patch P] [--patch-spacing S] [--order-ensemble] [--refine-depth-grid G] [--cost-parts] "
-          "OBJECT_DIR...");
+          "[--descriptors model|image|both|oracle] [--patch P] [--patch-spacing S] [--order-ensemble] "
+          "[--oracle-wrong Q] [--refine-depth-grid G] [--cost-parts] OBJECT_DIR...");
   require(blend >= 0 && blend <= 1 && (blend == 0 || !model_path.empty()), "orbit_search: --depth-blend ", blend,
           " must be in [0, 1] and needs --model");
   require(grid >= 0 && (grid == 0 || (!model_path.empty() && blend == 0)), "orbit_search: --depth-grid ", grid,
@@ -376,9 +435,12 @@ int main(int argc, char** argv) try {
   require(waves >= 0 && waves < 1, "orbit_search: --depth-waves ", waves, " must be in [0, 1)");
   require(inflate >= 0 && inflate <= 2 && (inflate == 0 || grid == 0), "orbit_search: --depth-inflate ", inflate,
           " must be in [0, 2] and excludes --depth-grid");
-  require(descriptor_source == "model" || descriptor_source == "image" || (descriptor_source == "both" && !model_path.empty()),
-          "orbit_search: --descriptors '", descriptor_source, "' must be model, image or both (both needs --model)");
+  require(descriptor_source == "model" || descriptor_source == "image" || descriptor_source == "oracle" ||
+              (descriptor_source == "both" && !model_path.empty()),
+          "orbit_search: --descriptors '", descriptor_source, "' must be model, image, both or oracle (both needs --model)");
   require(!ensemble || !model_path.empty(), "orbit_search: --order-ensemble needs --model");
+  require(oracle_wrong >= 0 && oracle_wrong <= 1 && (oracle_wrong == 0 || descriptor_source == "oracle"),
+          "orbit_search: --oracle-wrong ", oracle_wrong, " must be in [0, 1] and needs --descriptors oracle");
   require(refine_grid == 0 || (refine_grid >= 2 && refine_grid <= 64), "orbit_search: --refine-depth-grid ", refine_grid,
           " must be in [2, 64]");
   require(patch >= 1 && patch <= 15 && patch_spacing > 0 && patch_spacing <= 16, "orbit_search: --patch ", patch,
@@ -524,7 +586,9 @@ int main(int argc, char** argv) try {
             }
         if (w || altered) searched += n * loss::depth_scaled_error(filled.data(), gt.data(), n, static_cast<index_t>(px));
         index_t desc_dim = w ? w->config().geometry.match_dim : 0;
-        if (descriptor_source != "model")
+        if (descriptor_source == "oracle")
+          descriptors = oracle_descriptors(desc_dim, truth, pv, n, size, oracle_wrong);
+        else if (descriptor_source != "model")
           descriptors = image_descriptors(desc_dim, rec, in, size, patch, patch_spacing, descriptors,
                                           descriptor_source == "both" ? desc_dim : 0);
         const geometry::OrbitDescriptors<float> desc{descriptors.empty() ? nullptr : descriptors.data(), desc_dim};
