@@ -655,10 +655,11 @@ int main(int argc, char** argv) try {
         std::printf(" %d / %zu, %d / %d |", e.grid_truth_cheaper, e.rotation.size(), e.grid_off_truth_cheaper, e.off);
       std::printf("\n");
       if (cost_parts) {
+        const std::string& inputs = name;  // a lambda cannot capture a binding (clang 14)
         auto row = [&](const char* what, const geometry::OrbitCostParts& x, double sets) {
           char line[320];
           std::snprintf(line, sizeof line, "| %d | %s | %s | %.0f | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f |", n,
-                        name.c_str(), what, sets, x.off_image / sets, x.silhouette / sets, x.free_space / sets,
+                        inputs.c_str(), what, sets, x.off_image / sets, x.silhouette / sets, x.free_space / sets,
                         x.occluded / sets, x.colour / sets, x.descriptor / sets, x.total() / sets);
           parts_rows.push_back(line);
         };
