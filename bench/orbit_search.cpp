@@ -42,8 +42,6 @@
 #include <string>
 #include <vector>
 
-#include <glm/gtc/matrix_transform.hpp>
-
 #include "flexsplat/data/dataset.hpp"
 #include "flexsplat/geometry/orbit_search.hpp"
 #include "flexsplat/image/image_io.hpp"
@@ -285,11 +283,10 @@ struct Errors {
 
 // The search's objective at fixed cameras E once each view's depth is multiplied by exp of a G x G grid (bilinear
 // between the cells' centres, within +-0.3), the grids fitted to that objective by coordinate descent: whether depth
-// corrected by the views themselves would make the true cameras the cheaper placement. base_cost: before the grids.
+// corrected by the views themselves would make the true cameras the cheaper placement.
 template <class T>
 double depth_refined_cost(const T* E, const T* images, const T* fg, const T* depth, const T* K, index_t n, index_t size,
-                          const geometry::OrbitSearchConfig& cfg, const geometry::OrbitDescriptors<T>& desc, int G,
-                          double* base_cost) {
+                          const geometry::OrbitSearchConfig& cfg, const geometry::OrbitDescriptors<T>& desc, int G) {
   using namespace geometry::orbit_detail;
   std::vector<View> act;
   std::vector<index_t> active;
@@ -345,7 +342,6 @@ double depth_refined_cost(const T* E, const T* images, const T* fg, const T* dep
                    std::abs((y + 0.5) / cell - 0.5 - gy) < 1;
         if (near) nodes[a].push_back(gy * G + gx);
       }
-  if (base_cost) *base_cost = total_cost(act, placed, cfg);
   for (const double step : {0.08, 0.04, 0.02, 0.01})
     for (int sweep = 0; sweep < 2; ++sweep)
       for (std::size_t a = 0; a < A; ++a)
@@ -632,7 +628,7 @@ int main(int argc, char** argv) try {
           if (refine_grid > 0) {
             auto refined = [&](const float* X) {
               return depth_refined_cost<float>(X, images.data(), pick(0).foreground.data(), depth, pick(2).K.data(), n,
-                                               size, search, desc, refine_grid, nullptr);
+                                               size, search, desc, refine_grid);
             };
             const bool grid_cheaper = refined(truth_E.data()) < refined(E.data());
             errors[name].grid_truth_cheaper += grid_cheaper;
