@@ -293,11 +293,7 @@ double depth_refined_cost(const T* E, const T* images, const T* fg, const T* dep
   prepare_views(act, active, images, fg, depth, K, n, size, size, cfg, desc);
   const std::size_t A = act.size();
   if (A < 2) return 0;
-  std::vector<Placed> placed(A);
-  for (std::size_t a = 0; a < A; ++a) {
-    const Camera cam = camera_from_arrays(K + 9 * active[a], E + 12 * active[a], static_cast<int>(size), static_cast<int>(size));
-    placed[a].R = cam.R, placed[a].t = cam.t;
-  }
+  const std::vector<Placed> placed = placed_cameras(E, K, active, size, size);
   std::vector<std::vector<float>> base_depth(A);
   std::vector<std::vector<double>> base_point(A), point_x(A), point_y(A);
   std::vector<std::vector<double>> grid(A, std::vector<double>(static_cast<std::size_t>(G * G), 0.0));
@@ -608,22 +604,16 @@ int main(int argc, char** argv) try {
           std::vector<float> truth_E(gt.size());
           for (std::size_t i = 0; i < gt.size(); ++i)
             truth_E[i] = static_cast<float>(i % 4 == 3 && from[1] == 'm' ? gt[i] / sp[i / 12] : gt[i]);
+          geometry::OrbitCostParts f, t;
           const bool cheaper = geometry::orbit_search_cost<float>(truth_E.data(), images.data(), pick(0).foreground.data(),
-                                                                  depth, pick(2).K.data(), n, size, size, search, desc) <
-                               found_cost;
-          if (cost_parts) {
-            geometry::OrbitCostParts f, t;
+                                                                  depth, pick(2).K.data(), n, size, size, search, desc,
+                                                                  cost_parts ? &t : nullptr) < found_cost;
+          if (cost_parts) {  // the found placement's parts: the search reports its cost only
             geometry::orbit_search_cost<float>(E.data(), images.data(), pick(0).foreground.data(), depth, pick(2).K.data(),
                                                n, size, size, search, desc, &f);
-            geometry::orbit_search_cost<float>(truth_E.data(), images.data(), pick(0).foreground.data(), depth,
-                                               pick(2).K.data(), n, size, size, search, desc, &t);
             Errors& er = errors[name];
-            auto add = [](geometry::OrbitCostParts& to, const geometry::OrbitCostParts& x) {
-              to.off_image += x.off_image, to.silhouette += x.silhouette, to.free_space += x.free_space;
-              to.occluded += x.occluded, to.colour += x.colour, to.descriptor += x.descriptor;
-            };
-            add(er.found_parts, f), add(er.truth_parts, t);
-            if (e / (n - 1) > 15) add(er.off_found_parts, f), add(er.off_truth_parts, t);
+            er.found_parts += f, er.truth_parts += t;
+            if (e / (n - 1) > 15) er.off_found_parts += f, er.off_truth_parts += t;
           }
           if (refine_grid > 0) {
             auto refined = [&](const float* X) {

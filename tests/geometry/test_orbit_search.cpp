@@ -160,6 +160,10 @@ TEST_CASE("orbit search cost: its parts sum to it and say what a turned view bre
   geometry::orbit_search_cost<float>(truth.data(), v.images.data(), v.foreground.data(), v.depth.data(), v.K.data(), v.n,
                                      v.size, v.size, cfg, d, &twice);
   CHECK(twice.total() == Approx(2 * c_truth).margin(1e-9));
+  geometry::OrbitCostParts both = at_truth;
+  both += at_turned;
+  CHECK(both.silhouette == Approx(at_truth.silhouette + at_turned.silhouette).margin(1e-12));
+  CHECK(both.total() == Approx(c_truth + c_turned).margin(1e-9));
 }
 
 TEST_CASE("orbit search: a view without object pixels stays at the first camera, unsolved, and bad input is refused",

@@ -76,6 +76,11 @@ struct OrbitCostParts {
   double colour = 0;      // on it: the colour difference
   double descriptor = 0;  // on it: minus the descriptor reward
   double total() const { return off_image + silhouette + free_space + occluded + colour + descriptor; }
+  OrbitCostParts& operator+=(const OrbitCostParts& o) {
+    off_image += o.off_image, silhouette += o.silhouette, free_space += o.free_space;
+    occluded += o.occluded, colour += o.colour, descriptor += o.descriptor;
+    return *this;
+  }
 };
 
 // One view's orbit parameters (radians; distance in depth units).
@@ -394,6 +399,22 @@ std::vector<bool> prepare_views(std::vector<View>& act, std::vector<index_t>& ac
   return usable;
 }
 
+// The given world-to-cameras [S, 3, 4] of the active views, refused if not finite.
+template <class T>
+std::vector<Placed> placed_cameras(const T* extrinsics, const T* intrinsics, const std::vector<index_t>& active,
+                                   index_t height, index_t width) {
+  std::vector<Placed> placed(active.size());
+  for (std::size_t a = 0; a < active.size(); ++a) {
+    const T* E = extrinsics + 12 * active[a];
+    for (int i = 0; i < 12; ++i)
+      require(std::isfinite(static_cast<double>(E[i])), "orbit_search_cost: view ", active[a], " extrinsics[", i / 4,
+              ",", i % 4, "] = ", static_cast<double>(E[i]), " is not finite");
+    const Camera cam = camera_from_arrays(intrinsics + 9 * active[a], E, static_cast<int>(width), static_cast<int>(height));
+    placed[a].R = cam.R, placed[a].t = cam.t;
+  }
+  return placed;
+}
+
 }  // namespace orbit_detail
 
 // Each view's world-to-camera [S, 3, 4] (the first view's camera is the world, [I | 0]) from its silhouette, depth and
@@ -592,16 +613,7 @@ double orbit_search_cost(const T* extrinsics, const T* images, const T* foregrou
   std::vector<index_t> active;
   prepare_views(act, active, images, foreground, depth, intrinsics, frames, height, width, cfg, descriptors);
   if (act.size() < 2) return 0;
-  std::vector<Placed> placed(act.size());
-  for (std::size_t a = 0; a < act.size(); ++a) {
-    const T* E = extrinsics + 12 * active[a];
-    for (int i = 0; i < 12; ++i)
-      require(std::isfinite(static_cast<double>(E[i])), "orbit_search_cost: view ", active[a], " extrinsics[", i / 4,
-              ",", i % 4, "] = ", static_cast<double>(E[i]), " is not finite");
-    const Camera cam = camera_from_arrays(intrinsics + 9 * active[a], E, static_cast<int>(width), static_cast<int>(height));
-    placed[a].R = cam.R, placed[a].t = cam.t;
-  }
-  return total_cost(act, placed, cfg, parts);
+  return total_cost(act, placed_cameras(extrinsics, intrinsics, active, height, width), cfg, parts);
 }
 
 }  // namespace geometry
