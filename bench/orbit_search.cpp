@@ -11,7 +11,7 @@
 //                     [--descriptor-temperature 0.1] [--occluded-cost 0.1] [--samples 256] [--depth-range 0] [--depth-candidates 5]
 //                     [--depth-blend 0 | --depth-grid N] [--depth-waves 0] [--depth-inflate 0]
 //                     [--descriptors model|image|both|oracle] [--patch 5] [--patch-spacing 2] [--order-ensemble]
-//                     [--oracle-wrong 0] [--refine-depth-grid G] [--cost-parts] OBJECT_DIR...
+//                     [--oracle-wrong 0] [--oracle-jitter 0] [--refine-depth-grid G] [--cost-parts] OBJECT_DIR...
 //   e.g. `build/bench/orbit_search ../shared/data/objects/*`
 // --inputs keeps only those input codes (silhouettes, depth, intrinsics from the renderer r or the model m); the other
 // options set the search's OrbitSearchConfig fields of the same names (how tolerant it is of the predictions' errors).
@@ -25,10 +25,13 @@
 // --descriptors image|both: the search's descriptors are patch correlations of the photos at their own resolution
 // (patch_descriptors, P = --patch samples --patch-spacing photo pixels apart), alone or beside the model's; oracle:
 // features of each pixel's true world point (oracle_descriptors), what descriptors that find every correspondence give;
-// --oracle-wrong q: a share q of them moved to other object pixels.
+// --oracle-wrong q: a share q of them moved to other object pixels; --oracle-jitter R: each taken from an object pixel
+// within R pixels (right only to within R; before the wrong share).
 // --refine-depth-grid G (G >= 2): one more column, the sets whose true cameras cost less than the found ones once each
 // view's depth is corrected by a G x G grid fitted to the search's objective at either placement (depth_refined_cost).
 // --cost-parts: a table of the objective's parts (geometry::OrbitCostParts) at the found and the true cameras.
+// With descriptors (the model's or --descriptors ...), a table of their accuracy on the renderer's correspondences
+// (loss::match_accuracy within 1 and 4 pixels, validation's match_accuracy and match_accuracy_4px).
 // --order-ensemble (with --model): the model's depth, object probability and descriptors averaged over the V cyclic
 // orders of the views.
 #include <algorithm>
@@ -39,6 +42,7 @@
 #include <memory>
 #include <numeric>
 #include <random>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -47,6 +51,7 @@
 #include "flexsplat/image/image_io.hpp"
 #include "flexsplat/image/layout.hpp"
 #include "flexsplat/loss/geometry.hpp"
+#include "flexsplat/loss/match.hpp"
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/model/evaluate.hpp"
 #include "flexsplat/model/frames.hpp"
@@ -199,7 +204,7 @@ double inverse_length(const float* d, index_t dim) {
 // so that two pixels' cosine is about exp(-|x - y|^2 / (2 s^2)), s 3 % of the median depth: descriptors that find
 // every true correspondence and nothing else; zero off the true silhouette.
 std::vector<float> oracle_descriptors(index_t& dim, const Maps& truth, const model::PosedViews& pv, int n, int size,
-                                      double wrong) {
+                                      double wrong, double jitter) {
   constexpr index_t D = 64;
   dim = D;
   const std::size_t px = static_cast<std::size_t>(size) * static_cast<std::size_t>(size);
@@ -226,6 +231,31 @@ std::vector<float> oracle_descriptors(index_t& dim, const Maps& truth, const mod
         for (int r = 0; r < 3; ++r) Y[c] += static_cast<double>(E[4 * r + c]) * X[r];  // R^T (x - t)
       float* o = out.data() + (static_cast<std::size_t>(v) * px + p) * D;
       for (index_t k = 0; k < D; ++k) o[k] = static_cast<float>(std::cos(glm::dot(w[static_cast<std::size_t>(k)], Y) + b[static_cast<std::size_t>(k)]));
+    }
+  }
+  // Each object pixel takes the descriptor of an object pixel drawn uniformly within `jitter` pixels of it: a matcher
+  // that finds every correspondence only to within that radius.
+  if (jitter > 0) {
+    const int r = static_cast<int>(std::floor(jitter));
+    std::uniform_int_distribution<int> offset(-r, r);
+    for (int v = 0; v < n; ++v) {
+      const std::size_t base = static_cast<std::size_t>(v) * px;
+      const std::vector<float> kept(out.begin() + static_cast<std::ptrdiff_t>(base * D),
+                                    out.begin() + static_cast<std::ptrdiff_t>((base + px) * D));
+      for (int y = 0; y < size; ++y)
+        for (int x = 0; x < size; ++x) {
+          const std::size_t p = static_cast<std::size_t>(y) * static_cast<std::size_t>(size) + static_cast<std::size_t>(x);
+          if (!(truth.foreground[base + p] > 0.5f)) continue;
+          for (int tries = 0; tries < 64; ++tries) {  // rejection: within the disc and on the object
+            const int dx = offset(rng), dy = offset(rng), qx = x + dx, qy = y + dy;
+            if (dx * dx + dy * dy > jitter * jitter || qx < 0 || qy < 0 || qx >= size || qy >= size) continue;
+            const std::size_t q = static_cast<std::size_t>(qy) * static_cast<std::size_t>(size) + static_cast<std::size_t>(qx);
+            if (!(truth.foreground[base + q] > 0.5f)) continue;
+            std::copy(kept.begin() + static_cast<std::ptrdiff_t>(q * D), kept.begin() + static_cast<std::ptrdiff_t>((q + 1) * D),
+                      out.begin() + static_cast<std::ptrdiff_t>((base + p) * D));
+            break;
+          }
+        }
     }
   }
   // A fraction `wrong` of each view's object pixels takes another object pixel's descriptor: a matcher that finds that
@@ -369,6 +399,7 @@ int main(int argc, char** argv) try {
   int refine_grid = 0;  // --refine-depth-grid G
   bool cost_parts = false;
   double oracle_wrong = 0;  // --oracle-wrong q
+  double oracle_jitter = 0;  // --oracle-jitter R
   double blend = 0;
   int grid = 0;
   double waves = 0, inflate = 0, patch_spacing = 2;
@@ -395,6 +426,7 @@ int main(int argc, char** argv) try {
     else if (a == "--refine-depth-grid" && more) refine_grid = std::stoi(argv[++i]);
     else if (a == "--cost-parts") cost_parts = true;
     else if (a == "--oracle-wrong" && more) oracle_wrong = std::stod(argv[++i]);
+    else if (a == "--oracle-jitter" && more) oracle_jitter = std::stod(argv[++i]);
     else if (a == "--depth-blend" && more) blend = std::stod(argv[++i]);
     else if (a == "--depth-grid" && more) grid = std::stoi(argv[++i]);
     else if (a == "--depth-waves" && more) waves = std::stod(argv[++i]);
@@ -419,7 +451,7 @@ int main(int argc, char** argv) try {
           "[--descriptor-temperature X] [--occluded-cost X] [--samples N] [--depth-range X] "
           "[--depth-candidates N] [--depth-blend A | --depth-grid N] [--depth-waves A] [--depth-inflate k] "
           "[--descriptors model|image|both|oracle] [--patch P] [--patch-spacing S] [--order-ensemble] "
-          "[--oracle-wrong Q] [--refine-depth-grid G] [--cost-parts] OBJECT_DIR...");
+          "[--oracle-wrong Q] [--oracle-jitter R] [--refine-depth-grid G] [--cost-parts] OBJECT_DIR...");
   require(blend >= 0 && blend <= 1 && (blend == 0 || !model_path.empty()), "orbit_search: --depth-blend ", blend,
           " must be in [0, 1] and needs --model");
   require(grid >= 0 && (grid == 0 || (!model_path.empty() && blend == 0)), "orbit_search: --depth-grid ", grid,
@@ -433,6 +465,8 @@ int main(int argc, char** argv) try {
   require(!ensemble || !model_path.empty(), "orbit_search: --order-ensemble needs --model");
   require(oracle_wrong >= 0 && oracle_wrong <= 1 && (oracle_wrong == 0 || descriptor_source == "oracle"),
           "orbit_search: --oracle-wrong ", oracle_wrong, " must be in [0, 1] and needs --descriptors oracle");
+  require(oracle_jitter >= 0 && oracle_jitter <= 16 && (oracle_jitter == 0 || descriptor_source == "oracle"),
+          "orbit_search: --oracle-jitter ", oracle_jitter, " must be in [0, 16] and needs --descriptors oracle");
   require(refine_grid == 0 || (refine_grid >= 2 && refine_grid <= 64), "orbit_search: --refine-depth-grid ", refine_grid,
           " must be in [2, 64]");
   require(patch >= 1 && patch <= 15 && patch_spacing > 0 && patch_spacing <= 16, "orbit_search: --patch ", patch,
@@ -463,10 +497,11 @@ int main(int argc, char** argv) try {
   std::printf("| views | inputs | sets | median error | mean error | within 15° | seconds per set | true cameras cost less: all "
               "sets, sets off by > 15° |%s\n|---|---|---|---|---|---|---|---|%s\n",
               refine_grid > 0 ? " the same with depth grids fitted |" : "", refine_grid > 0 ? "---|" : "");
-  std::vector<std::string> quality, parts_rows;
+  std::vector<std::string> quality, parts_rows, accuracy_rows;
   for (const int n : counts) {
     std::map<std::string, Errors> errors;
     double iou = 0, shape = 0, flat = 0, focal = 0, searched = 0;
+    double correspondences = 0, hits1 = 0, hits4 = 0;  // the search's descriptors on the renderer's correspondences
     int measured = 0;
     for (const auto& rec : objects) {
       const int frames = static_cast<int>(rec.frames.size());
@@ -579,11 +614,19 @@ int main(int argc, char** argv) try {
         if (w || altered) searched += n * loss::depth_scaled_error(filled.data(), gt.data(), n, static_cast<index_t>(px));
         index_t desc_dim = w ? w->config().geometry.match_dim : 0;
         if (descriptor_source == "oracle")
-          descriptors = oracle_descriptors(desc_dim, truth, pv, n, size, oracle_wrong);
+          descriptors = oracle_descriptors(desc_dim, truth, pv, n, size, oracle_wrong, oracle_jitter);
         else if (descriptor_source != "model")
           descriptors = image_descriptors(desc_dim, rec, in, size, patch, patch_spacing, descriptors,
                                           descriptor_source == "both" ? desc_dim : 0);
         const geometry::OrbitDescriptors<float> desc{descriptors.empty() ? nullptr : descriptors.data(), desc_dim};
+        if (!descriptors.empty()) {  // as validation's match_accuracy: nearest descriptor within 1 and 4 pixels
+          const std::vector<loss::PixelMatch> truth_matches =
+              loss::ground_truth_matches(truth.depth.data(), pv.photos.K.data(), pv.w2c.data(), n, size, size, 256);
+          const double m = static_cast<double>(truth_matches.size());
+          correspondences += m;
+          hits1 += m * loss::match_accuracy(descriptors.data(), std::span<const loss::PixelMatch>(truth_matches), n, size, size, desc_dim, 1);
+          hits4 += m * loss::match_accuracy(descriptors.data(), std::span<const loss::PixelMatch>(truth_matches), n, size, size, desc_dim, 4);
+        }
         for (const auto& source : sources) {
           const std::string &name = source.first, &from = source.second;  // a lambda cannot capture a binding (clang 14)
           auto pick = [&](int k) -> const Maps& { return from[static_cast<std::size_t>(k)] == 'r' ? truth : pred; };
@@ -658,6 +701,12 @@ int main(int argc, char** argv) try {
       std::printf("| %d | depth error of the depth searched (each view scaled): %.3f |\n", n,
                   searched / (static_cast<double>(n) * sets * static_cast<double>(objects.size())));
     std::fflush(stdout);
+    if (correspondences > 0) {
+      char line[160];
+      std::snprintf(line, sizeof line, "| %d | %.0f | %.3f | %.3f |", n, correspondences, hits1 / correspondences,
+                    hits4 / correspondences);
+      accuracy_rows.push_back(line);
+    }
     if (measured > 0) {
       char line[256], searched_cell[32] = "";
       if (altered) std::snprintf(searched_cell, sizeof searched_cell, " %.3f |", searched / measured);
@@ -670,6 +719,11 @@ int main(int argc, char** argv) try {
     std::printf("\n| views | silhouette IoU | depth error (each view scaled) | same for a constant depth |%s focal error "
                 "|\n|---|---|---|---|%s---|\n", altered ? " same for the renderer's depth searched |" : "", altered ? "---|" : "");
     for (const auto& l : quality) std::printf("%s\n", l.c_str());
+  }
+  if (!accuracy_rows.empty()) {
+    std::printf("\nThe search's descriptors on the renderer's correspondences (loss::match_accuracy, up to 256 per ordered "
+                "pair):\n\n| views | correspondences | within 1 px | within 4 px |\n|---|---|---|---|\n");
+    for (const auto& l : accuracy_rows) std::printf("%s\n", l.c_str());
   }
   if (!parts_rows.empty()) {
     std::printf("\nThe objective's parts, mean per set (geometry::OrbitCostParts):\n\n| views | inputs | cameras | sets | off image "
