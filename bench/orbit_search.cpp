@@ -233,49 +233,49 @@ std::vector<float> oracle_descriptors(index_t& dim, const Maps& truth, const mod
       for (index_t k = 0; k < D; ++k) o[k] = static_cast<float>(std::cos(glm::dot(w[static_cast<std::size_t>(k)], Y) + b[static_cast<std::size_t>(k)]));
     }
   }
-  // Each object pixel takes the descriptor of an object pixel drawn uniformly within `jitter` pixels of it: a matcher
-  // that finds every correspondence only to within that radius.
-  if (jitter > 0) {
-    const int r = static_cast<int>(std::floor(jitter));
-    std::uniform_int_distribution<int> offset(-r, r);
+  // Each object pixel p of view v takes the descriptor that view had at pixel source(v, p) (p: its own).
+  auto remap = [&](auto&& source) {
     for (int v = 0; v < n; ++v) {
       const std::size_t base = static_cast<std::size_t>(v) * px;
       const std::vector<float> kept(out.begin() + static_cast<std::ptrdiff_t>(base * D),
                                     out.begin() + static_cast<std::ptrdiff_t>((base + px) * D));
-      for (int y = 0; y < size; ++y)
-        for (int x = 0; x < size; ++x) {
-          const std::size_t p = static_cast<std::size_t>(y) * static_cast<std::size_t>(size) + static_cast<std::size_t>(x);
-          if (!(truth.foreground[base + p] > 0.5f)) continue;
-          for (int tries = 0; tries < 64; ++tries) {  // rejection: within the disc and on the object
-            const int dx = offset(rng), dy = offset(rng), qx = x + dx, qy = y + dy;
-            if (dx * dx + dy * dy > jitter * jitter || qx < 0 || qy < 0 || qx >= size || qy >= size) continue;
-            const std::size_t q = static_cast<std::size_t>(qy) * static_cast<std::size_t>(size) + static_cast<std::size_t>(qx);
-            if (!(truth.foreground[base + q] > 0.5f)) continue;
-            std::copy(kept.begin() + static_cast<std::ptrdiff_t>(q * D), kept.begin() + static_cast<std::ptrdiff_t>((q + 1) * D),
-                      out.begin() + static_cast<std::ptrdiff_t>((base + p) * D));
-            break;
-          }
-        }
+      for (std::size_t p = 0; p < px; ++p) {
+        if (!(truth.foreground[base + p] > 0.5f)) continue;
+        const std::size_t q = source(v, p);
+        std::copy(kept.begin() + static_cast<std::ptrdiff_t>(q * D), kept.begin() + static_cast<std::ptrdiff_t>((q + 1) * D),
+                  out.begin() + static_cast<std::ptrdiff_t>((base + p) * D));
+      }
     }
+  };
+  // An object pixel drawn uniformly within `jitter` pixels: a matcher that finds every correspondence only to within
+  // that radius.
+  if (jitter > 0) {
+    const int r = static_cast<int>(std::floor(jitter)), s = size;
+    std::uniform_int_distribution<int> offset(-r, r);
+    remap([&](int v, std::size_t p) {
+      const int x = static_cast<int>(p % static_cast<std::size_t>(s)), y = static_cast<int>(p / static_cast<std::size_t>(s));
+      for (int tries = 0; tries < 64; ++tries) {  // rejection: within the disc and on the object
+        const int dx = offset(rng), dy = offset(rng), qx = x + dx, qy = y + dy;
+        if (dx * dx + dy * dy > jitter * jitter || qx < 0 || qy < 0 || qx >= s || qy >= s) continue;
+        const std::size_t q = static_cast<std::size_t>(qy) * static_cast<std::size_t>(s) + static_cast<std::size_t>(qx);
+        if (truth.foreground[static_cast<std::size_t>(v) * px + q] > 0.5f) return q;
+      }
+      return p;
+    });
   }
   // A fraction `wrong` of each view's object pixels takes another object pixel's descriptor: a matcher that finds that
   // share of the correspondences elsewhere on the object.
   if (wrong > 0) {
-    std::uniform_real_distribution<double> coin(0.0, 1.0);
-    for (int v = 0; v < n; ++v) {
-      std::vector<std::size_t> object;
+    std::vector<std::vector<std::size_t>> object(static_cast<std::size_t>(n));
+    for (int v = 0; v < n; ++v)
       for (std::size_t p = 0; p < px; ++p)
-        if (truth.foreground[static_cast<std::size_t>(v) * px + p] > 0.5f) object.push_back(p);
-      const std::vector<float> kept(out.begin() + static_cast<std::ptrdiff_t>(static_cast<std::size_t>(v) * px * D),
-                                    out.begin() + static_cast<std::ptrdiff_t>(static_cast<std::size_t>(v + 1) * px * D));
-      std::uniform_int_distribution<std::size_t> pick(0, object.size() - 1);
-      for (const std::size_t p : object) {
-        if (coin(rng) >= wrong) continue;
-        const std::size_t q = object[pick(rng)];
-        std::copy(kept.begin() + static_cast<std::ptrdiff_t>(q * D), kept.begin() + static_cast<std::ptrdiff_t>((q + 1) * D),
-                  out.begin() + static_cast<std::ptrdiff_t>((static_cast<std::size_t>(v) * px + p) * D));
-      }
-    }
+        if (truth.foreground[static_cast<std::size_t>(v) * px + p] > 0.5f) object[static_cast<std::size_t>(v)].push_back(p);
+    std::uniform_real_distribution<double> coin(0.0, 1.0);
+    remap([&](int v, std::size_t p) {
+      if (coin(rng) >= wrong) return p;
+      const std::vector<std::size_t>& on = object[static_cast<std::size_t>(v)];
+      return on[std::uniform_int_distribution<std::size_t>(0, on.size() - 1)(rng)];
+    });
   }
   return out;
 }
