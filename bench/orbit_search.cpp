@@ -624,8 +624,10 @@ int main(int argc, char** argv) try {
               loss::ground_truth_matches(truth.depth.data(), pv.photos.K.data(), pv.w2c.data(), n, size, size, 256);
           const double m = static_cast<double>(truth_matches.size());
           correspondences += m;
-          hits1 += m * loss::match_accuracy(descriptors.data(), std::span<const loss::PixelMatch>(truth_matches), n, size, size, desc_dim, 1);
-          hits4 += m * loss::match_accuracy(descriptors.data(), std::span<const loss::PixelMatch>(truth_matches), n, size, size, desc_dim, 4);
+          const std::span<const loss::PixelMatch> matches(truth_matches);
+          const std::vector<index_t> nearest = loss::nearest_descriptor_pixels(descriptors.data(), matches, n, size, size, desc_dim);
+          hits1 += loss::match_hits(nearest, matches, size, 1);
+          hits4 += loss::match_hits(nearest, matches, size, 4);
         }
         for (const auto& source : sources) {
           const std::string &name = source.first, &from = source.second;  // a lambda cannot capture a binding (clang 14)

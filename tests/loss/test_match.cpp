@@ -111,6 +111,22 @@ TEST_CASE("match_accuracy counts correspondences whose nearest descriptor is wit
   CHECK(loss::match_accuracy(codes(4).data(), truth, 2, h, w, D, 2) == 0.0);
   CHECK(loss::match_accuracy(codes(4).data(), truth, 2, h, w, D, 3) == 1.0);
   CHECK_THROWS_WITH(loss::match_accuracy(codes(1).data(), truth, 2, h, w, D, -1), Catch::Contains("radius -1 is negative"));
+  // One search of the nearest pixels serves every radius: with codes shifted by 4 each nearest pixel is pixel_b moved
+  // 3 columns right, modulo 6.
+  const std::vector<double> shifted = codes(4);
+  const std::vector<index_t> nearest = loss::nearest_descriptor_pixels(shifted.data(), std::span<const loss::PixelMatch>(truth), 2, h, w, D);
+  REQUIRE(nearest.size() == truth.size());
+  for (std::size_t i = 0; i < truth.size(); ++i) {
+    const index_t want = truth[i].pixel_b;
+    CHECK(nearest[i] == want / w * w + (want % w + 3) % w);
+  }
+  for (index_t radius : {0, 1, 2, 3, 4, 5})
+    CHECK(loss::match_hits(nearest, truth, w, radius) ==
+          loss::match_accuracy(shifted.data(), truth, 2, h, w, D, radius) * static_cast<double>(truth.size()));
+  CHECK(loss::within_pixels(7, 7 + 2 * w + 2, w, 2));
+  CHECK_FALSE(loss::within_pixels(7, 7 + 3 * w, w, 2));
+  CHECK_THROWS_WITH(loss::match_hits(std::span<const index_t>(nearest).first(3), truth, w),
+                    Catch::Contains("3 nearest pixels for 24 correspondences"));
 }
 
 TEST_CASE("match loss: the vector exp path gives the scalar path's loss and gradients", "[loss][match][simd]") {

@@ -117,33 +117,55 @@ void for_each_run(const std::vector<T>& unit, std::span<const PixelMatch> matche
 }
 }  // namespace match_detail
 
-// The fraction of correspondences whose most similar descriptor (cosine, as the loss's logits) among all pixels of
-// view_b lies within `radius` pixels (default one), both axes, of pixel_b; the first of equal maxima.
-// desc [V, h * w, D].
+// For each correspondence, the pixel of view_b whose descriptor is most similar (cosine, as the loss's logits) to
+// pixel_a's; the first of equal maxima. desc [V, h * w, D]. One pass serves every radius and subset (match_hits).
 template <class T>
-double match_accuracy(const T* desc, std::span<const PixelMatch> matches, index_t views, index_t h, index_t w, index_t D,
-                      index_t radius = 1) {
+std::vector<index_t> nearest_descriptor_pixels(const T* desc, std::span<const PixelMatch> matches, index_t views,
+                                               index_t h, index_t w, index_t D) {
   require(desc && views >= 1 && h >= 1 && w >= 1 && D >= 1, "match accuracy: null or empty descriptors");
-  require(radius >= 0, "match accuracy: radius ", radius, " is negative");
-  if (matches.empty()) return 0;
+  std::vector<index_t> nearest(matches.size(), 0);
+  if (matches.empty()) return nearest;
   const index_t px = h * w;
   std::vector<T> unit;
   std::vector<double> norm;
   match_detail::normalize(desc, views * px, D, unit, norm);
-  double hits = 0;
   // Scalar lanes: std::exp gives exactly 1 at the maximum, which the search below looks for.
   match_detail::for_each_run(unit, matches, views, px, D, 1.0, simd::Lanes::scalar,
                              [&](std::size_t i0, index_t n, const std::vector<T>&, const std::vector<T>& e,
                                  const std::vector<double>&, const std::vector<double>&, const std::vector<double>&) {
                                for (index_t r = 0; r < n; ++r) {
-                                 // e is exp(logit - max): exactly 1 at the maximum.
-                                 const T* row = e.data() + r * px;
-                                 const index_t best = std::find(row, row + px, T(1)) - row;
-                                 const index_t want = matches[i0 + static_cast<std::size_t>(r)].pixel_b;
-                                 hits += std::abs(best % w - want % w) <= radius && std::abs(best / w - want / w) <= radius;
+                                 const T* row = e.data() + r * px;  // exp(logit - max): exactly 1 at the maximum
+                                 nearest[i0 + static_cast<std::size_t>(r)] = std::find(row, row + px, T(1)) - row;
                                }
                              });
-  return hits / static_cast<double>(matches.size());
+  return nearest;
+}
+
+// Whether pixels a and b of an image w pixels wide lie within `radius` pixels of each other on both axes.
+inline bool within_pixels(index_t a, index_t b, index_t w, index_t radius) {
+  return std::abs(a % w - b % w) <= radius && std::abs(a / w - b / w) <= radius;
+}
+
+// How many correspondences have their nearest pixel (nearest_descriptor_pixels, same order) within `radius` pixels of
+// pixel_b; images w pixels wide.
+inline double match_hits(std::span<const index_t> nearest, std::span<const PixelMatch> matches, index_t w,
+                         index_t radius = 1) {
+  require(radius >= 0, "match accuracy: radius ", radius, " is negative");
+  require(nearest.size() == matches.size(), "match accuracy: ", nearest.size(), " nearest pixels for ", matches.size(),
+          " correspondences");
+  double hits = 0;
+  for (std::size_t i = 0; i < matches.size(); ++i) hits += within_pixels(nearest[i], matches[i].pixel_b, w, radius);
+  return hits;
+}
+
+// The fraction of correspondences whose most similar descriptor among all pixels of view_b lies within `radius`
+// pixels (default one), both axes, of pixel_b. desc [V, h * w, D].
+template <class T>
+double match_accuracy(const T* desc, std::span<const PixelMatch> matches, index_t views, index_t h, index_t w, index_t D,
+                      index_t radius = 1) {
+  require(radius >= 0, "match accuracy: radius ", radius, " is negative");
+  const std::vector<index_t> nearest = nearest_descriptor_pixels(desc, matches, views, h, w, D);
+  return matches.empty() ? 0 : match_hits(nearest, matches, w, radius) / static_cast<double>(matches.size());
 }
 
 // desc [V, px, D]; prob [V, px] in (0, 1); alpha [V, px] in [0, 1]. `lanes`: the exp's path (tests run each).

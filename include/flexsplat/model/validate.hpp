@@ -170,15 +170,17 @@ ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeight
                                                                 e.gt_depth.data(), K.data(), V, e.h, e.w);
     for (std::size_t i = 0; i < pred.size(); ++i) pred[i] = static_cast<double>(solved[i]);
     detail::score_rotations(pred.data(), gt.data(), V, s.matches_oracle_rotation_deg, s.matches_oracle_rra15, unused30);
-    s.match_accuracy = loss::match_accuracy(o.descriptors.data(), std::span<const loss::PixelMatch>(e.matches), V, e.h, e.w, D);
-    s.match_accuracy_4px = loss::match_accuracy(o.descriptors.data(), std::span<const loss::PixelMatch>(e.matches), V, e.h, e.w, D, 4);
-    std::array<std::vector<loss::PixelMatch>, 4> by_bin;
-    for (const loss::PixelMatch& m : e.matches) by_bin[pair_bin[static_cast<std::size_t>(m.view_a * V + m.view_b)]].push_back(m);
-    for (std::size_t bin = 0; bin < by_bin.size(); ++bin) {
-      const double n = static_cast<double>(by_bin[bin].size());
-      s.matches_by_baseline[bin] = n;
-      s.match_hits_by_baseline[bin] =
-          n * loss::match_accuracy(o.descriptors.data(), std::span<const loss::PixelMatch>(by_bin[bin]), V, e.h, e.w, D);
+    const std::span<const loss::PixelMatch> matches(e.matches);
+    const std::vector<index_t> nearest = loss::nearest_descriptor_pixels(o.descriptors.data(), matches, V, e.h, e.w, D);
+    if (!matches.empty()) {
+      const double count = static_cast<double>(matches.size());
+      s.match_accuracy = loss::match_hits(nearest, matches, e.w, 1) / count;
+      s.match_accuracy_4px = loss::match_hits(nearest, matches, e.w, 4) / count;
+    }
+    for (std::size_t i = 0; i < matches.size(); ++i) {
+      const std::size_t bin = pair_bin[static_cast<std::size_t>(matches[i].view_a * V + matches[i].view_b)];
+      s.matches_by_baseline[bin] += 1;
+      s.match_hits_by_baseline[bin] += loss::within_pixels(nearest[i], matches[i].pixel_b, e.w, 1);
     }
   }
   double err = 0;
