@@ -163,9 +163,8 @@ inline double match_hits(std::span<const index_t> nearest, std::span<const Pixel
 template <class T>
 double match_accuracy(const T* desc, std::span<const PixelMatch> matches, index_t views, index_t h, index_t w, index_t D,
                       index_t radius = 1) {
-  require(radius >= 0, "match accuracy: radius ", radius, " is negative");
-  const std::vector<index_t> nearest = nearest_descriptor_pixels(desc, matches, views, h, w, D);
-  return matches.empty() ? 0 : match_hits(nearest, matches, w, radius) / static_cast<double>(matches.size());
+  const double hits = match_hits(nearest_descriptor_pixels(desc, matches, views, h, w, D), matches, w, radius);
+  return matches.empty() ? 0 : hits / static_cast<double>(matches.size());
 }
 
 // desc [V, px, D]; prob [V, px] in (0, 1); alpha [V, px] in [0, 1]. `lanes`: the exp's path (tests run each).
