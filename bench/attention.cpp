@@ -8,7 +8,9 @@
 //   [1316, 1024]) in every lane type the CPU runs, scalar first: ns per element and GB/s of the tensors read and
 //   written once (GELU 8 / 16 bytes per element forward / backward, layer norm 8 / 12).
 // FLOPs: forward 4 n_q n_kv d per (batch, head) (QK^T and PV); backward 8 n_q n_kv d (dP, dV, dK, dQ; the
-// recomputed score tiles are not counted).
+// recomputed score tiles are not counted). fwd/FMA and bwd/FMA: the time the kernels' own multiply-adds would take at
+// the run's SGEMM rate (the CPU's FMA throughput as a GEMM reaches it), over the measured time; what is left is the
+// softmax (exp, max, sums) and the packing.
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -241,8 +243,11 @@ int main(int argc, char** argv) {
   std::printf("%s: %.1f GFLOP/s\n", bench::sgemm_label(sgemm_rate.backend).c_str(), sgemm_rate.gflops);
 
   const index_t C = heads * d;
-  std::printf("%-14s %9s %10s %10s %9s %10s %9s %10s %8s\n", "batch x tokens", "fwd s", "fwd GF/s", "SGEMM GF/s",
-              "fwd/SGEMM", "bwd s", "bwd GF/s", "bwd/SGEMM", "bwd/fwd");
+  // Multiply-adds per (query, key) pair that the kernels run: forward QK^T and PV (d each); backward (one pass per
+  // head) the recomputed scores, dP and dQ (d each) and dV, dK in rows padded to whole vectors.
+  const double fwd_madds = 2.0 * double(d), bwd_madds = 3.0 * double(d) + 2.0 * double(nn::attention_padded_dim(d));
+  std::printf("%-14s %9s %10s %10s %9s %8s %10s %9s %10s %8s %8s\n", "batch x tokens", "fwd s", "fwd GF/s",
+              "SGEMM GF/s", "fwd/SGEMM", "fwd/FMA", "bwd s", "bwd GF/s", "bwd/SGEMM", "bwd/FMA", "bwd/fwd");
   for (const auto& shape : shapes) {
     const index_t batch = shape.first, tokens = shape.second;
     const auto L = fused_layout(batch, tokens, heads, d);
@@ -272,10 +277,13 @@ int main(int argc, char** argv) {
                                       lse.data(), qkv.data(), qkv.data() + C, qkv.data() + 2 * C, L, scale, scratch);
       }, reps);
     const double fwd = flops / t_fwd / 1e9, bwd = backward ? 2 * flops / t_bwd / 1e9 : 0.0;
+    const double pairs = double(batch * heads) * double(tokens) * double(tokens);
+    const double fma_fwd = 2.0 * pairs * fwd_madds / (sgemm_rate.gflops * 1e9) / t_fwd;
+    const double fma_bwd = backward ? 2.0 * pairs * bwd_madds / (sgemm_rate.gflops * 1e9) / t_bwd : 0.0;
     char label[32];
     std::snprintf(label, sizeof label, "%lld x %lld", (long long)batch, (long long)tokens);
-    std::printf("%-14s %9.4f %10.1f %10.1f %9.2f %10.4f %9.1f %10.2f %8.2f\n", label, t_fwd, fwd, sgemm, fwd / sgemm, t_bwd,
-                bwd, bwd / sgemm, t_bwd / t_fwd);
+    std::printf("%-14s %9.4f %10.1f %10.1f %9.2f %8.2f %10.4f %9.1f %10.2f %8.2f %8.2f\n", label, t_fwd, fwd, sgemm,
+                fwd / sgemm, fma_fwd, t_bwd, bwd, bwd / sgemm, fma_bwd, t_bwd / t_fwd);
     std::fflush(stdout);
   }
   return 0;
