@@ -244,12 +244,9 @@ int main(int argc, char** argv) {
 
   const index_t C = heads * d;
   // Multiply-adds per (query, key) pair that the kernels run: forward QK^T and PV (d each); backward the recomputed
-  // scores and dP (d each, twice when the heads do not spread evenly over the workers and it runs two passes), dQ (d)
-  // and dV, dK in rows padded to whole vectors.
+  // scores and dP (d each, twice when it runs two passes), dQ (d) and dV, dK in rows padded to whole vectors.
   const double fwd_madds = 2.0 * double(d);
-  auto bwd_madds = [&](index_t batch) {
-    const index_t heads_total = batch * heads, workers = global_pool().size();
-    const bool one_pass = heads_total % workers == 0 || heads_total >= 4 * workers;  // the scratch here allows it
+  auto bwd_madds = [&](bool one_pass) {
     return (one_pass ? 3.0 : 5.0) * double(d) + 2.0 * double(nn::attention_padded_dim(d));
   };
   std::printf("%-14s %9s %10s %10s %9s %8s %10s %9s %10s %8s %8s\n", "batch x tokens", "fwd s", "fwd GF/s",
@@ -283,9 +280,13 @@ int main(int argc, char** argv) {
                                       lse.data(), qkv.data(), qkv.data() + C, qkv.data() + 2 * C, L, scale, scratch);
       }, reps);
     const double fwd = flops / t_fwd / 1e9, bwd = backward ? 2 * flops / t_bwd / 1e9 : 0.0;
+    // The time `madds` multiply-adds per (query, key) pair take at the SGEMM rate, over `seconds`.
     const double pairs = double(batch * heads) * double(tokens) * double(tokens);
-    const double fma_fwd = 2.0 * pairs * fwd_madds / (sgemm_rate.gflops * 1e9) / t_fwd;
-    const double fma_bwd = backward ? 2.0 * pairs * bwd_madds(batch) / (sgemm_rate.gflops * 1e9) / t_bwd : 0.0;
+    auto of_fma = [&](double madds, double seconds) {
+      return 2.0 * pairs * madds / (sgemm_rate.gflops * 1e9) / seconds;
+    };
+    const bool one_pass = nn::attention_backward_one_pass(L, scratch.size(), global_pool().size());
+    const double fma_fwd = of_fma(fwd_madds, t_fwd), fma_bwd = backward ? of_fma(bwd_madds(one_pass), t_bwd) : 0.0;
     char label[32];
     std::snprintf(label, sizeof label, "%lld x %lld", (long long)batch, (long long)tokens);
     std::printf("%-14s %9.4f %10.1f %10.1f %9.2f %8.2f %10.4f %9.1f %10.2f %8.2f %8.2f\n", label, t_fwd, fwd, sgemm,

@@ -277,7 +277,15 @@ TEST_CASE("attention over several key blocks: float64 gradient check, 1 and 2 th
   run_fused<float>(c, simd::best_lanes<float>(), o1, l1, g1, one, true);
   CHECK(o1 == o2);
   CHECK(g1 == g2);
+  const auto large = [](const FusedCase& f, index_t workers) {
+    return static_cast<std::size_t>(nn::attention_scratch_per_worker(f.L.head_dim, f.L.n_kv) * workers);
+  };
+  const auto small = static_cast<std::size_t>(nn::attention_scratch_per_worker(c.L.head_dim));
+  CHECK(nn::attention_backward_one_pass(c.L, large(c, 1), 1));
+  CHECK_FALSE(nn::attention_backward_one_pass(c.L, large(c, 2), 2));  // 3 heads do not spread over 2 workers
+  CHECK_FALSE(nn::attention_backward_one_pass(c.L, small, 1));        // no room for a head's dQ
   FusedCase even(2, 2, 200, 24, 52);  // 4 heads: one pass on 2 workers too
+  CHECK(nn::attention_backward_one_pass(even.L, large(even, 2), 2));
   run_fused<double>(even, simd::Lanes::compiled, o1d, l1d, g1d, two, true);
   run_fused<double>(even, simd::Lanes::compiled, o2d, l2d, g2d, two, false);
   CHECK(o1d == o2d);

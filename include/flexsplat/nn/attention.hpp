@@ -56,6 +56,16 @@ inline index_t attention_scratch_per_worker(index_t head_dim, index_t tokens) {
   return attention_scratch_per_worker(head_dim) + std::max(2 * tokens, padded) * head_dim;
 }
 
+// Whether attention_backward (with d_q) runs one pass per (batch, head), given `scratch` elements and `workers`: when
+// the scratch holds a head's dQ^T and the heads spread evenly over the workers; otherwise key-block tasks (dK, dV) then
+// query-block tasks (dQ), which recompute the score tiles. Both sum every gradient in the same order.
+inline bool attention_backward_one_pass(const AttentionLayout& L, std::size_t scratch, index_t workers) {
+  const index_t q_blocks = (L.n_q + attention_q_block - 1) / attention_q_block, heads_total = L.batch * L.heads;
+  return static_cast<index_t>(scratch) >=
+             (attention_scratch_per_worker(L.head_dim) + q_blocks * attention_q_block * L.head_dim) * workers &&
+         (heads_total % workers == 0 || heads_total >= 4 * workers);
+}
+
 namespace detail {
 
 inline void check_scratch(std::size_t have, index_t head_dim, int workers) {
@@ -352,12 +362,9 @@ void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* ou
     T *qt, *dot, *dqt, *qp, *dop, *st, *dst, *lse, *delta, *dk, *dv, *kp, *vp, *dq_head;
   };
   const index_t dp = attention_padded_dim(d);
-  // One pass per (batch, head) when the scratch holds a head's dQ^T and the heads spread evenly over the workers;
-  // otherwise key-block tasks (dK, dV) then query-block tasks (dQ). Both sum every gradient in the same order.
   const index_t base = attention_scratch_per_worker(d), heads_total = L.batch * L.heads, workers = pool.size();
   const index_t have = static_cast<index_t>(scratch.size());
-  const bool one_pass = d_q && have >= (base + q_blocks * Bq * d) * workers &&
-                        (heads_total % workers == 0 || heads_total >= 4 * workers);
+  const bool one_pass = d_q && attention_backward_one_pass(L, scratch.size(), workers);
   const bool whole_heads = !one_pass && have >= (base + 2 * L.n_kv * d) * workers;
   const index_t per_worker = base + (one_pass ? q_blocks * Bq * d : whole_heads ? 2 * L.n_kv * d : 0);
   auto buffers = [&](int worker) {
