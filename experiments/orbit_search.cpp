@@ -12,7 +12,7 @@
 //                     [--depth-blend 0 | --depth-grid N] [--depth-waves 0] [--depth-inflate 0]
 //                     [--descriptors model|image|both|oracle] [--patch 5] [--patch-spacing 2] [--order-ensemble]
 //                     [--oracle-wrong 0] [--oracle-jitter 0] [--refine-depth-grid G] [--cost-parts] OBJECT_DIR...
-//   e.g. `build/bench/orbit_search ../shared/data/objects/*`
+//   e.g. `build/experiments/orbit_search ../shared/data/objects/*`
 // --inputs keeps only those input codes (silhouettes, depth, intrinsics from the renderer r or the model m); the other
 // options set the search's OrbitSearchConfig fields of the same names (how tolerant it is of the predictions' errors).
 // --depth-blend A (with --model, in [0, 1]): the renderer's depth given to the search is truth^(1-A) (s pred)^A, s each
@@ -734,6 +734,6 @@ int main(int argc, char** argv) try {
   }
   return 0;
 } catch (const std::exception& e) {
-  std::fprintf(stderr, "%s\n", e.what());  // the messages name the bench or the function that failed
+  std::fprintf(stderr, "%s\n", e.what());  // the messages name the program or the function that failed
   return 1;
 }

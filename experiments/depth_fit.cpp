@@ -3,7 +3,7 @@
 // loss (loss::depth_shape_loss_*, AdamW at a constant learning rate) on a recipe's own scenes (procedural or object
 // folders), scored like the recipe's validation (`depth_shape_rel`: loss::depth_scaled_error on its procedural and
 // object sets) against this process's CPU time.
-//   bench/depth_fit --recipe FILE.train.json [--data procedural|DIR...] [--base C] [--levels L] [--lr X]
+//   experiments/depth_fit --recipe FILE.train.json [--data procedural|DIR...] [--base C] [--levels L] [--lr X]
 //                   [--seconds S] [--every N] [--log OUT.jsonl] [--scenes K]
 // --scenes K: the training scenes are those of the first K steps only, again and again (K 1: one batch, a test of
 // whether the network can fit what it is shown at all).
@@ -113,7 +113,7 @@ Options parse(int argc, char** argv) {
     else if (a == "--data") {
       o.data.clear();
       while (i + 1 < argc && std::string(argv[i + 1]).rfind("--", 0) != 0) o.data.push_back(argv[++i]);
-    } else fail("unknown option '", a, "' (see the header of bench/depth_fit.cpp)");
+    } else fail("unknown option '", a, "' (see the header of experiments/depth_fit.cpp)");
   }
   require(!o.recipe.empty(), "--recipe FILE.train.json is required");
   require(o.base >= 1 && o.levels >= 0 && o.levels <= 5 && o.every >= 1 && o.scenes >= 0 && o.lr > 0 && o.seconds > 0,
