@@ -15,6 +15,7 @@
 
 #include "flexsplat/export/file.hpp"
 #include "flexsplat/image/image_io.hpp"
+#include "flexsplat/io/capture_cameras.hpp"
 #include "flexsplat/model/predict.hpp"
 #include "flexsplat/model/refine.hpp"
 #include "flexsplat/raster/render.hpp"
@@ -37,6 +38,13 @@ struct Stages {
 
 // `frames` views orbiting the Gaussians' opacity-weighted centre about the first camera's up axis, at the first
 // camera's distance, side by side in one picture (each h x w, the first camera's predicted K scaled to that size).
+// Row-major K [V, 3, 3] of cameras, at their own image size.
+std::vector<double> photo_intrinsics(const std::vector<Camera>& cameras) {
+  std::vector<double> K(9 * cameras.size());
+  for (std::size_t v = 0; v < cameras.size(); ++v) camera_arrays(cameras[v], K.data() + 9 * v, static_cast<double*>(nullptr));
+  return K;
+}
+
 void write_turntable(const fs::path& path, const model::Prediction<float>& p, int frames, index_t h, index_t w) {
   const auto& s = p.gaussians;
   glm::dvec3 centre(0.0);
@@ -89,7 +97,9 @@ int reconstruct_command(Args args) {
   take_option(args, "--turntable-size", turntable_size_text);
   std::string cameras_text = "model";
   take_option(args, "--cameras", cameras_text);
-  const model::CameraSource camera_source = model::parse_camera_source(cameras_text);
+  const bool given_cameras = cameras_text != "model" && cameras_text != "orbit";
+  const model::CameraSource camera_source =
+      given_cameras ? model::CameraSource::given : model::parse_camera_source(cameras_text);
   const bool verbose = take_flag(args, "--verbose");
   for (const auto& a : args) require(a.empty() || a[0] != '-', "reconstruct: unknown option '", a, "'");
   require(!args.empty(), "reconstruct needs at least one IMAGE (PNG or JPEG)");
@@ -106,7 +116,7 @@ int reconstruct_command(Args args) {
   const index_t refine_grow = parse_gaussian_count(refine_grow_text, "--refine-grow", model::refine_grow_gaussians);
   require(!refine_options || refine_seconds > 0,
           "reconstruct: --refine-size, --refine-validate and --refine-grow need --refine SECONDS");
-  model_path = model_or_default(model_path);
+  model_path = model_or_default(model_path, given_cameras);
   require(fs::is_regular_file(model_path), "reconstruct: model file '", model_path, "' does not exist");
 
   Stages t;
@@ -119,27 +129,54 @@ int reconstruct_command(Args args) {
   std::fprintf(stderr, "reconstruct: reading %zu image(s)\n", args.size());
   std::vector<Tensor<float, 3>> rgba;
   for (const auto& a : args) rgba.push_back(image::read_float<float>(a, 4));
+  std::vector<Camera> cameras;  // with given cameras: the capture's camera of each photo, at the photo's size
+  if (given_cameras) {
+    std::vector<std::array<int, 2>> sizes;
+    for (const auto& im : rgba) sizes.push_back({static_cast<int>(im.shape(1)), static_cast<int>(im.shape(0))});
+    const io::ImageSizeOf size_of = [&](const std::string& file) -> std::optional<std::array<int, 2>> {
+      for (std::size_t i = 0; i < args.size(); ++i)
+        if (fs::path(args[i]).filename() == fs::path(file).filename() ||
+            fs::path(args[i]).stem() == fs::path(file).filename())
+          return sizes[i];
+      return std::nullopt;
+    };
+    io::CameraFormat format{};
+    cameras = io::cameras_for_images(io::load_capture_cameras(cameras_text, size_of, &format), args, sizes, cameras_text);
+    std::fprintf(stderr, "reconstruct: %zu camera(s) from the %s %s\n", cameras.size(), io::camera_format_name(format),
+                 cameras_text.c_str());
+  }
   t.lap("decode images");
-  const Tensor<float, 4> images = model::model_input<float>(rgba, c);
-  t.lap("preprocess");
   std::fprintf(stderr, "reconstruct: predicting at %lld x %lld\n", static_cast<long long>(c.image_w),
                static_cast<long long>(c.image_h));
   model::PredictWorkspace<float> ws;
   ws.cameras = camera_source;
-  model::Prediction<float> p = model::predict<float>(ws, *w, TensorView<const float, 4>(images.view()), n_gaussians);
+  model::Prediction<float> p;
+  if (given_cameras) {
+    p = model::predict_posed<float>(ws, *w, rgba, cameras, n_gaussians);
+  } else {
+    const Tensor<float, 4> images = model::model_input<float>(rgba, c);
+    t.lap("preprocess");
+    p = model::predict<float>(ws, *w, TensorView<const float, 4>(images.view()), n_gaussians);
+  }
   t.ms.emplace_back("geometry (VGGT)", p.geometry_ms);
   t.ms.emplace_back("decoder", p.decoder_ms);
+  if (p.given)
+    std::fprintf(stderr, "reconstruct: the capture's scale %.6g world units per model unit (%s)\n", p.given->frame.scale,
+                 p.given->from_views ? "the views' consistency" : "one view: the object at the world origin's distance");
   t.last = std::chrono::steady_clock::now();
   if (refine_seconds > 0) {
     // Test-time refinement of the Gaussians and the predicted cameras on the input pictures (camera 0 stays fixed).
     const std::array<index_t, 2> size = model::refine_size(rgba, c, refine_longer);
     std::fprintf(stderr, "reconstruct: refining for %g s on the input views at %lld x %lld\n", refine_seconds,
                  static_cast<long long>(size[1]), static_cast<long long>(size[0]));
-    const model::PhotoTargets<float> photos = model::photo_targets<float>(rgba, c, p.geometry.K.data(), size[0], size[1]);
+    const model::PhotoTargets<float> photos =
+        given_cameras ? model::photo_targets<float>(rgba, photo_intrinsics(cameras), size[0], size[1])
+                      : model::photo_targets<float>(rgba, c, p.geometry.K.data(), size[0], size[1]);
     const model::RefineViews<float> rv{p.views,         photos.h, photos.w, photos.images.data(),
                                        photos.K.data(), p.geometry.extrinsics.data(), photos.alpha.data()};
     model::RefineConfig rc = model::prediction_refine_config(rv, refine_seconds, 0, refine_grow);
     rc.validate = validate;
+    rc.optimize_cameras = !given_cameras;  // given cameras are the capture's: kept as they are
     model::RefineWorkspace<float> rws;
     const model::RefineResult rr = model::refine(p.gaussians, rv, rc, rws);
     if (rr.chosen_steps >= 0)
@@ -153,8 +190,11 @@ int reconstruct_command(Args args) {
     t.lap("refine");
   }
 
+  if (p.given) model::to_capture_world(p);  // the splat in the capture's world and units
   gltf::WriteOptions wo;
-  if (format == gaussians::FileFormat::Glb) {
+  if (format == gaussians::FileFormat::Glb && given_cameras) {
+    wo.cameras = cameras;
+  } else if (format == gaussians::FileFormat::Glb) {
     std::vector<std::string> names;
     for (const std::string& a : args) names.push_back(fs::path(a).filename().string());
     wo.cameras = model::input_cameras(p, names);
@@ -185,7 +225,7 @@ const RegisterCommand registered_cmd_reconstruct(
     "reconstruct", {"a Gaussian splat (.glb with the predicted cameras, or .ply) from a few uncalibrated images",
                     "IMAGE... -o out.glb|out.ply [--model M.safetensors] [--gaussians N] [--refine SECONDS]\n"
                     "  [--refine-size N|native] [--refine-validate on|off] [--refine-grow N] [--turntable out.png]\n"
-                    "  [--turntable-size N|native] [--cameras model|orbit] [--verbose]\n"
+                    "  [--turntable-size N|native] [--cameras model|orbit|PATH] [--verbose]\n"
                     "  IMAGE: 1 to the model's max_views PNG/JPEG files of any size; RGBA is composited on white and\n"
                     "  each picture's centred window of the model's aspect ratio is resized to the model's size\n"
                     "  --model: default the shipped model (models/flexsplat-small.safetensors in the source tree)\n"
@@ -193,6 +233,10 @@ const RegisterCommand registered_cmd_reconstruct(
                     "  object in one picture, each at the pictures' resolution (--turntable-size N: N pixels on the longer\n"
                     "  side); --verbose: time of each stage; --cameras orbit: the cameras searched on an orbit around the\n"
                     "  object from the predicted silhouettes, depth and colours (models with a match head)\n"
+                    "  --cameras PATH: the photos' own cameras, matched by file name, from a COLMAP model folder\n"
+                    "  (cameras.txt + images.txt or the .bin pair; pinhole models), a nerfstudio / instant-ngp\n"
+                    "  transforms.json or a cameras.json; the splat and its cameras are written in that capture's world\n"
+                    "  and units, refinement keeps the cameras; default model models/flexsplat-posed.safetensors\n"
                     "  --refine S: carve away the Gaussians seen on the pictures' background (RGBA) and add 4096 in\n"
                     "  their silhouettes' visual hull (--refine-grow N: N), then optimise the Gaussians and the\n"
                     "  predicted cameras (all but the first) on the input pictures for about S seconds before writing,\n"

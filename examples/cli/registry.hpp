@@ -121,12 +121,13 @@ inline bool parse_on_off(const std::string& text, const std::string& flag) {
 }
 
 // --model when given, else the shipped model (FLEXSPLAT_DEFAULT_MODEL, set by examples/CMakeLists.txt), which must exist.
-inline std::string model_or_default(const std::string& given) {
+// With `posed` (the photos' cameras given) the default is the model trained on given cameras, else the rig's.
+inline std::string model_or_default(const std::string& given, bool posed = false) {
   if (!given.empty()) return given;
-#ifdef FLEXSPLAT_DEFAULT_MODEL
-  const std::string path = FLEXSPLAT_DEFAULT_MODEL;
+#if defined(FLEXSPLAT_DEFAULT_MODEL) && defined(FLEXSPLAT_DEFAULT_POSED_MODEL)
+  const std::string path = posed ? FLEXSPLAT_DEFAULT_POSED_MODEL : FLEXSPLAT_DEFAULT_MODEL;
 #else
-  const std::string path = "models/flexsplat-small.safetensors";
+  const std::string path = posed ? "models/flexsplat-posed.safetensors" : "models/flexsplat-small.safetensors";
 #endif
   require(std::filesystem::exists(path), "no shipped model yet at '", path, "'; pass --model");
   return path;

@@ -1,4 +1,4 @@
-// Every libFuzzer harness in one binary: one instrumented compile of the readers instead of nine. scripts/fuzz links
+// Every libFuzzer harness in one binary: one instrumented compile of the readers instead of one each. scripts/fuzz links
 // build-fuzz/fuzz_<target> to it and the name it was started under (argv[0]) picks the harness.
 #include <cstddef>
 #include <cstdint>
@@ -7,6 +7,8 @@
 #include <string_view>
 
 #include "fuzz_cameras_json.cpp"
+#include "fuzz_colmap_binary.cpp"
+#include "fuzz_colmap_text.cpp"
 #include "fuzz_checkpoint.cpp"
 #include "fuzz_dataset.cpp"
 #include "fuzz_glb.cpp"
@@ -14,6 +16,7 @@
 #include "fuzz_ply.cpp"
 #include "fuzz_safetensors.cpp"
 #include "fuzz_train_config.cpp"
+#include "fuzz_transforms_json.cpp"
 #include "fuzz_vggt_config.cpp"
 
 namespace {
@@ -31,7 +34,8 @@ constexpr Target kTargets[] = {
     {"glb", fuzz_glb::test_one_input},                 {"image", fuzz_image::test_one_input},
     {"cameras_json", fuzz_cameras_json::test_one_input}, {"vggt_config", fuzz_vggt_config::test_one_input},
     {"dataset", fuzz_dataset::test_one_input},         {"checkpoint", fuzz_checkpoint::test_one_input},
-    {"train_config", fuzz_train_config::test_one_input},
+    {"train_config", fuzz_train_config::test_one_input}, {"colmap_text", fuzz_colmap_text::test_one_input},
+    {"colmap_binary", fuzz_colmap_binary::test_one_input}, {"transforms_json", fuzz_transforms_json::test_one_input},
 };
 
 Harness g_harness = nullptr;

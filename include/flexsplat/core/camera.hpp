@@ -6,7 +6,9 @@
 //   Camera cam = look_at(eye, target, 256, 256, intrinsics_from_fov(256, 256, 45.0));
 //   double K[9], w2c[12];  camera_arrays(cam, K, w2c);
 //   Camera back = camera_from_arrays(K, w2c, 256, 256);
+#include <algorithm>
 #include <cmath>
+#include <limits>
 #include <numbers>
 #include <string>
 #include <utility>
@@ -151,6 +153,15 @@ void relative_w2c_backward(T* d_i, T* d_j, const T* d_out, const T* w2c_i, const
       if (d_j) d_j[4 * r + c] += sj;
     }
   }
+}
+
+// max(|R^T R - I|, |det R - 1|) entrywise: 0 for a rotation, what the camera readers compare with their tolerance.
+inline double rotation_defect(const glm::dmat3& R) {
+  const glm::dmat3 rtr = glm::transpose(R) * R;
+  double err = std::abs(glm::determinant(R) - 1);
+  for (int c = 0; c < 3; ++c)
+    for (int r = 0; r < 3; ++r) err = std::max(err, std::abs(rtr[c][r] - (c == r ? 1.0 : 0.0)));
+  return std::isfinite(err) ? err : std::numeric_limits<double>::infinity();
 }
 
 // Image size positive, entries finite, focal lengths positive; throws naming the camera otherwise.

@@ -12,6 +12,9 @@
 #include <string>
 #include <type_traits>
 
+#include <glm/glm.hpp>
+#include <glm/gtc/quaternion.hpp>
+
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
 
@@ -146,6 +149,36 @@ GaussianSet<To> convert_gaussian_set(const GaussianSet<From>& in) {
   copy(in.sh, out.sh);
   copy(in.features, out.features);
   return out;
+}
+
+// The set moved by the similarity x -> scale * R x + t (R a rotation): centres mapped, standard deviations times
+// scale, orientations turned by R, the SH's view-dependent band 1 turned with the directions it is evaluated on.
+// Bands 2-3 would need their own rotation matrices: a set of degree above 1 is refused unless R = I.
+template <class T>
+void transform_gaussians(GaussianSet<T>& set, const glm::dmat3& R, const glm::dvec3& t, double scale) {
+  require(std::isfinite(scale) && scale > 0, "transform_gaussians: scale ", scale, " must be finite and positive");
+  require(set.sh_degree() <= 1 || R == glm::dmat3(1.0), "transform_gaussians: SH degree ", set.sh_degree(),
+          " cannot be rotated (bands 2-3 are not implemented); degree 0 or 1 only");
+  const glm::dquat q = glm::quat_cast(R);
+  const index_t K = set.sh.shape(1);
+  for (index_t i = 0; i < set.size(); ++i) {
+    const glm::dvec3 m = scale * (R * glm::dvec3(set.means(i, 0), set.means(i, 1), set.means(i, 2))) + t;
+    const glm::dquat p = q * glm::dquat(set.quats(i, 0), set.quats(i, 1), set.quats(i, 2), set.quats(i, 3));
+    for (int r = 0; r < 3; ++r) {
+      set.means(i, r) = static_cast<T>(m[r]);
+      set.scales(i, r) = static_cast<T>(scale * set.scales(i, r));
+    }
+    set.quats(i, 0) = static_cast<T>(p.w), set.quats(i, 1) = static_cast<T>(p.x);
+    set.quats(i, 2) = static_cast<T>(p.y), set.quats(i, 3) = static_cast<T>(p.z);
+    if (K < 4) continue;
+    // Band 1 is c1 (-y s1 + z s2 - x s3): the coefficient vector (-s3, -s1, s2) turns as a direction does.
+    for (int ch = 0; ch < 3; ++ch) {
+      const glm::dvec3 w = R * glm::dvec3(-set.sh(i, 3, ch), -set.sh(i, 1, ch), set.sh(i, 2, ch));
+      set.sh(i, 3, ch) = static_cast<T>(-w.x);
+      set.sh(i, 1, ch) = static_cast<T>(-w.y);
+      set.sh(i, 2, ch) = static_cast<T>(w.z);
+    }
+  }
 }
 
 }  // namespace v0

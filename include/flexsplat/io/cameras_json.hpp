@@ -112,10 +112,7 @@ inline std::vector<Camera> parse_cameras_json(const nlohmann::json& doc, const s
     Camera cam = camera_from_arrays(K, w2c, w, h,
                                     frame.contains("file") && frame["file"].is_string() ? frame["file"].get<std::string>()
                                                                                         : where);
-    const glm::dmat3 rtr = glm::transpose(cam.R) * cam.R;
-    double err = std::abs(glm::determinant(cam.R) - 1);
-    for (int c = 0; c < 3; ++c)
-      for (int r = 0; r < 3; ++r) err = std::max(err, std::abs(rtr[c][r] - (c == r ? 1.0 : 0.0)));
+    const double err = rotation_defect(cam.R);
     if (!(err <= kRotationTolerance))
       fail_in(source, where, " 'w2c' rotation part is not a rotation (|R^T R - I|, |det R - 1| up to ",
                                  err, ")");

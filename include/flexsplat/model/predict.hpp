@@ -27,6 +27,7 @@
 #include "flexsplat/image/resample.hpp"
 #include "flexsplat/model/geometry_result.hpp"
 #include "flexsplat/model/geometry_stage.hpp"
+#include "flexsplat/model/given_cameras.hpp"
 #include "flexsplat/model/weights.hpp"
 
 namespace flexsplat {
@@ -40,6 +41,8 @@ struct Prediction {
   std::vector<T> pose_enc;      // [V, 9] the camera head's last refinement iteration
   // Per view, the inlier matches of the view pair that placed its camera (match head); 0: the camera head's camera.
   std::vector<index_t> camera_matches;
+  // With CameraSource::given: the capture's world in the model's frame (to_capture_world maps the result back).
+  std::optional<GivenFrame> given;
   GaussianSet<T> gaussians;     // the last decoder layer
   double geometry_ms = 0, decoder_ms = 0;  // wall time of the two stages
 };
@@ -59,8 +62,9 @@ std::vector<Camera> input_cameras(const Prediction<T>& p, const std::vector<std:
 
 // Where the cameras the decoder sees come from. model: the camera head, or with a match head the cameras solved from
 // its matches (geometry/procrustes.hpp); orbit_search: the views placed on an orbit around the object by their
-// predicted silhouettes (the match head's object probability), depth and colour (geometry/orbit_search.hpp).
-enum class CameraSource { model, orbit_search };
+// predicted silhouettes (the match head's object probability), depth and colour (geometry/orbit_search.hpp); given:
+// the capture's own cameras (PredictWorkspace::given, model/given_cameras.hpp).
+enum class CameraSource { model, orbit_search, given };
 
 inline CameraSource parse_camera_source(const std::string& s) {
   if (s == "model") return CameraSource::model;
@@ -81,6 +85,7 @@ template <class T>
 struct PredictWorkspace {
   CameraSource cameras = CameraSource::model;
   geometry::OrbitSearchConfig orbit = predicted_depth_search();  // with CameraSource::orbit_search
+  GivenCameras<T> given;                                          // with CameraSource::given
   GeometryStage<T> geometry;
   decoder::ModelWorkspace<T> model;
   // Under GemmBackend::bf16: pack the weights to bf16 once (GemmWeightCache, 2 bytes per weight) and keep them for
@@ -169,6 +174,18 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
                                            {o.descriptors.data(), c.geometry.match_dim});
     std::copy(solved.begin(), solved.end(), ws.geometry.result.extrinsics.begin());
   }
+  std::optional<GivenFrame> given;
+  if (ws.cameras == CameraSource::given) {
+    require(ws.given.views() == views, "predict: ", ws.given.views(), " given cameras for ", views, " input views");
+    require(ws.given.silhouettes.empty() || ws.given.silhouettes.size() == static_cast<std::size_t>(views * h * wd),
+            "predict: given silhouettes hold ", ws.given.silhouettes.size(), " values; ", views, " views of ", wd,
+            " x ", h, " need ", views * h * wd);
+    const T* fg = !ws.given.silhouettes.empty() ? ws.given.silhouettes.data()
+                  : c.geometry.match_dim > 0    ? ws.geometry.outputs.foreground.data()
+                                                : nullptr;
+    given = given_frame(ws.given, images, g.depth.data(), fg, h, wd);
+    place_given_cameras(ws.given, *given, ws.geometry.result.K.data(), ws.geometry.result.extrinsics.data());
+  }
   if (before_decoder) before_decoder(ws.geometry.result);
   ws.model.keep_for_backward = false;  // no backward follows: the decoder's layers share one cache, no RGB head
   decoder::model_forward(ws.model, n, w.appearance(), c.appearance, images, h, wd, g.features.data(), g.feature_h,
@@ -184,6 +201,7 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
   const std::size_t last = static_cast<std::size_t>((ws.geometry.iterations - 1) * views * geometry::pose_encoding_dim);
   p.pose_enc.assign(ws.geometry.pose_enc.begin() + static_cast<std::ptrdiff_t>(last), ws.geometry.pose_enc.end());
   p.camera_matches = std::move(matched);
+  p.given = given;
   p.geometry = std::move(ws.geometry.result);  // the workspace refills it on the next call
   p.geometry_ms = std::chrono::duration<double, std::milli>(t1 - t0).count();
   p.decoder_ms = std::chrono::duration<double, std::milli>(t2 - t1).count();
@@ -291,11 +309,12 @@ ViewMapping model_view(T* out, TensorView<const float, 3> rgba, index_t h, index
 template <class T>
 Tensor<T, 4> model_input(const std::vector<Tensor<float, 3>>& rgba, const FlexSplatConfig& c,
                          std::vector<ViewMapping>* mappings = nullptr,
-                         const std::array<float, 3>& background = {1.0f, 1.0f, 1.0f}) {
+                         const std::array<float, 3>& background = {1.0f, 1.0f, 1.0f}, std::vector<T>* alpha = nullptr) {
   const index_t V = static_cast<index_t>(rgba.size());
   require(V >= 1, "model input: no images");
   Tensor<T, 4> out(Shape<4>{V, 3, c.image_h, c.image_w});
   if (mappings) mappings->clear();
+  if (alpha) alpha->assign(static_cast<std::size_t>(V * c.image_h * c.image_w), T(1));
   for (index_t v = 0; v < V; ++v) {
     try {
       // A window smaller than one patch is less than one token of picture (a one-pixel "photo"): nothing to see.
@@ -307,13 +326,67 @@ Tensor<T, 4> model_input(const std::vector<Tensor<float, 3>>& rgba, const FlexSp
               " patch of the model");
       const ViewMapping m = model_view<T>(out.data() + v * 3 * c.image_h * c.image_w,
                                           TensorView<const float, 3>(rgba[static_cast<std::size_t>(v)].view()),
-                                          c.image_h, c.image_w, background);
+                                          c.image_h, c.image_w, background,
+                                          alpha ? alpha->data() + v * c.image_h * c.image_w : nullptr);
       if (mappings) mappings->push_back(m);
     } catch (const Error& e) {
       fail("model input: image ", v, " of ", V, ": ", e.what());
     }
   }
   return out;
+}
+
+// A capture's cameras of the photos (io::cameras_for_images: one per photo, in order, at the photo's own size) for
+// the model: K through each photo's window to the model's size, the silhouettes from the photos' alpha (none when
+// every pixel is opaque).
+template <class T>
+GivenCameras<T> given_cameras(const std::vector<Tensor<float, 3>>& rgba, const std::vector<Camera>& cameras,
+                              const FlexSplatConfig& c) {
+  require(cameras.size() == rgba.size(), "given cameras: ", cameras.size(), " cameras for ", rgba.size(), " photos");
+  GivenCameras<T> g;
+  g.K.resize(9 * rgba.size());
+  g.w2c.resize(12 * rgba.size());
+  std::vector<ViewMapping> maps;
+  (void)model_input<T>(rgba, c, &maps, {1.0f, 1.0f, 1.0f}, &g.silhouettes);
+  for (std::size_t v = 0; v < rgba.size(); ++v) {
+    const Camera& cam = cameras[v];
+    require(cam.width == rgba[v].shape(1) && cam.height == rgba[v].shape(0), "given cameras: camera '", cam.name,
+            "' is for a ", cam.width, " x ", cam.height, " image; photo ", v, " is ", rgba[v].shape(1), " x ",
+            rgba[v].shape(0));
+    camera_arrays(cam, g.K.data() + 9 * v, g.w2c.data() + 12 * v);
+    maps[v].intrinsics(g.K.data() + 9 * v);
+  }
+  if (std::all_of(g.silhouettes.begin(), g.silhouettes.end(), [](T a) { return a >= T(1); })) g.silhouettes.clear();
+  return g;
+}
+
+// Photos (RGBA [H, W, 4], any size) with their capture's cameras (io::cameras_for_images) -> the prediction in the
+// model's frame with `given` set: the decoder sees the capture's cameras, refinement may follow (model::refine with the
+// cameras fixed), then to_capture_world brings it to the capture's world.
+template <class T>
+Prediction<T> predict_posed(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w,
+                            const std::vector<Tensor<float, 3>>& rgba, const std::vector<Camera>& cameras,
+                            index_t n_gaussians = 0) {
+  const Tensor<T, 4> images = model_input<T>(rgba, w.config());
+  ws.cameras = CameraSource::given;
+  ws.given = given_cameras<T>(rgba, cameras, w.config());
+  return predict(ws, w, TensorView<const T, 4>(images.view()), n_gaussians);
+}
+
+// A prediction made with given cameras, brought to the capture's world: the Gaussians by the similarity of its frame
+// and the cameras (geometry.extrinsics) back to the capture's world-to-camera (K stays at the model's size).
+template <class T>
+void to_capture_world(Prediction<T>& p) {
+  require(p.given.has_value(), "to_capture_world: the prediction was not made with given cameras");
+  gaussians_to_world(p.gaussians, p.given->frame);
+  const Similarity s = model_to_world(p.given->frame);
+  for (index_t v = 0; v < p.views; ++v) {
+    double E[12];
+    for (int i = 0; i < 12; ++i) E[i] = static_cast<double>(p.geometry.extrinsics[static_cast<std::size_t>(12 * v + i)]);
+    transform_camera(E, s);
+    for (int i = 0; i < 12; ++i) p.geometry.extrinsics[static_cast<std::size_t>(12 * v + i)] = static_cast<T>(E[i]);
+  }
+  p.given.reset();
 }
 
 // The size the photos are refined at: `longer` pixels on the model's longer side with its aspect ratio, or with
