@@ -119,12 +119,18 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
   for (int v : in) rgba.push_back(image::read_float<float>(rec.frames[static_cast<std::size_t>(v)].image, 4));
   const Tensor<float, 4> images = model::model_input<float>(rgba, c);
   model::BeforeDecoder<float> noise;
-  if (x.rotation_noise_deg > 0 || x.true_cameras)
+  if (x.rotation_noise_deg > 0)
     noise = [&](model::GeometryResult<float>& g) {
-      if (x.true_cameras) model::true_input_cameras(rec, in, g);
-      if (x.rotation_noise_deg > 0) model::rotation_noise(g.extrinsics.data(), g.views, x.rotation_noise_deg, seed);
+      model::rotation_noise(g.extrinsics.data(), g.views, x.rotation_noise_deg, seed);
     };
+  if (x.true_cameras) {
+    // The folder's cameras given as reconstruct --cameras gives a capture's: the same frame and scale search.
+    std::vector<Camera> cams;
+    for (int v : in) cams.push_back(rec.frames[static_cast<std::size_t>(v)].camera);
+    ws.given = model::given_cameras<float>(rgba, cams, c);
+  }
   model::Prediction<float> p = model::predict<float>(ws, w, TensorView<const float, 4>(images.view()), x.gaussians, noise);
+  if (p.given) model::to_capture_world(p);  // the folder's world: the alignment below is then the identity
   double seconds = since(t0);
   const double predict_seconds = seconds;
   const index_t n_model = p.gaussians.size();
@@ -152,7 +158,7 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
                                        photos.K.data(), w2c.data(), photos.alpha.data()};
     model::RefineConfig rc = model::prediction_refine_config(rv, x.refine_seconds, seed, x.refine_grow);
     rc.validate = x.refine_validate;
-    rc.optimize_cameras = x.refine_cameras;
+    rc.optimize_cameras = x.refine_cameras && !x.true_cameras;
     rc.carve = x.refine_carve;
     model::RefineWorkspace<float> rws;
     const model::RefineResult rr = model::refine(p.gaussians, rv, rc, rws);
@@ -320,7 +326,8 @@ int eval_command(Args args) {
   take_option(args, "--cameras", cameras_text);
   // truth (eval only): the model's cameras replaced by the folder's before the decoder.
   const bool true_cameras = cameras_text == "truth";
-  const model::CameraSource camera_source = model::parse_camera_source(true_cameras ? "model" : cameras_text);
+  const model::CameraSource camera_source =
+      true_cameras ? model::CameraSource::given : model::parse_camera_source(cameras_text);
   const bool quiet = take_flag(args, "--quiet");
   for (const auto& a : args) require(a.empty() || a[0] != '-', "eval: unknown option '", a, "'");
   require(!args.empty(), "eval needs at least one OBJECT_DIR (a folder with cameras.json, or a folder of them)");
@@ -368,7 +375,7 @@ int eval_command(Args args) {
     attention = std::pair<bool, index_t>(local, window);
   }
 
-  model_path = model_or_default(model_path);
+  model_path = model_or_default(model_path, true_cameras);
   require(fs::is_regular_file(model_path), "eval: model file '", model_path, "' does not exist");
   const auto w = model::load_flexsplat<float>(model_path);
   if (attention) w->set_self_attention(attention->first, attention->second);
@@ -481,7 +488,7 @@ const RegisterCommand registered_cmd_eval(
              "  [--refine-validate on|off] [--refine-cameras on|off] [--refine-carve on|off] [--refine-grow N]\n"
              "  [--rotation-noise DEG] [--seed N]\n"
              "  [--gaussians N] [--self-attention full|local[:WINDOW]] [--resolution native|model] [--lpips LPIPS.safetensors]\n"
-             "  [--cameras model|orbit|truth] [--json out.json]\n"
+             "  [--cameras model|orbit|turntable|truth] [--json out.json]\n"
              "  [--grid out.png [--grid-targets 4]] [--quiet]\n"
              "  OBJECT_DIR: a folder in the layout of ../shared/data/objects/<name> or a folder of them\n"
              "  inputs: the folder's input_views (--views N: those when it lists N, else N evenly spaced frames;\n"
@@ -506,6 +513,8 @@ const RegisterCommand registered_cmd_eval(
              "  --self-attention: the decoder's, whatever the model was trained with (local: windows of 512)\n"
              "  --cameras orbit: the input cameras searched on an orbit around the object from the predicted\n"
              "  silhouettes, depth and colours (models with a match head) instead of the model's own cameras;\n"
+             "  --cameras turntable: the --views taken as photos in that order at equal azimuth steps around\n"
+             "  the object, their elevation, direction and distance searched (reconstruct --cameras turntable);\n"
              "  --cameras truth: the folder's own input cameras (in the predicted depth's units) given to the\n"
              "  decoder, what the appearance side makes of exact cameras\n"
              "  (docs/app.md)",

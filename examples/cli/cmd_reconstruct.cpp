@@ -97,7 +97,7 @@ int reconstruct_command(Args args) {
   take_option(args, "--turntable-size", turntable_size_text);
   std::string cameras_text = "model";
   take_option(args, "--cameras", cameras_text);
-  const bool given_cameras = cameras_text != "model" && cameras_text != "orbit";
+  const bool given_cameras = cameras_text != "model" && cameras_text != "orbit" && cameras_text != "turntable";
   const model::CameraSource camera_source =
       given_cameras ? model::CameraSource::given : model::parse_camera_source(cameras_text);
   const bool verbose = take_flag(args, "--verbose");
@@ -160,6 +160,9 @@ int reconstruct_command(Args args) {
   }
   t.ms.emplace_back("geometry (VGGT)", p.geometry_ms);
   t.ms.emplace_back("decoder", p.decoder_ms);
+  if (camera_source == model::CameraSource::turntable)
+    std::fprintf(stderr, "reconstruct: turntable at elevation %.1f deg, turning %s\n", ws.turntable.elevation_deg,
+                 ws.turntable.direction > 0 ? "counter-clockwise seen from above" : "clockwise seen from above");
   if (p.given)
     std::fprintf(stderr, "reconstruct: the capture's scale %.6g world units per model unit (%s)\n", p.given->frame.scale,
                  p.given->from_views ? "the views' consistency" : "one view: the object at the world origin's distance");
@@ -225,7 +228,7 @@ const RegisterCommand registered_cmd_reconstruct(
     "reconstruct", {"a Gaussian splat (.glb with the predicted cameras, or .ply) from a few uncalibrated images",
                     "IMAGE... -o out.glb|out.ply [--model M.safetensors] [--gaussians N] [--refine SECONDS]\n"
                     "  [--refine-size N|native] [--refine-validate on|off] [--refine-grow N] [--turntable out.png]\n"
-                    "  [--turntable-size N|native] [--cameras model|orbit|PATH] [--verbose]\n"
+                    "  [--turntable-size N|native] [--cameras model|orbit|turntable|PATH] [--verbose]\n"
                     "  IMAGE: 1 to the model's max_views PNG/JPEG files of any size; RGBA is composited on white and\n"
                     "  each picture's centred window of the model's aspect ratio is resized to the model's size\n"
                     "  --model: default the shipped model (models/flexsplat-small.safetensors in the source tree)\n"
@@ -233,6 +236,8 @@ const RegisterCommand registered_cmd_reconstruct(
                     "  object in one picture, each at the pictures' resolution (--turntable-size N: N pixels on the longer\n"
                     "  side); --verbose: time of each stage; --cameras orbit: the cameras searched on an orbit around the\n"
                     "  object from the predicted silhouettes, depth and colours (models with a match head)\n"
+                    "  --cameras turntable: photos in order around the object at equal azimuth steps (a turntable\n"
+                    "  or a walk around it): the cameras made from the count, elevation, direction and distance searched\n"
                     "  --cameras PATH: the photos' own cameras, matched by file name, from a COLMAP model folder\n"
                     "  (cameras.txt + images.txt or the .bin pair; pinhole models), a nerfstudio / instant-ngp\n"
                     "  transforms.json or a cameras.json; the splat and its cameras are written in that capture's world\n"

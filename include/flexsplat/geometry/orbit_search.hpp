@@ -598,6 +598,84 @@ void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foregrou
   }
 }
 
+// The cameras of photos taken in order around the object at equal azimuth steps (a turntable, or a walk around it):
+// view f on the orbit at azimuth direction * f * 360 deg / frames, all at one elevation and one distance, image up
+// towards the object's up. The elevation, the turning direction (+1 or -1) and the distance are searched on the views'
+// silhouettes, depth and colour (the objective of cameras_from_orbit_search): a grid of cfg's elevations (at half its
+// step) and distance_scales for either direction, then a pattern search, steps halving. Writes world-to-camera
+// [S, 3, 4] relative to the first view (its entries exactly [I | 0]); the inputs are cameras_from_orbit_search's.
+struct TurntableResult {
+  double elevation_deg = 0, distance = 0, cost = 0;
+  int direction = 1;
+};
+
+template <class T>
+TurntableResult cameras_from_turntable(T* extrinsics, const T* images, const T* foreground, const T* depth,
+                                       const T* intrinsics, index_t frames, index_t height, index_t width,
+                                       const OrbitSearchConfig& cfg = {}) {
+  using namespace orbit_detail;
+  check_search_input("cameras_from_turntable", frames, height, width, cfg, 0);
+  const double deg = std::numbers::pi / 180;
+  std::vector<View> act;
+  std::vector<index_t> active;
+  prepare_views(act, active, images, foreground, depth, intrinsics, frames, height, width, cfg, OrbitDescriptors<T>{});
+  for (index_t f = 0; f < frames; ++f)
+    for (int i = 0; i < 12; ++i) extrinsics[12 * f + i] = static_cast<T>(identity_w2c[i]);
+  TurntableResult best;
+  if (act.size() < 2) return best;
+  std::vector<double> rim;
+  for (const View& v : act) rim.push_back(v.distance);
+  std::nth_element(rim.begin(), rim.begin() + static_cast<std::ptrdiff_t>(rim.size() / 2), rim.end());
+  const double rim_distance = rim[rim.size() / 2];
+  std::vector<Placed> placed(act.size());
+  auto cost = [&](double elevation, int direction, double distance, const OrbitSearchConfig& c) {
+    for (std::size_t a = 0; a < act.size(); ++a)
+      placed[a] = place({elevation, direction * 2 * std::numbers::pi * static_cast<double>(active[a]) /
+                                        static_cast<double>(frames), 0, distance});
+    return total_cost(act, placed, c);
+  };
+  OrbitSearchConfig coarse = cfg;
+  coarse.silhouette_px *= cfg.coarse_tolerance, coarse.depth_tolerance *= cfg.coarse_tolerance;
+  best.cost = std::numeric_limits<double>::infinity();
+  double e_best = 0, d_best = rim_distance;
+  for (const int dir : {1, -1})
+    for (double e = cfg.elevation_min_deg; e <= cfg.elevation_max_deg + 1e-9; e += 0.5 * cfg.elevation_step_deg)
+      for (const double k : cfg.distance_scales) {
+        const double c = cost(e * deg, dir, k * rim_distance, coarse);
+        if (c < best.cost) best.cost = c, best.direction = dir, e_best = e * deg, d_best = k * rim_distance;
+      }
+  best.cost = cost(e_best, best.direction, d_best, cfg);
+  double step = 0.25 * cfg.elevation_step_deg * deg, dstep = cfg.refine_step_distance;
+  for (int r = 0; r < 2 * cfg.refine_rounds; ++r, step /= 2, dstep /= 2) {
+    bool moved = true;
+    while (moved) {
+      moved = false;
+      for (const double se : {1.0, -1.0, 0.0, 0.0})
+        for (const double sd : {0.0, 0.0, 1.0, -1.0}) {
+          if ((se == 0) == (sd == 0)) continue;
+          const double e = e_best + se * step, d = d_best * (1 + sd * dstep);
+          if (std::abs(e) > 88 * deg) continue;
+          const double c = cost(e, best.direction, d, cfg);
+          if (c < best.cost) best.cost = c, e_best = e, d_best = d, moved = true;
+        }
+    }
+  }
+  best.elevation_deg = e_best / deg;
+  best.distance = d_best;
+  // Every view placed by its index (views without object pixels too), relative to the first.
+  const Placed p0 = place({e_best, 0, 0, d_best});
+  const glm::dmat3 R0t = glm::transpose(p0.R);
+  for (index_t f = 1; f < frames; ++f) {
+    const Placed p = place({e_best, best.direction * 2 * std::numbers::pi * static_cast<double>(f) /
+                                        static_cast<double>(frames), 0, d_best});
+    Camera cam;
+    cam.R = p.R * R0t;
+    cam.t = p.t - cam.R * p0.t;
+    camera_arrays<T>(cam, nullptr, extrinsics + 12 * f);
+  }
+  return best;
+}
+
 // The search's objective for given cameras: the sum of the pair costs over ordered pairs of the usable views, what
 // cameras_from_orbit_search minimises and reports through cost_out (0 for one view or an unusable first view).
 // extrinsics [S, 3, 4] world-to-camera, any world frame, translations in the depth's units; the other inputs as the

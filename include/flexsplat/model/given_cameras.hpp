@@ -107,8 +107,8 @@ GivenFrame given_frame(const GivenCameras<T>& gc, const T* images, const T* dept
   out.frame.scale = guess;
   if (V < 2) return out;
   // 1-D search of the consistency objective over the scale, on a log grid around the guess, then a golden section.
-  geometry::OrbitSearchConfig cfg;
-  cfg.depth_range = 0.1;  // predicted depth is trusted to about 10 % (model::predicted_depth_search)
+  // The depth as given (no depth range): a range would let every point absorb a scale error of its size.
+  const geometry::OrbitSearchConfig cfg;
   std::vector<T> K_int(static_cast<std::size_t>(9 * V)), E(static_cast<std::size_t>(12 * V));
   for (std::size_t i = 0; i < K_int.size(); ++i) K_int[i] = static_cast<T>(gc.K[i]);
   intrinsics_to_vggt(K_int.data(), std::vector<T>(K_int).data(), V);

@@ -63,13 +63,15 @@ std::vector<Camera> input_cameras(const Prediction<T>& p, const std::vector<std:
 // Where the cameras the decoder sees come from. model: the camera head, or with a match head the cameras solved from
 // its matches (geometry/procrustes.hpp); orbit_search: the views placed on an orbit around the object by their
 // predicted silhouettes (the match head's object probability), depth and colour (geometry/orbit_search.hpp); given:
-// the capture's own cameras (PredictWorkspace::given, model/given_cameras.hpp).
-enum class CameraSource { model, orbit_search, given };
+// the capture's own cameras (PredictWorkspace::given, model/given_cameras.hpp); turntable: photos in order at equal
+// azimuth steps around the object, the elevation, direction and distance searched (geometry::cameras_from_turntable).
+enum class CameraSource { model, orbit_search, given, turntable };
 
 inline CameraSource parse_camera_source(const std::string& s) {
   if (s == "model") return CameraSource::model;
   if (s == "orbit") return CameraSource::orbit_search;
-  fail("camera source '", s, "' is not one of: model, orbit");
+  if (s == "turntable") return CameraSource::turntable;
+  fail("camera source '", s, "' is not one of: model, orbit, turntable");
 }
 
 // The orbit search on a model's predicted depth, whose shape is off by about 6 % (docs/evaluation.md): each point is
@@ -86,6 +88,7 @@ struct PredictWorkspace {
   CameraSource cameras = CameraSource::model;
   geometry::OrbitSearchConfig orbit = predicted_depth_search();  // with CameraSource::orbit_search
   GivenCameras<T> given;                                          // with CameraSource::given
+  geometry::TurntableResult turntable;                            // with CameraSource::turntable: what was found
   GeometryStage<T> geometry;
   decoder::ModelWorkspace<T> model;
   // Under GemmBackend::bf16: pack the weights to bf16 once (GemmWeightCache, 2 bytes per weight) and keep them for
@@ -173,6 +176,24 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
                                            views, h, wd, ws.orbit, nullptr, nullptr,
                                            {o.descriptors.data(), c.geometry.match_dim});
     std::copy(solved.begin(), solved.end(), ws.geometry.result.extrinsics.begin());
+  }
+  if (ws.cameras == CameraSource::turntable && views > 1) {
+    // The photos' silhouettes: the match head's object probability, else every pixel not the white background.
+    std::vector<T> fg;
+    const T* foreground = c.geometry.match_dim > 0 ? ws.geometry.outputs.foreground.data() : nullptr;
+    if (!foreground) {
+      fg.resize(static_cast<std::size_t>(views * h * wd));
+      for (index_t v = 0; v < views; ++v)
+        for (index_t i = 0; i < h * wd; ++i) {
+          T m = T(1);
+          for (int ch = 0; ch < 3; ++ch) m = std::min(m, images[(v * 3 + ch) * h * wd + i]);
+          fg[static_cast<std::size_t>(v * h * wd + i)] = m < T(0.98) ? T(1) : T(0);
+        }
+      foreground = fg.data();
+    }
+    ws.turntable = geometry::cameras_from_turntable<T>(ws.geometry.result.extrinsics.data(), images, foreground,
+                                                       g.depth.data(), ws.geometry.outputs.intrinsics.data(), views, h,
+                                                       wd, ws.orbit);
   }
   std::optional<GivenFrame> given;
   if (ws.cameras == CameraSource::given) {
