@@ -129,6 +129,7 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
     for (int v : in) cams.push_back(rec.frames[static_cast<std::size_t>(v)].camera);
     ws.given = model::given_cameras<float>(rgba, cams, c);
   }
+  ws.silhouettes = model::photo_silhouettes<float>(rgba, c);
   model::Prediction<float> p = model::predict<float>(ws, w, TensorView<const float, 4>(images.view()), x.gaussians, noise);
   if (p.given) model::to_capture_world(p);  // the folder's world: the alignment below is then the identity
   double seconds = since(t0);

@@ -155,6 +155,7 @@ int reconstruct_command(Args args) {
     p = model::predict_posed<float>(ws, *w, rgba, cameras, n_gaussians);
   } else {
     const Tensor<float, 4> images = model::model_input<float>(rgba, c);
+    ws.silhouettes = model::photo_silhouettes<float>(rgba, c);
     t.lap("preprocess");
     p = model::predict<float>(ws, *w, TensorView<const float, 4>(images.view()), n_gaussians);
   }

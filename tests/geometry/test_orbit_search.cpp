@@ -335,3 +335,25 @@ TEST_CASE("orbit search with descriptors: a sphere's views are placed by what th
                                                                K.data(), n, size, size, bad),
                     Catch::Contains("descriptor weights 0.5, -1 >= 0"));
 }
+
+TEST_CASE("turntable cameras: elevation, direction and distance from silhouettes and depth", "[geometry][orbit]") {
+  // Photos in order at equal azimuth steps; clockwise captures (direction -1) too. A wrong elevation of 10 degrees or
+  // a wrong direction gives relative rotation errors of 10 to 180 degrees.
+  for (const double elevation : {0.0, 20.0, 40.0, 60.0})
+    for (const int count : {4, 8})
+      for (const int direction : {1, -1}) {
+        std::vector<std::pair<double, double>> orbit;
+        for (int i = 0; i < count; ++i) orbit.push_back({elevation, 30 + direction * 360.0 * i / count});
+        const Views v = render_views(5, orbit, 48);
+        std::vector<float> E(static_cast<std::size_t>(12 * v.n));
+        const geometry::TurntableResult r = geometry::cameras_from_turntable<float>(
+            E.data(), v.images.data(), v.foreground.data(), v.depth.data(), v.K.data(), v.n, v.size, v.size);
+        const double err = mean_relative_error(E, v.w2c, v.n);
+        INFO(count << " views at elevation " << elevation << ", direction " << direction << ": found elevation "
+                   << r.elevation_deg << ", direction " << r.direction << ", relative rotation error " << err << " deg");
+        CHECK(r.direction == direction);
+        CHECK(std::abs(r.elevation_deg - elevation) < 2.0);
+        CHECK(err < 2.0);
+        for (int i = 0; i < 12; ++i) CHECK(E[static_cast<std::size_t>(i)] == static_cast<float>(identity_w2c[i]));
+      }
+}

@@ -103,7 +103,8 @@ TEST_CASE("given_frame finds a capture's scale from true depth and silhouettes",
       cams.push_back(cam);
     }
     const model::GivenCameras<float> gc = model::given_cameras<float>(rgba, cams, c);
-    REQUIRE(!gc.silhouettes.empty());
+    const std::vector<float> silhouettes = model::photo_silhouettes<float>(rgba, c);
+    REQUIRE(!silhouettes.empty());
     // Depth at the model's size in "model units": the renders' metres times 0.8, so the scale to find is units / 0.8.
     const index_t V = static_cast<index_t>(in.size()), h = 56, w = 56;
     std::vector<float> depth(static_cast<std::size_t>(V * h * w)), images(static_cast<std::size_t>(V * 3 * h * w), 1.0f);
@@ -116,7 +117,7 @@ TEST_CASE("given_frame finds a capture's scale from true depth and silhouettes",
           depth[static_cast<std::size_t>((v * h + y) * w + x)] =
               static_cast<float>(0.8 * d(y * d.shape(0) / h + d.shape(0) / (2 * h), x * d.shape(1) / w + d.shape(1) / (2 * w)));
     }
-    const model::GivenFrame f = model::given_frame(gc, images.data(), depth.data(), gc.silhouettes.data(), h, w);
+    const model::GivenFrame f = model::given_frame(gc, images.data(), depth.data(), silhouettes.data(), h, w);
     INFO("views " << V << ": scale " << f.frame.scale << " against " << units / 0.8);
     CHECK(f.from_views);
     // The first guess (the axes' meeting point against the median depth) is off by the object's radius, 10-30 %.

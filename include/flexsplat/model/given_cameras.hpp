@@ -36,10 +36,9 @@ inline constexpr int given_scale_octaves = 3;
 inline constexpr int given_scale_steps_per_octave = 16;
 
 template <class T>
-struct GivenCameras {
+struct GivenCameras {  // T: the model's scalar, which the scale search reads its maps in
   std::vector<double> K;    // [V, 3, 3] at the model's size, pixel centres at +0.5 (through each photo's window)
   std::vector<double> w2c;  // [V, 3, 4] world-to-camera in the capture's world and units
-  std::vector<T> silhouettes;  // [V, h, w] the photos' alpha at the model's size; empty when the photos have none
   index_t views() const { return static_cast<index_t>(w2c.size() / 12); }
 };
 

@@ -88,6 +88,9 @@ struct PredictWorkspace {
   CameraSource cameras = CameraSource::model;
   geometry::OrbitSearchConfig orbit = predicted_depth_search();  // with CameraSource::orbit_search
   GivenCameras<T> given;                                          // with CameraSource::given
+  // [V, h, w] the photos' alpha at the model's size (photo_silhouettes), or empty: the object's outline for the given
+  // and turntable cameras' searches, in place of a match head's object probability.
+  std::vector<T> silhouettes;
   geometry::TurntableResult turntable;                            // with CameraSource::turntable: what was found
   GeometryStage<T> geometry;
   decoder::ModelWorkspace<T> model;
@@ -177,10 +180,16 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
                                            {o.descriptors.data(), c.geometry.match_dim});
     std::copy(solved.begin(), solved.end(), ws.geometry.result.extrinsics.begin());
   }
+  require(ws.silhouettes.empty() || ws.silhouettes.size() == static_cast<std::size_t>(views * h * wd), "predict: ",
+          ws.silhouettes.size(), " silhouette values; ", views, " views of ", wd, " x ", h, " need ", views * h * wd);
+  // The object's outline: the photos' alpha, else a match head's object probability (else null).
+  const T* outline = !ws.silhouettes.empty()     ? ws.silhouettes.data()
+                     : c.geometry.match_dim > 0 ? ws.geometry.outputs.foreground.data()
+                                                : nullptr;
   if (ws.cameras == CameraSource::turntable && views > 1) {
-    // The photos' silhouettes: the match head's object probability, else every pixel not the white background.
+    // Without an outline: every pixel not the white background.
     std::vector<T> fg;
-    const T* foreground = c.geometry.match_dim > 0 ? ws.geometry.outputs.foreground.data() : nullptr;
+    const T* foreground = outline;
     if (!foreground) {
       fg.resize(static_cast<std::size_t>(views * h * wd));
       for (index_t v = 0; v < views; ++v)
@@ -198,13 +207,7 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
   std::optional<GivenFrame> given;
   if (ws.cameras == CameraSource::given) {
     require(ws.given.views() == views, "predict: ", ws.given.views(), " given cameras for ", views, " input views");
-    require(ws.given.silhouettes.empty() || ws.given.silhouettes.size() == static_cast<std::size_t>(views * h * wd),
-            "predict: given silhouettes hold ", ws.given.silhouettes.size(), " values; ", views, " views of ", wd,
-            " x ", h, " need ", views * h * wd);
-    const T* fg = !ws.given.silhouettes.empty() ? ws.given.silhouettes.data()
-                  : c.geometry.match_dim > 0    ? ws.geometry.outputs.foreground.data()
-                                                : nullptr;
-    given = given_frame(ws.given, images, g.depth.data(), fg, h, wd);
+    given = given_frame(ws.given, images, g.depth.data(), outline, h, wd);
     place_given_cameras(ws.given, *given, ws.geometry.result.K.data(), ws.geometry.result.extrinsics.data());
   }
   if (before_decoder) before_decoder(ws.geometry.result);
@@ -357,9 +360,17 @@ Tensor<T, 4> model_input(const std::vector<Tensor<float, 3>>& rgba, const FlexSp
   return out;
 }
 
+// The photos' alpha at the model's size [V, h, w] (PredictWorkspace::silhouettes), empty when every pixel is opaque.
+template <class T>
+std::vector<T> photo_silhouettes(const std::vector<Tensor<float, 3>>& rgba, const FlexSplatConfig& c) {
+  std::vector<T> alpha;
+  (void)model_input<T>(rgba, c, nullptr, {1.0f, 1.0f, 1.0f}, &alpha);
+  if (std::all_of(alpha.begin(), alpha.end(), [](T a) { return a >= T(1); })) alpha.clear();
+  return alpha;
+}
+
 // A capture's cameras of the photos (io::cameras_for_images: one per photo, in order, at the photo's own size) for
-// the model: K through each photo's window to the model's size, the silhouettes from the photos' alpha (none when
-// every pixel is opaque).
+// the model: K through each photo's window to the model's size.
 template <class T>
 GivenCameras<T> given_cameras(const std::vector<Tensor<float, 3>>& rgba, const std::vector<Camera>& cameras,
                               const FlexSplatConfig& c) {
@@ -368,7 +379,7 @@ GivenCameras<T> given_cameras(const std::vector<Tensor<float, 3>>& rgba, const s
   g.K.resize(9 * rgba.size());
   g.w2c.resize(12 * rgba.size());
   std::vector<ViewMapping> maps;
-  (void)model_input<T>(rgba, c, &maps, {1.0f, 1.0f, 1.0f}, &g.silhouettes);
+  for (const auto& im : rgba) maps.push_back(view_mapping(im.shape(1), im.shape(0), c.image_h, c.image_w));
   for (std::size_t v = 0; v < rgba.size(); ++v) {
     const Camera& cam = cameras[v];
     require(cam.width == rgba[v].shape(1) && cam.height == rgba[v].shape(0), "given cameras: camera '", cam.name,
@@ -377,7 +388,6 @@ GivenCameras<T> given_cameras(const std::vector<Tensor<float, 3>>& rgba, const s
     camera_arrays(cam, g.K.data() + 9 * v, g.w2c.data() + 12 * v);
     maps[v].intrinsics(g.K.data() + 9 * v);
   }
-  if (std::all_of(g.silhouettes.begin(), g.silhouettes.end(), [](T a) { return a >= T(1); })) g.silhouettes.clear();
   return g;
 }
 
@@ -391,6 +401,7 @@ Prediction<T> predict_posed(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& 
   const Tensor<T, 4> images = model_input<T>(rgba, w.config());
   ws.cameras = CameraSource::given;
   ws.given = given_cameras<T>(rgba, cameras, w.config());
+  ws.silhouettes = photo_silhouettes<T>(rgba, w.config());
   return predict(ws, w, TensorView<const T, 4>(images.view()), n_gaussians);
 }
 
