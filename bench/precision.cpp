@@ -17,7 +17,7 @@
 #include "flexsplat/geometry/random_weights.hpp"
 #include "flexsplat/geometry/vggt.hpp"
 #include "flexsplat/image/image_io.hpp"
-#include "flexsplat/model/evaluate.hpp"
+#include "flexsplat/eval/evaluate.hpp"
 #include "flexsplat/model/predict.hpp"
 #include "flexsplat/model/weights.hpp"
 #include "sgemm_rate.hpp"

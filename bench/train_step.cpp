@@ -29,10 +29,10 @@
 
 #include "flexsplat/geometry/flops.hpp"
 #include "flexsplat/core/profile.hpp"
-#include "flexsplat/model/train.hpp"
-#include "flexsplat/model/train_data.hpp"
+#include "flexsplat/train/step.hpp"
+#include "flexsplat/train/scenes.hpp"
 #include "flexsplat/model/weights.hpp"
-#include "flexsplat/model/run_config.hpp"
+#include "flexsplat/train/run_config.hpp"
 #include "sgemm_rate.hpp"
 
 using namespace flexsplat;

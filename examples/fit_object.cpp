@@ -24,7 +24,7 @@
 #include "flexsplat/loss/ssim.hpp"
 #include "flexsplat/raster/project.hpp"
 #include "flexsplat/raster/render.hpp"
-#include "flexsplat/train/optimizer.hpp"
+#include "flexsplat/optim/optimizer.hpp"
 
 using namespace flexsplat;
 

@@ -21,12 +21,12 @@
 
 #include "flexsplat/decoder/unet.hpp"
 #include "flexsplat/loss/geometry.hpp"
-#include "flexsplat/model/run_config.hpp"
-#include "flexsplat/model/train_data.hpp"
-#include "flexsplat/model/trainer.hpp"
+#include "flexsplat/train/run_config.hpp"
+#include "flexsplat/train/scenes.hpp"
+#include "flexsplat/train/trainer.hpp"
 #include "flexsplat/nn/conv.hpp"
-#include "flexsplat/train/optimizer.hpp"
-#include "flexsplat/train/params.hpp"
+#include "flexsplat/optim/optimizer.hpp"
+#include "flexsplat/optim/params.hpp"
 
 using namespace flexsplat;
 

@@ -47,13 +47,13 @@
 #include <vector>
 
 #include "flexsplat/data/dataset.hpp"
-#include "flexsplat/geometry/orbit_search.hpp"
+#include "flexsplat/solvers/orbit_search.hpp"
 #include "flexsplat/image/image_io.hpp"
 #include "flexsplat/image/layout.hpp"
 #include "flexsplat/loss/geometry.hpp"
 #include "flexsplat/loss/match.hpp"
 #include "flexsplat/model/cameras.hpp"
-#include "flexsplat/model/evaluate.hpp"
+#include "flexsplat/eval/evaluate.hpp"
 #include "flexsplat/model/frames.hpp"
 #include "flexsplat/model/predict.hpp"
 #include "flexsplat/model/weights.hpp"

@@ -21,7 +21,7 @@
 
 #include "flexsplat/data/dataset.hpp"
 #include "flexsplat/image/image_io.hpp"
-#include "flexsplat/model/evaluate.hpp"
+#include "flexsplat/eval/evaluate.hpp"
 #include "flexsplat/model/predict.hpp"
 #include "flexsplat/model/weights.hpp"
 #include "flexsplat/raster/render.hpp"

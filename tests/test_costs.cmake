@@ -5,14 +5,14 @@
 # includes this file twice: at configure time for the tests it defines itself, and through TEST_INCLUDE_FILES at ctest
 # time, after the Catch2 tests are discovered, for those.
 set(flexsplat_test_costs
-    "model:the whole model passes the float64 gradient check from the losses to every module's parameters|200"
+    "train:the whole model passes the float64 gradient check from the losses to every module's parameters|200"
     "check-reference: lpips_2024|77"
     "consumer_find_package|60"
     "consumer_add_subdirectory|60"
     "geometry:aggregator backward matches central differences (frame/global alternation, camera/register tokens, RoPE)|38"
     "nn:attention over several key blocks, fused q|k|v rows: scalar and SIMD paths match the dense definition|28"
     "geometry:VGGT end to end: images -> cameras, depth, confidence, world points, depth features, backward matches central differences for every parameter and the images (also through the depth head's image convolutions)|56"
-    "model:appearance objective passes the float64 gradient check into parameters and geometry outputs|28"
+    "train:appearance objective passes the float64 gradient check into parameters and geometry outputs|28"
     "cli: reconstruct and eval refuse bad inputs with a message|25"
     "nn:attention over several key blocks: float64 gradient check, 1 and 2 threads bit-identical on every path|22"
     "cli: eval and reconstruct with a one-step tiny model|21"

@@ -21,9 +21,9 @@
 #include "flexsplat/image/image_io.hpp"
 #include "flexsplat/image/plot.hpp"
 #include "flexsplat/loss/lpips.hpp"
-#include "flexsplat/model/evaluate.hpp"
+#include "flexsplat/eval/evaluate.hpp"
 #include "flexsplat/model/predict.hpp"
-#include "flexsplat/model/refine.hpp"
+#include "flexsplat/eval/refine.hpp"
 #include "registry.hpp"
 
 namespace flexsplat::cli::eval_cmd {

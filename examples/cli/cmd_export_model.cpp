@@ -6,7 +6,7 @@
 
 #include "flexsplat/model/weights.hpp"
 #include "flexsplat/io/safetensors.hpp"
-#include "flexsplat/train/checkpoint.hpp"
+#include "flexsplat/optim/checkpoint.hpp"
 #include "registry.hpp"
 
 namespace flexsplat::cli {

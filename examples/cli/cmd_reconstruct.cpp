@@ -17,7 +17,7 @@
 #include "flexsplat/image/image_io.hpp"
 #include "flexsplat/io/capture_cameras.hpp"
 #include "flexsplat/model/predict.hpp"
-#include "flexsplat/model/refine.hpp"
+#include "flexsplat/eval/refine.hpp"
 #include "flexsplat/raster/render.hpp"
 #include "registry.hpp"
 

@@ -7,8 +7,8 @@
 
 #include <nlohmann/json.hpp>
 
-#include "flexsplat/model/trainer.hpp"
-#include "flexsplat/train/distributed.hpp"
+#include "flexsplat/train/trainer.hpp"
+#include "flexsplat/optim/distributed.hpp"
 #include "registry.hpp"
 
 namespace flexsplat::cli {

@@ -1,5 +1,5 @@
 #pragma once
-#include "flexsplat/model/train.hpp"
+#include "flexsplat/train/step.hpp"
 #include "instance.hpp"
 #define FLEXSPLAT_INSTANCES_MODEL(X)                                                                                   \
   X(flexsplat::model::geometry_stage_forward, float) X(flexsplat::model::geometry_stage_forward, double)               \

@@ -11,7 +11,7 @@
 #include <nlohmann/json.hpp>
 
 #include "flexsplat/model/weights.hpp"
-#include "flexsplat/train/checkpoint.hpp"
+#include "flexsplat/optim/checkpoint.hpp"
 
 namespace fuzz_checkpoint {
 

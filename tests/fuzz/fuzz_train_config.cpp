@@ -5,7 +5,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "flexsplat/model/run_config.hpp"
+#include "flexsplat/train/run_config.hpp"
 
 namespace fuzz_train_config {
 

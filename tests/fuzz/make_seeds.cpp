@@ -18,7 +18,7 @@
 #include "flexsplat/image/image_io.hpp"
 #include "flexsplat/io/safetensors.hpp"
 #include "flexsplat/model/config.hpp"
-#include "flexsplat/train/checkpoint.hpp"
+#include "flexsplat/optim/checkpoint.hpp"
 
 using namespace flexsplat;
 namespace fs = std::filesystem;

@@ -7,9 +7,9 @@
 #include <memory>
 
 #include "flexsplat/data/dataset.hpp"
-#include "flexsplat/model/evaluate.hpp"
+#include "flexsplat/eval/evaluate.hpp"
 #include "flexsplat/model/predict.hpp"
-#include "flexsplat/model/train.hpp"
+#include "flexsplat/train/step.hpp"
 #include "flexsplat/raster/render.hpp"
 #include "skip.hpp"
 

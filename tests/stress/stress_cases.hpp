@@ -32,7 +32,7 @@
 #include "flexsplat/decoder/model.hpp"
 #include "flexsplat/geometry/vggt.hpp"
 #include "flexsplat/model/config.hpp"
-#include "flexsplat/model/train.hpp"
+#include "flexsplat/train/step.hpp"
 #include "flexsplat/model/weights.hpp"
 #include "flexsplat/raster/render.hpp"
 

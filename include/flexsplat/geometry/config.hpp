@@ -180,11 +180,11 @@ struct VggtConfig {
   DptHeadConfig depth;
   PoseDecodeOptions pose_decode;  // what decoding does with FoV <= 0 or >= pi
   // VGGT's point head: per-pixel 3-D points in the first frame's camera frame with a confidence; its dense targets are
-  // what makes the cameras learnable from scratch, and cameras can be solved from its output (geometry/procrustes.hpp).
+  // what makes the cameras learnable from scratch, and cameras can be solved from its output (solvers/procrustes.hpp).
   bool point_head = false;
   // > 0: the match head, FlexSplat's own (not in VGGT's checkpoint): per pixel a descriptor of match_dim channels that
   // finds the same surface point in another view, and the probability that the pixel shows the object. Cameras follow
-  // from matched pixels' depths in closed form (geometry/procrustes.hpp), so pose is learnt as local matching.
+  // from matched pixels' depths in closed form (solvers/procrustes.hpp), so pose is learnt as local matching.
   index_t match_dim = 0;
   // The match head also sees the image's pixels at full resolution (DptHeadConfig::image_channels 3).
   bool match_image = false;

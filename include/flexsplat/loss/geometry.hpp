@@ -359,7 +359,7 @@ double depth_scaled_error(const T* pred, const T* gt, index_t views, index_t pix
 }
 
 // Depth shape loss: the per-view relative shape of the depth map, blind to each view's scale (which the view's
-// distance absorbs when cameras are solved from depth: geometry/orbit_search.hpp). Per image with at least
+// distance absorbs when cameras are solved from depth: solvers/orbit_search.hpp). Per image with at least
 // min_valid_pixels valid pixels, r = log d - log d_gt, L = mean |r - mean r| over its valid pixels; total = mean of L
 // over those images (0 without one). The absolute depth loss's L1 gradient is sign(d - d_gt): while a view's scale is
 // off, every pixel has the same sign and the shape gets no signal from it; this term's gradient is the shape's alone.
@@ -439,7 +439,7 @@ void depth_shape_loss_backward(T* d_pred, double d_total, const T* pred, const T
 // Point-map loss (VGGT's regression loss on its point head): per valid pixel e = |pred - gt| (Euclidean, 3-vectors),
 // conf = mean(gamma e c - alpha log c), reg = mean e; VGGT's normal-based gradient term is not reproduced. background:
 // weight of mean(c - 1) over the invalid pixels, which drives their confidence to its floor of 1 so that a camera
-// solved from the map (geometry/procrustes.hpp) ignores them. total = conf + reg + background term.
+// solved from the map (solvers/procrustes.hpp) ignores them. total = conf + reg + background term.
 struct PointLossConfig {
   double gamma = 1.0, alpha = 0.2;
   double background = 0.1;

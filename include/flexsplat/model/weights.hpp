@@ -15,8 +15,8 @@
 #include "flexsplat/geometry/random_weights.hpp"
 #include "flexsplat/geometry/weights.hpp"
 #include "flexsplat/model/config.hpp"
-#include "flexsplat/train/checkpoint.hpp"
-#include "flexsplat/train/params.hpp"
+#include "flexsplat/optim/checkpoint.hpp"
+#include "flexsplat/optim/params.hpp"
 
 namespace flexsplat {
 inline namespace v0 {

@@ -10,7 +10,7 @@
 #include <thread>
 #include <vector>
 
-#include "flexsplat/model/train.hpp"
+#include "flexsplat/train/step.hpp"
 #include "flexsplat/testing/gradcheck.hpp"
 
 using namespace flexsplat;

@@ -3,7 +3,7 @@
 #include <cmath>
 #include <limits>
 
-#include "flexsplat/train/optimizer.hpp"
+#include "flexsplat/optim/optimizer.hpp"
 
 using namespace flexsplat;
 

@@ -2,7 +2,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "flexsplat/model/run_config.hpp"
+#include "flexsplat/train/run_config.hpp"
 
 using namespace flexsplat;
 

@@ -18,8 +18,8 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/data/procedural.hpp"
 #include "flexsplat/model/config.hpp"
-#include "flexsplat/model/train.hpp"
-#include "flexsplat/train/optimizer.hpp"
+#include "flexsplat/train/step.hpp"
+#include "flexsplat/optim/optimizer.hpp"
 
 namespace flexsplat {
 inline namespace v0 {

@@ -3,7 +3,7 @@
 #include <cmath>
 
 #include "decoder/decoder_test_util.hpp"
-#include "flexsplat/model/objective.hpp"
+#include "flexsplat/train/objective.hpp"
 #include "flexsplat/testing/gradcheck.hpp"
 
 using namespace flexsplat;

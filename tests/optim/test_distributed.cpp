@@ -12,7 +12,7 @@
 #include <thread>
 #include <vector>
 
-#include "flexsplat/train/distributed.hpp"
+#include "flexsplat/optim/distributed.hpp"
 
 using namespace flexsplat;
 

@@ -6,8 +6,8 @@
 #include "flexsplat/decoder/param_names.hpp"
 #include "flexsplat/geometry/vggt.hpp"
 #include "flexsplat/geometry/weights.hpp"
-#include "flexsplat/train/params.hpp"
-#include "train_test_util.hpp"
+#include "flexsplat/optim/params.hpp"
+#include "optim_test_util.hpp"
 
 using namespace flexsplat;
 using train_test::tiny_model_config;

@@ -6,8 +6,8 @@
 #include "flexsplat/core/half.hpp"
 #include "flexsplat/decoder/param_names.hpp"
 #include "flexsplat/geometry/weights.hpp"
-#include "flexsplat/train/checkpoint.hpp"
-#include "train_test_util.hpp"
+#include "flexsplat/optim/checkpoint.hpp"
+#include "optim_test_util.hpp"
 
 using namespace flexsplat;
 using train_test::TempPath;

@@ -15,7 +15,7 @@
 #include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
-#include "flexsplat/geometry/descriptor.hpp"
+#include "flexsplat/solvers/descriptor.hpp"
 #include "flexsplat/geometry/unproject.hpp"
 
 namespace flexsplat {

@@ -8,7 +8,7 @@
 #include <Eigen/Geometry>
 
 #include "flexsplat/model/frames.hpp"
-#include "flexsplat/model/refine.hpp"
+#include "flexsplat/eval/refine.hpp"
 #include "flexsplat/raster/render.hpp"
 
 using namespace flexsplat;

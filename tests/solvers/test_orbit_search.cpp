@@ -12,7 +12,7 @@
 #include "flexsplat/data/cameras.hpp"
 #include "flexsplat/data/mesh_render.hpp"
 #include "flexsplat/data/procedural.hpp"
-#include "flexsplat/geometry/orbit_search.hpp"
+#include "flexsplat/solvers/orbit_search.hpp"
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/model/frames.hpp"
 

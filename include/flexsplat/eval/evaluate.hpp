@@ -26,10 +26,10 @@
 #include "flexsplat/loss/ssim.hpp"
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/model/frames.hpp"
-#include "flexsplat/model/objective.hpp"
+#include "flexsplat/train/objective.hpp"
 #include "flexsplat/model/predict.hpp"
-#include "flexsplat/model/refine.hpp"
-#include "flexsplat/model/train.hpp"
+#include "flexsplat/eval/refine.hpp"
+#include "flexsplat/train/step.hpp"
 #include "flexsplat/raster/render.hpp"
 
 namespace flexsplat {

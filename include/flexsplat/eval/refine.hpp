@@ -45,8 +45,8 @@
 #include "flexsplat/nn/activations.hpp"
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/raster/render.hpp"
-#include "flexsplat/train/optimizer.hpp"
-#include "flexsplat/train/params.hpp"
+#include "flexsplat/optim/optimizer.hpp"
+#include "flexsplat/optim/params.hpp"
 
 namespace flexsplat {
 inline namespace v0 {

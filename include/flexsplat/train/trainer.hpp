@@ -35,13 +35,13 @@
 #include "flexsplat/io/safetensors.hpp"
 #include "flexsplat/loss/lpips.hpp"
 #include "flexsplat/model/config.hpp"
-#include "flexsplat/model/run_config.hpp"
-#include "flexsplat/model/train.hpp"
-#include "flexsplat/model/train_data.hpp"
-#include "flexsplat/model/validate.hpp"
+#include "flexsplat/train/run_config.hpp"
+#include "flexsplat/train/step.hpp"
+#include "flexsplat/train/scenes.hpp"
+#include "flexsplat/train/validate.hpp"
 #include "flexsplat/model/weights.hpp"
-#include "flexsplat/train/checkpoint.hpp"
-#include "flexsplat/train/distributed.hpp"
+#include "flexsplat/optim/checkpoint.hpp"
+#include "flexsplat/optim/distributed.hpp"
 
 namespace flexsplat {
 inline namespace v0 {

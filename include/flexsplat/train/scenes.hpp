@@ -8,9 +8,9 @@
 
 #include "flexsplat/core/profile.hpp"
 #include "flexsplat/data/dataset.hpp"
-#include "flexsplat/model/train.hpp"
-#include "flexsplat/model/run_config.hpp"
-#include "flexsplat/train/distributed.hpp"
+#include "flexsplat/train/step.hpp"
+#include "flexsplat/train/run_config.hpp"
+#include "flexsplat/optim/distributed.hpp"
 
 namespace flexsplat {
 inline namespace v0 {

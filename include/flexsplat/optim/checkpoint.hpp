@@ -26,7 +26,7 @@
 #include "flexsplat/io/param_check.hpp"
 #include "flexsplat/io/param_source.hpp"
 #include "flexsplat/io/safetensors.hpp"
-#include "flexsplat/train/params.hpp"
+#include "flexsplat/optim/params.hpp"
 
 namespace flexsplat {
 inline namespace v0 {

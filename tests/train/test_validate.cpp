@@ -4,7 +4,7 @@
 
 #include "flexsplat/data/dataset.hpp"
 #include "flexsplat/loss/image.hpp"
-#include "flexsplat/model/validate.hpp"
+#include "flexsplat/train/validate.hpp"
 
 using namespace flexsplat;
 

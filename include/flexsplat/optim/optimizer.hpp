@@ -14,7 +14,7 @@
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/simd.hpp"
-#include "flexsplat/train/params.hpp"
+#include "flexsplat/optim/params.hpp"
 
 namespace flexsplat {
 inline namespace v0 {

@@ -11,7 +11,7 @@
 #include "flexsplat/core/camera.hpp"
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/tensor.hpp"
-#include "flexsplat/geometry/procrustes.hpp"
+#include "flexsplat/solvers/procrustes.hpp"
 #include "flexsplat/loss/geometry.hpp"
 #include "flexsplat/loss/image.hpp"
 #include "flexsplat/loss/match.hpp"
@@ -19,7 +19,7 @@
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/model/frames.hpp"
 #include "flexsplat/model/predict.hpp"
-#include "flexsplat/model/train.hpp"
+#include "flexsplat/train/step.hpp"
 #include "flexsplat/raster/render.hpp"
 
 namespace flexsplat {
@@ -42,7 +42,7 @@ struct ValidationScore {
   double rra15 = 1, rra30 = 1;  // fraction of input-view pairs whose relative rotation is within 15 / 30 deg
   // The same three for the camera head's own cameras (the same as above unless another source placed the views).
   double head_rotation_deg = 0, head_rra15 = 1, head_rra30 = 1;
-  // The same three for the cameras solved from the point head's map (geometry/procrustes.hpp); 0 without the head.
+  // The same three for the cameras solved from the point head's map (solvers/procrustes.hpp); 0 without the head.
   double points_rotation_deg = 0, points_rra15 = 0, points_rra30 = 0;
   // The same for the cameras solved from the match head's correspondences; 0 without the head.
   double matches_rotation_deg = 0, matches_rra15 = 0, matches_rra30 = 0;
@@ -62,7 +62,7 @@ struct ValidationScore {
   double chance_rotation_deg = 0;  // rotation_deg of a constant guess (every camera the first one's orientation)
   double depth_rel = 0;         // mean |predicted - ground-truth depth| / ground-truth depth on object pixels
   // The same after each view's depth is scaled by its median ratio to the ground truth: the shape alone (what
-  // geometry/orbit_search.hpp needs; a view's scale is absorbed by its distance), mean over views with object pixels.
+  // solvers/orbit_search.hpp needs; a view's scale is absorbed by its distance), mean over views with object pixels.
   double depth_shape_rel = 0;
   index_t targets = 0, views = 0;
 };

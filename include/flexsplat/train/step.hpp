@@ -2,7 +2,7 @@
 // One training step of the whole FlexSplat model: a batch of scenes, each turned into the model's frame (first input
 // camera = identity, unit mean point distance, as VGGT normalises its data), forward through geometry and appearance,
 // the stage's losses, backward into one gradient per scene, the per-scene gradients summed in global scene order
-// across ranks (train/distributed.hpp), averaged, clipped, and one AdamW update.
+// across ranks (optim/distributed.hpp), averaged, clipped, and one AdamW update.
 //
 // Stages: geometry pre-training (VGGT's supervised camera and depth losses; the appearance side is not run), joint
 // training (the FlexSplat objective, plus optionally the supervised geometry terms), both with every parameter
@@ -25,10 +25,10 @@
 #include "flexsplat/model/cameras.hpp"
 #include "flexsplat/model/frames.hpp"
 #include "flexsplat/model/geometry_stage.hpp"
-#include "flexsplat/model/objective.hpp"
+#include "flexsplat/train/objective.hpp"
 #include "flexsplat/model/weights.hpp"
-#include "flexsplat/train/distributed.hpp"
-#include "flexsplat/train/optimizer.hpp"
+#include "flexsplat/optim/distributed.hpp"
+#include "flexsplat/optim/optimizer.hpp"
 
 namespace flexsplat {
 inline namespace v0 {

@@ -18,7 +18,7 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/tensor.hpp"
-#include "flexsplat/geometry/descriptor.hpp"
+#include "flexsplat/solvers/descriptor.hpp"
 #include "flexsplat/geometry/unproject.hpp"
 
 namespace flexsplat {

@@ -4,7 +4,7 @@
 #include <limits>
 #include <vector>
 
-#include "flexsplat/geometry/descriptor.hpp"
+#include "flexsplat/solvers/descriptor.hpp"
 
 using namespace flexsplat;
 using namespace flexsplat::geometry;

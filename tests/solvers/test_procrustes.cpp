@@ -7,7 +7,7 @@
 
 #include <Eigen/Geometry>
 
-#include "flexsplat/geometry/procrustes.hpp"
+#include "flexsplat/solvers/procrustes.hpp"
 #include "flexsplat/geometry/unproject.hpp"
 
 using namespace flexsplat;
