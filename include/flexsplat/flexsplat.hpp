@@ -116,3 +116,4 @@
 #include "flexsplat/train/trainer.hpp"
 #include "flexsplat/eval/refine.hpp"
 #include "flexsplat/eval/evaluate.hpp"
+#include "flexsplat/eval/run.hpp"

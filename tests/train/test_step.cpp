@@ -196,7 +196,7 @@ TEST_CASE("a training example's ground-truth points are each view's surface in t
   CHECK(model::matches_per_pair(1) == 0);
 }
 
-TEST_CASE("point_weight, match_weight and match_coarse_weight: scene_gradient is the derivative of scene_loss along a random direction",
+TEST_CASE("point_weight and match_weight: scene_gradient is the derivative of scene_loss along a random direction",
           "[model][train][points]") {
   auto c = model::flexsplat_tiny_config();
   c.geometry.point_head = true;
@@ -209,8 +209,6 @@ TEST_CASE("point_weight, match_weight and match_coarse_weight: scene_gradient is
   sc.point_weight = 1.0;
   sc.point_loss.min_valid_pixels = 10;
   sc.match_weight = 0.5;
-  sc.match_coarse_weight = 0.7;  // cells of 7 x 7 pixels: 4 x 4 per view
-  sc.match_coarse_cell = 7;
   model::SceneWorkspace<double> ws;
   auto& store = w->store();
   const index_t n = store.size();
@@ -226,13 +224,6 @@ TEST_CASE("point_weight, match_weight and match_coarse_weight: scene_gradient is
   const Directional d = directional_derivative(ws, *w, grads, e, sc, 3, 1e-7);
   INFO("analytic " << d.analytic << ", numeric " << d.numeric);
   CHECK(d.analytic == Approx(d.numeric).epsilon(1e-5));
-  // The coarse term is part of the loss; a cell that does not divide the views is refused by name.
-  model::StepConfig fine = sc;
-  fine.match_coarse_weight = 0;
-  CHECK(model::scene_loss<double>(ws, *w, e, fine).match < model::scene_loss<double>(ws, *w, e, sc).match);
-  model::StepConfig odd = sc;
-  odd.match_coarse_cell = 5;
-  CHECK_THROWS_WITH(model::scene_loss<double>(ws, *w, e, odd), Catch::Contains("match_coarse_cell 5 does not divide the 28 x 28 views"));
   // Without the heads the weights are refused by name.
   auto plain = model::FlexSplatWeights<double>::create(model::flexsplat_tiny_config(), true);
   plain->init(5);
@@ -334,40 +325,6 @@ TEST_CASE("decoder_true_cameras: the decoder sees the true cameras and the rende
   CHECK(model::scene_loss<double>(ws, *w, e, sc).render == forced.render);
   sc.decoder_true_cameras = false;
   CHECK(model::scene_loss<double>(ws, *w, e, sc).render != predicted.render);
-}
-
-TEST_CASE("decoder_camera_noise_deg: views 2..V the decoder sees are turned by that angle about their centres, the "
-          "first kept, drawn from the scene's seed", "[model][train]") {
-  const auto c = model::flexsplat_tiny_config();
-  auto w = model::FlexSplatWeights<double>::create(c, true);
-  w->init(9);
-  auto e = model::make_train_example<double>(tiny_scene(3, 2, 13), c);
-  e.seed = 77;
-  model::StepConfig sc;
-  sc.decoder_true_cameras = true;
-  model::SceneWorkspace<double> ws;
-  const double exact = model::scene_loss<double>(ws, *w, e, sc).render;
-  sc.decoder_camera_noise_deg = 10;
-  const double noisy = model::scene_loss<double>(ws, *w, e, sc).render;
-  CHECK(noisy != exact);
-  const auto seen = ws.true_camera_geometry.extrinsics;
-  for (std::size_t i = 0; i < 12; ++i) CHECK(seen[i] == e.gt_extrinsics[i]);
-  for (index_t v = 1; v < 3; ++v) {
-    const double* a = e.gt_extrinsics.data() + 12 * v;
-    const double* b = seen.data() + 12 * v;
-    Eigen::Matrix3d Ra, Rb;
-    Eigen::Vector3d ta, tb;
-    for (int r = 0; r < 3; ++r) {
-      for (int k = 0; k < 3; ++k) Ra(r, k) = a[4 * r + k], Rb(r, k) = b[4 * r + k];
-      ta(r) = a[4 * r + 3], tb(r) = b[4 * r + 3];
-    }
-    const double angle = std::acos(std::clamp(((Rb * Ra.transpose()).trace() - 1) / 2, -1.0, 1.0)) * 180 / std::numbers::pi;
-    CHECK(angle == Approx(10).margin(1e-6));
-    CHECK((Ra.transpose() * ta - Rb.transpose() * tb).norm() < 1e-9);  // the same camera centre
-  }
-  CHECK(model::scene_loss<double>(ws, *w, e, sc).render == noisy);
-  e.seed = 78;
-  CHECK(model::scene_loss<double>(ws, *w, e, sc).render != noisy);
 }
 
 TEST_CASE("train_step with scenes side by side on two threads matches one thread to the bit", "[model][train]") {

@@ -161,17 +161,12 @@ inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where)
   s.step.appearance = k.boolean("appearance", true);
   s.step.train_geometry = k.boolean("train_geometry", true);
   s.step.decoder_true_cameras = k.boolean("decoder_true_cameras", false);
-  s.step.decoder_camera_noise_deg = k.number("decoder_camera_noise_deg", 0.0, 0, 180);
-  require(s.step.decoder_camera_noise_deg == 0 || s.step.decoder_true_cameras, "train config: stage '", s.name,
-          "' has decoder_camera_noise_deg ", s.step.decoder_camera_noise_deg, " without decoder_true_cameras");
   s.step.camera_weight = k.number("camera_weight", 0.0, 0, 1e6);
   s.step.relative_camera_weight = k.number("relative_camera_weight", 0.0, 0, 1e6);
   s.step.depth_weight = k.number("depth_weight", 0.0, 0, 1e6);
   s.step.depth_shape_weight = k.number("depth_shape_weight", 0.0, 0, 1e6);
   s.step.point_weight = k.number("point_weight", 0.0, 0, 1e6);
   s.step.match_weight = k.number("match_weight", 0.0, 0, 1e6);
-  s.step.match_coarse_weight = k.number("match_coarse_weight", 0.0, 0, 1e6);
-  s.step.match_coarse_cell = static_cast<index_t>(k.integer("match_coarse_cell", 0, 0, 4096));
   if (const nlohmann::json* o = k.find("objective")) {
     Keys ok(*o, k.path("objective"));
     auto& w = s.step.objective;
@@ -187,8 +182,6 @@ inline TrainStage parse_stage(const nlohmann::json& j, const std::string& where)
           "train config: '", where,
           "' has no loss (appearance is false and camera_weight, relative_camera_weight, depth_weight, depth_shape_weight, "
           "point_weight and match_weight are 0)");
-  require(s.step.match_coarse_weight == 0 || s.step.match_weight > 0, "train config: '", where, "' has match_coarse_weight ",
-          s.step.match_coarse_weight, " without match_weight (the coarse term refines the match loss)");
   require(s.step.train_geometry || s.step.appearance, "train config: '", where,
           "' trains nothing (train_geometry and appearance are both false)");
   return s;

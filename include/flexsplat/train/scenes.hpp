@@ -46,9 +46,7 @@ inline TrainExample<float> make_train_scene(const TrainData& d, const model::Tra
     o.crop = static_cast<int>(c.model.image_h);
     s = data::sample_batch(d.objects, 1, c.seed, index, o);
   }
-  TrainExample<float> e = make_train_example<float>(s[0], c.model, c.match_samples);
-  e.seed = data::child_seed(data::stream_seed(c.seed, data::Stream::camera_noise), index);
-  return e;
+  return make_train_example<float>(s[0], c.model, c.match_samples);
 }
 
 // Scenes `scenes` (global indices) of step `step`, made side by side as train_step runs them (run_scenes).

@@ -51,7 +51,6 @@ struct TrainExample {
   std::vector<std::array<T, 9>> target_K;
   std::vector<std::array<T, 12>> target_w2c;
   std::array<T, 3> background{1, 1, 1};
-  std::uint64_t seed = 0;        // the scene's own draws in the step (StepConfig::decoder_camera_noise_deg)
 };
 
 // Ground-truth correspondences a training example keeps: about `samples` per scene (the run config's match_samples)
@@ -130,10 +129,6 @@ struct StepConfig {
   double depth_shape_weight = 0.0;   // the per-view scale-blind depth shape loss (loss::depth_shape_loss_forward)
   double point_weight = 0.0;         // VGGT's point-map loss (needs the point head)
   double match_weight = 0.0;         // the match head's correspondence and object-mask losses (needs the match head)
-  // The correspondence loss again on descriptors averaged over cells of match_coarse_cell pixels (0: the trunk's
-  // patch), which asks which region of the other view a pixel's region is: context, not texture (needs match_weight).
-  double match_coarse_weight = 0.0;
-  index_t match_coarse_cell = 0;
   ObjectiveWeights objective;
   loss::CameraLossConfig camera_loss;
   loss::DepthLossConfig depth_loss;
@@ -144,9 +139,6 @@ struct StepConfig {
   // forcing): the appearance side learns to use every view while the cameras are still poor, and the render loss then
   // sends no gradient to the cameras (only the camera, pose and match losses train them).
   bool decoder_true_cameras = false;
-  // With decoder_true_cameras: views 2..V of the cameras the decoder sees turned by this many degrees about their own
-  // centres (rotation_noise, seeded by the scene), so that it learns from cameras as far off as the ones it will get.
-  double decoder_camera_noise_deg = 0;
   index_t gaussians = 0;             // 0: the configuration's budget for the view count
   double max_grad_norm = 1.0;        // <= 0: no clipping
   train::AdamWConfig adamw;
@@ -173,31 +165,19 @@ struct SceneWorkspace {
   std::vector<RenderView<T>> views;
   std::vector<std::uint8_t> depth_mask;
   std::vector<T> d_points, d_points_conf, d_descriptors, d_foreground;
-  std::vector<T> coarse, d_coarse, coarse_prob, d_coarse_prob, coarse_alpha;  // the coarse match loss's cell maps
-  std::vector<loss::PixelMatch> coarse_matches;
   GeometryResult<T> true_camera_geometry;  // StepConfig::decoder_true_cameras: the prediction with the true cameras
 };
 
 namespace detail {
-// One scene's forward and loss parts; grads non-null: then its backward, added into grads. scene_loss and
-// scene_gradient are its two modes, so both report the one computation of the loss.
-template <class T>
-StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* grads, const TrainExample<T>& e,
-                      const StepConfig& sc, const loss::LpipsWeights<T>* lpips, PhaseTimes* times) {
-  const FlexSplatConfig& c = w.config();
-  const index_t V = e.views, px = e.h * e.w;
-  const bool backward = grads != nullptr;
-  StepReport r;
-  PhaseClock clock(times);
-  geometry_stage_forward(ws.geometry, w, e.images.data(), V, sc.train_geometry);
-  clock.lap(&PhaseTimes::geometry_forward);
-  const GeometryResult<T>& g = ws.geometry.result;
-  const index_t iters = ws.geometry.iterations;
-  if (backward) {
-    ws.d_geometry.zero_like(g);
-    ws.d_pose_enc.assign(static_cast<std::size_t>(iters * V * 9), T(0));
-  }
+// The loss groups of one scene (scene_pass): each adds its weighted parts into r and, with backward, their gradients
+// into ws's geometry-output gradients.
 
+// VGGT's supervised camera loss on every camera-head iteration's encoding, and the relative pose loss over all ordered
+// view pairs with the camera loss's FoV term.
+template <class T>
+void camera_losses(StepReport& r, SceneWorkspace<T>& ws, const FlexSplatConfig& c, const TrainExample<T>& e,
+                   const StepConfig& sc, bool backward) {
+  const index_t V = e.views, iters = ws.geometry.iterations;
   // Every camera-head iteration's encoding and its gradient slot, for the camera losses.
   std::vector<const T*> enc;
   std::vector<T*> d_enc;
@@ -241,7 +221,15 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
       }
     }
   }
-  // Pixels with ground-truth depth: where the depth and point losses compare.
+}
+
+// VGGT's supervised depth loss, the scale-blind depth shape loss and the point-map loss, on the pixels with
+// ground-truth depth.
+template <class T>
+void depth_losses(StepReport& r, SceneWorkspace<T>& ws, const FlexSplatConfig& c, const TrainExample<T>& e,
+                  const StepConfig& sc, bool backward) {
+  const index_t V = e.views, px = e.h * e.w;
+  const GeometryResult<T>& g = ws.geometry.result;
   if (sc.depth_weight > 0 || sc.depth_shape_weight > 0 || sc.point_weight > 0) {
     ws.depth_mask.resize(static_cast<std::size_t>(V * px));
     for (index_t i = 0; i < V * px; ++i) ws.depth_mask[static_cast<std::size_t>(i)] = e.gt_depth[static_cast<std::size_t>(i)] > T(0);
@@ -274,94 +262,96 @@ StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* gr
                                 o.points_conf.data(), e.gt_points.data(), ws.depth_mask.data(), V * px, sc.point_loss);
     }
   }
-  if (sc.match_weight > 0) {
-    const index_t D = c.geometry.match_dim;
-    require(D > 0, "training: match_weight ", sc.match_weight, " needs a model with the match head (match_dim > 0)");
-    const auto& o = ws.geometry.outputs;
-    const std::span<const loss::PixelMatch> m(e.matches);
-    r.match = sc.match_weight * loss::match_loss_forward(o.descriptors.data(), o.foreground.data(), e.masks.data(), m,
-                                                         V, px, D, sc.match_loss).total;
-    if (backward) {
-      ws.d_descriptors.assign(static_cast<std::size_t>(V * px * D), T(0));
-      ws.d_foreground.assign(static_cast<std::size_t>(V * px), T(0));
-      loss::match_loss_backward(ws.d_descriptors.data(), ws.d_foreground.data(), sc.match_weight, o.descriptors.data(),
-                                o.foreground.data(), e.masks.data(), m, V, px, D, sc.match_loss);
-    }
-    if (sc.match_coarse_weight > 0) {
-      const index_t cell = sc.match_coarse_cell > 0 ? sc.match_coarse_cell : c.geometry.aggregator.patch_size;
-      require(e.h % cell == 0 && e.w % cell == 0, "training: match_coarse_cell ", cell, " does not divide the ", e.w,
-              " x ", e.h, " views");
-      const index_t cw = e.w / cell, cpx = (e.h / cell) * cw;
-      auto cell_of = [&](index_t p) { return (p / e.w / cell) * cw + (p % e.w) / cell; };
-      ws.coarse.assign(static_cast<std::size_t>(V * cpx * D), T(0));
-      const T inv = T(1) / static_cast<T>(cell * cell);
-      for (index_t v = 0; v < V; ++v)
-        for (index_t p = 0; p < px; ++p)
-          for (index_t d = 0; d < D; ++d)
-            ws.coarse[static_cast<std::size_t>((v * cpx + cell_of(p)) * D + d)] += inv * o.descriptors.data()[(v * px + p) * D + d];
-      ws.coarse_matches.clear();
-      for (const loss::PixelMatch& pm : e.matches)
-        ws.coarse_matches.push_back({pm.view_a, cell_of(pm.pixel_a), pm.view_b, cell_of(pm.pixel_b)});
-      // Only the correspondence term: the object mask is the fine loss's.
-      loss::MatchLossConfig cc = sc.match_loss;
-      cc.foreground_weight = 0;
-      ws.coarse_prob.assign(static_cast<std::size_t>(V * cpx), T(0.5));
-      ws.coarse_alpha.assign(ws.coarse_prob.size(), T(0));
-      const std::span<const loss::PixelMatch> cm(ws.coarse_matches);
-      r.match += sc.match_coarse_weight * loss::match_loss_forward(ws.coarse.data(), ws.coarse_prob.data(),
-                                                                   ws.coarse_alpha.data(), cm, V, cpx, D, cc).total;
-      if (backward) {
-        ws.d_coarse.assign(ws.coarse.size(), T(0));
-        ws.d_coarse_prob.assign(ws.coarse_prob.size(), T(0));
-        loss::match_loss_backward(ws.d_coarse.data(), ws.d_coarse_prob.data(), sc.match_coarse_weight, ws.coarse.data(),
-                                  ws.coarse_prob.data(), ws.coarse_alpha.data(), cm, V, cpx, D, cc);
-        for (index_t v = 0; v < V; ++v)
-          for (index_t p = 0; p < px; ++p)
-            for (index_t d = 0; d < D; ++d)
-              ws.d_descriptors[static_cast<std::size_t>((v * px + p) * D + d)] +=
-                  inv * ws.d_coarse[static_cast<std::size_t>((v * cpx + cell_of(p)) * D + d)];
-      }
-    }
+}
+
+// The match head's correspondence and object-mask losses.
+template <class T>
+void match_losses(StepReport& r, SceneWorkspace<T>& ws, const FlexSplatConfig& c, const TrainExample<T>& e,
+                  const StepConfig& sc, bool backward) {
+  if (!(sc.match_weight > 0)) return;
+  const index_t V = e.views, px = e.h * e.w, D = c.geometry.match_dim;
+  require(D > 0, "training: match_weight ", sc.match_weight, " needs a model with the match head (match_dim > 0)");
+  const auto& o = ws.geometry.outputs;
+  const std::span<const loss::PixelMatch> m(e.matches);
+  r.match = sc.match_weight * loss::match_loss_forward(o.descriptors.data(), o.foreground.data(), e.masks.data(), m, V,
+                                                       px, D, sc.match_loss).total;
+  if (backward) {
+    ws.d_descriptors.assign(static_cast<std::size_t>(V * px * D), T(0));
+    ws.d_foreground.assign(static_cast<std::size_t>(V * px), T(0));
+    loss::match_loss_backward(ws.d_descriptors.data(), ws.d_foreground.data(), sc.match_weight, o.descriptors.data(),
+                              o.foreground.data(), e.masks.data(), m, V, px, D, sc.match_loss);
   }
-  if (sc.appearance) {
-    const GeometryResult<T>* seen = &g;
-    if (sc.decoder_true_cameras) {
-      ws.true_camera_geometry = g;
-      std::copy(e.gt_extrinsics.begin(), e.gt_extrinsics.end(), ws.true_camera_geometry.extrinsics.begin());
-      std::copy(e.gt_K.begin(), e.gt_K.end(), ws.true_camera_geometry.K.begin());
-      if (sc.decoder_camera_noise_deg > 0 && V > 1)  // the first view is the frame: it stays
-        rotation_noise(ws.true_camera_geometry.extrinsics.data() + 12, V - 1, sc.decoder_camera_noise_deg, e.seed);
-      seen = &ws.true_camera_geometry;
-    }
-    ws.views.clear();
-    if (sc.render_inputs)
-      for (index_t v = 0; v < V; ++v) {
-        RenderView<T> rv;
-        rv.width = static_cast<int>(e.w), rv.height = static_cast<int>(e.h), rv.input_view = v;
-        rv.target = e.inputs_hwc.data() + v * px * 3;
-        rv.mask = e.masks.data() + v * px;
-        ws.views.push_back(rv);
-      }
-    for (index_t m = 0; m < e.targets; ++m) {
+}
+
+// The FlexSplat objective (appearance_objective): the decoder's Gaussians rendered into the input views (predicted
+// cameras) and the targets; with decoder_true_cameras the decoder and the input views' renders see the ground-truth
+// cameras. d_app: the appearance segment's gradients (null: forward only).
+template <class T>
+void appearance_losses(StepReport& r, SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* d_app,
+                       const TrainExample<T>& e, const StepConfig& sc, const loss::LpipsWeights<T>* lpips,
+                       PhaseTimes* times) {
+  const FlexSplatConfig& c = w.config();
+  const index_t V = e.views, px = e.h * e.w;
+  const bool backward = d_app != nullptr;
+  const GeometryResult<T>* seen = &ws.geometry.result;
+  if (sc.decoder_true_cameras) {
+    ws.true_camera_geometry = ws.geometry.result;
+    std::copy(e.gt_extrinsics.begin(), e.gt_extrinsics.end(), ws.true_camera_geometry.extrinsics.begin());
+    std::copy(e.gt_K.begin(), e.gt_K.end(), ws.true_camera_geometry.K.begin());
+    seen = &ws.true_camera_geometry;
+  }
+  ws.views.clear();
+  if (sc.render_inputs)
+    for (index_t v = 0; v < V; ++v) {
       RenderView<T> rv;
-      rv.K = e.target_K[static_cast<std::size_t>(m)];
-      rv.world_to_camera = e.target_w2c[static_cast<std::size_t>(m)];
-      rv.width = static_cast<int>(e.w), rv.height = static_cast<int>(e.h);
-      rv.target = e.target_images.data() + m * px * 3;
+      rv.width = static_cast<int>(e.w), rv.height = static_cast<int>(e.h), rv.input_view = v;
+      rv.target = e.inputs_hwc.data() + v * px * 3;
+      rv.mask = e.masks.data() + v * px;
       ws.views.push_back(rv);
     }
-    raster::RenderOptions ro;
-    ro.background = {static_cast<double>(e.background[0]), static_cast<double>(e.background[1]),
-                     static_cast<double>(e.background[2])};
-    const index_t n = sc.gaussians > 0 ? sc.gaussians : c.gaussians_for(V);
+  for (index_t m = 0; m < e.targets; ++m) {
+    RenderView<T> rv;
+    rv.K = e.target_K[static_cast<std::size_t>(m)];
+    rv.world_to_camera = e.target_w2c[static_cast<std::size_t>(m)];
+    rv.width = static_cast<int>(e.w), rv.height = static_cast<int>(e.h);
+    rv.target = e.target_images.data() + m * px * 3;
+    ws.views.push_back(rv);
+  }
+  raster::RenderOptions ro;
+  ro.background = {static_cast<double>(e.background[0]), static_cast<double>(e.background[1]),
+                   static_cast<double>(e.background[2])};
+  const index_t n = sc.gaussians > 0 ? sc.gaussians : c.gaussians_for(V);
+  const LossParts p = appearance_objective<T>(ws.objective, w.appearance(), d_app, c.appearance, n, e.images.data(),
+                                              *seen, backward && sc.train_geometry ? &ws.d_geometry : nullptr,
+                                              ws.views, sc.objective, ro, lpips, times);
+  if (sc.decoder_true_cameras && backward && sc.train_geometry)  // no other loss reaches these two fields
+    for (auto* f : {&ws.d_geometry.extrinsics, &ws.d_geometry.K}) std::fill(f->begin(), f->end(), T(0));
+  r.rgb_head = p.rgb_head, r.render = p.render, r.render_depth = p.depth, r.lpips = p.lpips, r.psnr = p.psnr_last;
+}
+
+// One scene's forward and loss parts; grads non-null: then its backward, added into grads. scene_loss and
+// scene_gradient are its two modes, so both report the one computation of the loss.
+template <class T>
+StepReport scene_pass(SceneWorkspace<T>& ws, const FlexSplatWeights<T>& w, T* grads, const TrainExample<T>& e,
+                      const StepConfig& sc, const loss::LpipsWeights<T>* lpips, PhaseTimes* times) {
+  const FlexSplatConfig& c = w.config();
+  const index_t V = e.views;
+  const bool backward = grads != nullptr;
+  StepReport r;
+  PhaseClock clock(times);
+  geometry_stage_forward(ws.geometry, w, e.images.data(), V, sc.train_geometry);
+  clock.lap(&PhaseTimes::geometry_forward);
+  if (backward) {
+    ws.d_geometry.zero_like(ws.geometry.result);
+    ws.d_pose_enc.assign(static_cast<std::size_t>(ws.geometry.iterations * V * 9), T(0));
+  }
+  camera_losses(r, ws, c, e, sc, backward);
+  depth_losses(r, ws, c, e, sc, backward);
+  match_losses(r, ws, c, e, sc, backward);
+  if (sc.appearance) {
     T* d_app = backward ? grads + w.store().segment(appearance_segment).offset : nullptr;
-    const LossParts p = appearance_objective<T>(ws.objective, w.appearance(), d_app, c.appearance, n, e.images.data(),
-                                                *seen, backward && sc.train_geometry ? &ws.d_geometry : nullptr,
-                                                ws.views, sc.objective, ro, lpips, times);
-    if (sc.decoder_true_cameras && backward && sc.train_geometry)  // no other loss reaches these two fields
-      for (auto* f : {&ws.d_geometry.extrinsics, &ws.d_geometry.K}) std::fill(f->begin(), f->end(), T(0));
+    appearance_losses(r, ws, w, d_app, e, sc, lpips, times);
     clock = PhaseClock(times);
-    r.rgb_head = p.rgb_head, r.render = p.render, r.render_depth = p.depth, r.lpips = p.lpips, r.psnr = p.psnr_last;
   }
   clock.lap(&PhaseTimes::losses);
   if (backward && sc.train_geometry) {
