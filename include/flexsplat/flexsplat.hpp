@@ -76,6 +76,8 @@
 #include "flexsplat/raster/project.hpp"
 #include "flexsplat/raster/intersect.hpp"
 #include "flexsplat/raster/rasterize.hpp"
+#include "flexsplat/raster/render_types.hpp"
+#include "flexsplat/raster/projection_pass.hpp"
 #include "flexsplat/raster/render.hpp"
 #include "flexsplat/raster/reference.hpp"
 #include "flexsplat/raster/brute_force.hpp"

@@ -104,6 +104,7 @@ inline void check_camera(const Camera& cam, const char* context) {
   require(err < 1e-4, context, ": world-to-camera R is not a rotation (orthonormality / determinant error ", err, ")");
 }
 
+// Long (about 170 lines): setup, visibility and resolve share the clipped triangles and one row-parallel loop.
 inline void render_mesh(const Mesh& mesh, const Camera& cam, const RenderOptions& options, RenderOutput& out,
                         RenderWorkspace& ws, ThreadPool& pool = global_pool()) {
   check_camera(cam, "render_mesh");

@@ -449,6 +449,7 @@ WriteReport write_glb(const GaussianSet<T>& set, const std::filesystem::path& pa
 
 // Decodes the single KHR_gaussian_splatting primitive of a .glb; float attributes come back bit-exact.
 // Cameras stored as perspective camera nodes go to *cameras when it is given.
+// Long (about 170 lines): the checks in the file's own order (header, chunks, JSON, accessors, attributes, cameras).
 inline GaussianSet<float> decode_glb(const unsigned char* data, std::size_t size, const std::string& source,
                                      std::vector<Camera>* cameras = nullptr) {
   using namespace detail;

@@ -560,6 +560,103 @@ inline index_t dpt_head_cache_elements(const DptHeadConfig& cfg, index_t patch_h
 }
 
 namespace detail {
+// The DPT fusion block's residual conv unit: result = relu(x) + conv2(relu(conv1(relu(x)))) over F channels of h x w;
+// save_r / save_u (may be null) receive relu(x) and relu(conv1(relu(x))), what the backward reads.
+template <class T>
+void dpt_unit_forward(T* result, const T* x, const ResidualConvUnitWeights<T>& u, T* tmp1, T* tmp2, index_t F,
+                      index_t h, index_t w, T* save_r, T* save_u, std::span<T> scratch) {
+  const index_t n = F * h * w;
+  relu_copy(result, x, n);
+  if (save_r) std::copy(result, result + n, save_r);
+  conv2d_same(tmp1, result, u.conv1.weight, u.conv1.bias, F, F, h, w, 3, scratch);
+  relu_copy(tmp1, tmp1, n);
+  if (save_u) std::copy(tmp1, tmp1 + n, save_u);
+  conv2d_same(tmp2, tmp1, u.conv2.weight, u.conv2.bias, F, F, h, w, 3, scratch);
+  add_into(result, tmp2, n);
+}
+
+// d_x += d(result) through result = r + conv2(u), u = relu(conv1(r)), r = relu(x) (r, u saved by the forward);
+// d_r, d_u: scratch of F h w values each.
+template <class T>
+void dpt_unit_backward(T* d_x, const T* d_result, const ResidualConvUnitWeights<T>& u, const ResidualConvUnitGrads<T>& gu,
+                       const T* r, const T* uu, index_t F, index_t h, index_t w, T* d_r, T* d_u, std::span<T> scratch) {
+  const index_t n = F * h * w;
+  std::copy(d_result, d_result + n, d_r);
+  std::fill(d_u, d_u + n, T(0));
+  conv2d_same_backward(d_u, gu.conv2.weight, gu.conv2.bias, d_result, uu, u.conv2.weight, F, F, h, w, 3, scratch);
+  relu_mask(d_u, uu, n);
+  conv2d_same_backward(d_r, gu.conv1.weight, gu.conv1.bias, d_u, r, u.conv1.weight, F, F, h, w, 3, scratch);
+  relu_mask(d_r, r, n);
+  add_into(d_x, d_r, n);
+}
+
+// The fusion of frame f, coarse to fine: each level's block [prev + unit1(rn)] -> unit2 -> out_conv, resized to the
+// next level (prev) or, at level 0, to the fused grid (fused). A, B, C, Dbuf: scratch of F times level 0's size each
+// (prev lives in Dbuf between levels); k (may be null): the cache the backward reads.
+template <class T>
+void dpt_fusion_forward(T* fused, T* const rn[4], const DptHeadWeights<T>& wt, const DptGeometry& g, index_t F, T* A,
+                        T* B, T* C, T* Dbuf, std::span<T> scratch, DptHeadCache<T>* k, index_t f) {
+  using Slots = std::array<std::vector<T>, 4> DptHeadCache<T>::*;
+  auto slot = [&](Slots member, int level) {
+    return k ? ((*k).*member)[level].data() + f * F * g.level_size(level) : static_cast<T*>(nullptr);
+  };
+  bool has_prev = false;
+  for (int level = 3; level >= 0; --level) {
+    const auto& fb = wt.refinenet[level];
+    const index_t h = g.h[level], w = g.w[level], n = F * h * w;
+    const T* x = rn[level];
+    if (has_prev) {
+      dpt_unit_forward(A, x, fb.unit1, B, C, F, h, w, slot(&DptHeadCache<T>::unit1_r, level),
+                       slot(&DptHeadCache<T>::unit1_u, level), scratch);
+      add_into(A, Dbuf, n);
+      x = A;
+    }
+    dpt_unit_forward(B, x, fb.unit2, C, Dbuf, F, h, w, slot(&DptHeadCache<T>::unit2_r, level),
+                     slot(&DptHeadCache<T>::unit2_u, level), scratch);
+    if (k) std::copy(B, B + n, slot(&DptHeadCache<T>::block_out, level));
+    // The 1x1 out_conv commutes with bilinear resizing (weights sum to one), so it runs at the smaller size.
+    conv2d_same(C, B, fb.out_conv.weight, fb.out_conv.bias, F, F, h, w, 1, scratch);
+    if (level > 0) resize_align_corners(Dbuf, C, F, h, w, g.h[level - 1], g.w[level - 1]);
+    else resize_align_corners(fused, C, F, h, w, g.fused_h, g.fused_w);
+    has_prev = true;
+  }
+}
+
+// The adjoint of dpt_fusion_forward for frame f: sets d_rn[i] (F times level i's size) from d_fused. d_c, d_b, d_a,
+// d_r, d_u: scratch of F times level 0's size each (d_c holds the gradient of the current level's out_conv output).
+template <class T>
+void dpt_fusion_backward(T* const d_rn[4], const T* d_fused, const DptHeadCache<T>& k, const DptHeadWeights<T>& wt,
+                         const DptHeadGrads<T>& grads, const DptGeometry& g, index_t F, index_t f, T* d_c, T* d_b,
+                         T* d_a, T* d_r, T* d_u, std::span<T> scratch) {
+  auto zero = [](T* p, index_t n) { std::fill(p, p + n, T(0)); };
+  zero(d_c, F * g.level_size(0));
+  resize_align_corners_backward(d_c, d_fused, F, g.h[0], g.w[0], g.fused_h, g.fused_w);
+  for (int i = 0; i < 4; ++i) zero(d_rn[i], F * g.level_size(i));
+  for (int level = 0; level < 4; ++level) {
+    const auto& fb = wt.refinenet[level];
+    const auto& gb = grads.refinenet[level];
+    const index_t h = g.h[level], w = g.w[level], n = F * h * w, at = f * n;
+    zero(d_b, n);
+    conv2d_same_backward(d_b, gb.out_conv.weight, gb.out_conv.bias, d_c, k.block_out[level].data() + at,
+                         fb.out_conv.weight, F, F, h, w, 1, scratch);
+    if (level == 3) {
+      dpt_unit_backward(d_rn[3], d_b, fb.unit2, gb.unit2, k.unit2_r[3].data() + at, k.unit2_u[3].data() + at, F, h, w,
+                        d_r, d_u, scratch);
+      break;
+    }
+    zero(d_a, n);
+    dpt_unit_backward(d_a, d_b, fb.unit2, gb.unit2, k.unit2_r[level].data() + at, k.unit2_u[level].data() + at, F, h,
+                      w, d_r, d_u, scratch);
+    // unit2's input is unit1(rn) + prev, prev the coarser level's out_conv output resized to this level.
+    dpt_unit_backward(d_rn[level], d_a, fb.unit1, gb.unit1, k.unit1_r[level].data() + at,
+                      k.unit1_u[level].data() + at, F, h, w, d_r, d_u, scratch);
+    zero(d_c, F * g.level_size(level + 1));
+    resize_align_corners_backward(d_c, d_a, F, g.h[level + 1], g.w[level + 1], h, w);
+  }
+}
+}  // namespace detail
+
+namespace detail {
 template <class T>
 void dpt_head_run(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, const DptHeadWeights<T>& wt,
                   std::span<const T* const> layers, index_t frames, index_t tokens, index_t patch_start,
@@ -645,46 +742,9 @@ void dpt_head_run(const DptHeadOutputs<T>& out, const DptHeadConfig& cfg, const 
                   g.w[i], 3, scratch);
     }
 
-    // Fusion, coarse to fine. Each block: [prev + unit1(skip)] -> unit2 -> out_conv -> resize to the next level.
-    T* A = ws + L.a;
-    T* B = ws + L.b;
-    T* C = ws + L.c;
-    T* Dbuf = ws + L.d;
-    // result = relu(x) + conv2(relu(conv1(relu(x)))); save_r / save_u receive relu(x) and relu(conv1(relu(x))).
-    auto unit = [&](T* result, const T* x, const ResidualConvUnitWeights<T>& u, T* tmp1, T* tmp2, index_t h,
-                    index_t w, T* save_r, T* save_u) {
-      const index_t n = F * h * w;
-      relu_copy(result, x, n);
-      if (save_r) std::copy(result, result + n, save_r);
-      conv2d_same(tmp1, result, u.conv1.weight, u.conv1.bias, F, F, h, w, 3, scratch);
-      relu_copy(tmp1, tmp1, n);
-      if (save_u) std::copy(tmp1, tmp1 + n, save_u);
-      conv2d_same(tmp2, tmp1, u.conv2.weight, u.conv2.bias, F, F, h, w, 3, scratch);
-      add_into(result, tmp2, n);
-    };
-    using Slots = std::array<std::vector<T>, 4> DptHeadCache<T>::*;
-    auto slot = [&](Slots member, int level) {
-      return k ? ((*k).*member)[level].data() + f * F * g.level_size(level) : static_cast<T*>(nullptr);
-    };
-    // prev (the coarser block's resized output) lives in Dbuf between levels.
-    bool has_prev = false;
-    for (int level = 3; level >= 0; --level) {
-      const auto& fb = wt.refinenet[level];
-      const index_t h = g.h[level], w = g.w[level], n = F * h * w;
-      const T* x = ws + L.rn[level];
-      if (has_prev) {
-        unit(A, x, fb.unit1, B, C, h, w, slot(&DptHeadCache<T>::unit1_r, level), slot(&DptHeadCache<T>::unit1_u, level));
-        add_into(A, Dbuf, n);
-        x = A;
-      }
-      unit(B, x, fb.unit2, C, Dbuf, h, w, slot(&DptHeadCache<T>::unit2_r, level), slot(&DptHeadCache<T>::unit2_u, level));
-      if (k) std::copy(B, B + n, slot(&DptHeadCache<T>::block_out, level));
-      // The 1x1 out_conv commutes with bilinear resizing (weights sum to one), so it runs at the smaller size.
-      conv2d_same(C, B, fb.out_conv.weight, fb.out_conv.bias, F, F, h, w, 1, scratch);
-      if (level > 0) resize_align_corners(Dbuf, C, F, h, w, g.h[level - 1], g.w[level - 1]);
-      else resize_align_corners(ws + L.fused, C, F, h, w, g.fused_h, g.fused_w);
-      has_prev = true;
-    }
+    // Fusion, coarse to fine, into ws + L.fused.
+    T* const rn[4] = {ws + L.rn[0], ws + L.rn[1], ws + L.rn[2], ws + L.rn[3]};
+    dpt_fusion_forward(ws + L.fused, rn, wt, g, F, ws + L.a, ws + L.b, ws + L.c, ws + L.d, scratch, k, f);
 
     // Head: output_conv1, upsample to the image grid, embedding, output_conv2, activations.
     T* fused = ws + L.fused;
@@ -753,6 +813,41 @@ void dpt_head_forward_train(const DptHeadOutputs<T>& out, DptHeadCache<T>& cache
   detail::dpt_head_run<T>(out, cfg, wt, layers, frames, tokens, patch_start, image_h, image_w, workspace, &cache, image);
 }
 
+namespace detail {
+// Where dpt_head_backward's buffers sit in DptHeadCache::grad_ws (64-byte aligned sub-buffers for float).
+struct DptBackwardLayout {
+  index_t logits, hidden, up, head_in, fused, c, b, a, r, u, rn[4], level, proj, normed, dnormed, scratch, image_a,
+      image_b, d_image, total;
+};
+
+inline DptBackwardLayout dpt_backward_layout(const DptHeadConfig& cfg, const DptGeometry& g, index_t scratch_size) {
+  const auto& oc = cfg.out_channels;
+  const index_t P = g.patch_h * g.patch_w, F = cfg.features, Fh = cfg.head_features(), D = cfg.dim_in;
+  const index_t Ci = cfg.image_channels, Cin = cfg.conv2_in(), Iw = cfg.image_width, In = cfg.image_convs;
+  const index_t full = g.out_h * g.out_w, fused_hw = g.fused_h * g.fused_w, l0 = F * g.level_size(0);
+  const index_t od = cfg.output_dim;
+  constexpr index_t Hh = DptHeadConfig::head_hidden;
+  index_t max_level = 0;
+  for (int i = 0; i < 4; ++i) max_level = std::max(max_level, oc[i] * g.level_size(i));
+  const index_t max_oc = *std::max_element(oc.begin(), oc.end());
+  index_t cursor = 0;
+  auto take = [&](index_t n) {
+    const index_t at = cursor;
+    cursor += (n + 15) / 16 * 16;
+    return at;
+  };
+  DptBackwardLayout o{};
+  o.logits = take(od * full), o.hidden = take(Hh * full), o.up = take(Cin * full), o.head_in = take(Fh * fused_hw);
+  o.fused = take(F * fused_hw), o.c = take(l0), o.b = take(l0), o.a = take(l0), o.r = take(l0), o.u = take(l0);
+  for (int i = 0; i < 4; ++i) o.rn[i] = take(F * g.level_size(i));
+  o.level = take(max_level), o.proj = take(max_oc * P), o.normed = take(P * D), o.dnormed = take(P * D);
+  o.scratch = take(scratch_size), o.image_a = take(In > 0 ? Iw * full : 0), o.image_b = take(In > 0 ? Iw * full : 0);
+  o.d_image = take(In > 0 ? Ci * full : 0);
+  o.total = cursor;
+  return o;
+}
+}  // namespace detail
+
 // Backward of dpt_head_forward_train. Adds into `grads` (null slots skipped), into d_layers[i] (parallel to
 // `layers`; entries or the whole span may be empty/null): only the patch-token rows of the intermediate layers
 // receive gradient, the special tokens get none; and, with image_channels, into d_image (may be null, as the image).
@@ -776,52 +871,19 @@ void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grad
   require(d_layers.empty() || d_layers.size() == layers.size(), "DPT head backward: ", d_layers.size(),
           " layer gradients for ", layers.size(), " layers");
   const auto& oc = cfg.out_channels;
-  const index_t full = g.out_h * g.out_w, fused_hw = g.fused_h * g.fused_w, l0 = F * g.level_size(0);
+  const index_t full = g.out_h * g.out_w, fused_hw = g.fused_h * g.fused_w;
   const index_t od = cfg.output_dim, np = od - 1;
   constexpr index_t Hh = DptHeadConfig::head_hidden;
   const auto L = detail::dpt_workspace_layout(cfg, g);
-  index_t max_level = 0;
-  for (int i = 0; i < 4; ++i) max_level = std::max(max_level, oc[i] * g.level_size(i));
-  const index_t max_oc = *std::max_element(oc.begin(), oc.end());
-
-  index_t cursor = 0;
-  auto take = [&](index_t n) {
-    const index_t at = cursor;
-    cursor += (n + 15) / 16 * 16;
-    return at;
-  };
-  const index_t o_logits = take(od * full), o_hidden = take(Hh * full), o_up = take(Cin * full),
-                o_head_in = take(Fh * fused_hw), o_fused = take(F * fused_hw), o_c = take(l0), o_b = take(l0),
-                o_a = take(l0), o_r = take(l0), o_u = take(l0);
-  index_t o_rn[4];
-  for (int i = 0; i < 4; ++i) o_rn[i] = take(F * g.level_size(i));
-  const index_t o_level = take(max_level), o_proj = take(max_oc * P), o_normed = take(P * D), o_dnormed = take(P * D),
-                o_scratch = take(L.scratch_size), o_image_a = take(In > 0 ? Iw * full : 0),
-                o_image_b = take(In > 0 ? Iw * full : 0), o_d_image = take(In > 0 ? Ci * full : 0);
-  if (static_cast<index_t>(k.grad_ws.size()) < cursor) k.grad_ws.resize(static_cast<std::size_t>(cursor));
+  const auto O = detail::dpt_backward_layout(cfg, g, L.scratch_size);
+  if (static_cast<index_t>(k.grad_ws.size()) < O.total) k.grad_ws.resize(static_cast<std::size_t>(O.total));
   T* ws = k.grad_ws.data();
-  std::span<T> scratch(ws + o_scratch, static_cast<std::size_t>(L.scratch_size));
+  std::span<T> scratch(ws + O.scratch, static_cast<std::size_t>(L.scratch_size));
   auto zero = [](T* p, index_t n) { std::fill(p, p + n, T(0)); };
-
-  // d_x += d(result) through result = r + conv2(u), u = relu(conv1(r)), r = relu(x) (r, u saved by the forward).
-  auto unit_backward = [&](T* d_x, const T* d_result, const ResidualConvUnitWeights<T>& u,
-                           const ResidualConvUnitGrads<T>& gu, const T* r, const T* uu, index_t h, index_t w) {
-    const index_t n = F * h * w;
-    T* d_r = ws + o_r;
-    T* d_u = ws + o_u;
-    std::copy(d_result, d_result + n, d_r);
-    zero(d_u, n);
-    detail::conv2d_same_backward(d_u, gu.conv2.weight, gu.conv2.bias, d_result, uu, u.conv2.weight, F, F, h, w, 3,
-                                 scratch);
-    detail::relu_mask(d_u, uu, n);
-    detail::conv2d_same_backward(d_r, gu.conv1.weight, gu.conv1.bias, d_u, r, u.conv1.weight, F, F, h, w, 3, scratch);
-    detail::relu_mask(d_r, r, n);
-    detail::add_into(d_x, d_r, n);
-  };
 
   for (index_t f = 0; f < k.frames; ++f) {
     // Activations.
-    T* d_logits = ws + o_logits;
+    T* d_logits = ws + O.logits;
     const T* logits = k.logits.data() + f * od * full;
     parallel_for(full, [&](index_t p0, index_t p1, int) {
       for (index_t p = p0; p < p1; ++p) {
@@ -836,12 +898,12 @@ void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grad
     });
     // output_conv2: 1x1 after the ReLU'd 3x3.
     const T* hidden = k.hidden.data() + f * Hh * full;
-    T* d_hidden = ws + o_hidden;
+    T* d_hidden = ws + O.hidden;
     zero(d_hidden, Hh * full);
     detail::conv2d_same_backward(d_hidden, grads.output_conv2_2.weight, grads.output_conv2_2.bias, d_logits, hidden,
                                  wt.output_conv2_2.weight, Hh, od, g.out_h, g.out_w, 1, scratch);
     detail::relu_mask(d_hidden, hidden, Hh * full);
-    T* d_up = ws + o_up;
+    T* d_up = ws + O.up;
     if (d_out.features) std::copy(d_out.features + f * Fh * full, d_out.features + (f + 1) * Fh * full, d_up);
     else zero(d_up, Fh * full);
     zero(d_up + Fh * full, Co * full);
@@ -855,7 +917,7 @@ void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grad
       detail::relu_mask(d_y, k.image_act.data() + (f * In + j) * Iw * full, Iw * full);
       const index_t cin = j == 0 ? Ci : Iw;
       const T* x = j == 0 ? k.image.data() + f * Ci * full : k.image_act.data() + (f * In + j - 1) * Iw * full;
-      T* d_x = j == 0 ? (d_image ? ws + o_d_image : nullptr) : ws + (j % 2 == 1 ? o_image_a : o_image_b);
+      T* d_x = j == 0 ? (d_image ? ws + O.d_image : nullptr) : ws + (j % 2 == 1 ? O.image_a : O.image_b);
       if (d_x) zero(d_x, cin * full);
       detail::conv2d_same_backward(d_x, grads.image_conv[j].weight, grads.image_conv[j].bias, d_y, x,
                                    wt.image_conv[j].weight, cin, Iw, g.out_h, g.out_w, 3, scratch);
@@ -863,55 +925,33 @@ void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grad
       d_y = d_x;
     }
     // The uv embedding is a constant add; the upsampling and output_conv1 are linear.
-    T* d_head_in = ws + o_head_in;
+    T* d_head_in = ws + O.head_in;
     if (d_out.fused_features)
       std::copy(d_out.fused_features + f * Fh * fused_hw, d_out.fused_features + (f + 1) * Fh * fused_hw, d_head_in);
     else zero(d_head_in, Fh * fused_hw);
     detail::resize_align_corners_backward(d_head_in, d_up, Fh, g.fused_h, g.fused_w, g.out_h, g.out_w);
-    T* d_fused = ws + o_fused;
+    T* d_fused = ws + O.fused;
     zero(d_fused, F * fused_hw);
     detail::conv2d_same_backward(d_fused, grads.output_conv1.weight, grads.output_conv1.bias, d_head_in,
                                  k.fused.data() + f * F * fused_hw, wt.output_conv1.weight, F, Fh, g.fused_h, g.fused_w,
                                  3, scratch);
 
-    // Fusion, fine to coarse. d_c holds the gradient of the current level's out_conv output.
-    T* d_c = ws + o_c;
-    T* d_b = ws + o_b;
-    T* d_a = ws + o_a;
-    zero(d_c, l0);
-    detail::resize_align_corners_backward(d_c, d_fused, F, g.h[0], g.w[0], g.fused_h, g.fused_w);
-    for (int i = 0; i < 4; ++i) zero(ws + o_rn[i], F * g.level_size(i));
-    for (int level = 0; level < 4; ++level) {
-      const auto& fb = wt.refinenet[level];
-      const auto& gb = grads.refinenet[level];
-      const index_t h = g.h[level], w = g.w[level], n = F * h * w, at = f * n;
-      zero(d_b, n);
-      detail::conv2d_same_backward(d_b, gb.out_conv.weight, gb.out_conv.bias, d_c, k.block_out[level].data() + at,
-                                   fb.out_conv.weight, F, F, h, w, 1, scratch);
-      if (level == 3) {
-        unit_backward(ws + o_rn[3], d_b, fb.unit2, gb.unit2, k.unit2_r[3].data() + at, k.unit2_u[3].data() + at, h, w);
-        break;
-      }
-      zero(d_a, n);
-      unit_backward(d_a, d_b, fb.unit2, gb.unit2, k.unit2_r[level].data() + at, k.unit2_u[level].data() + at, h, w);
-      // unit2's input is unit1(rn) + prev, prev the coarser level's out_conv output resized to this level.
-      unit_backward(ws + o_rn[level], d_a, fb.unit1, gb.unit1, k.unit1_r[level].data() + at,
-                    k.unit1_u[level].data() + at, h, w);
-      zero(d_c, F * g.level_size(level + 1));
-      detail::resize_align_corners_backward(d_c, d_a, F, g.h[level + 1], g.w[level + 1], h, w);
-    }
+    // Fusion, fine to coarse, into the layer_rn outputs' gradients ws + O.rn[i].
+    T* const d_rn[4] = {ws + O.rn[0], ws + O.rn[1], ws + O.rn[2], ws + O.rn[3]};
+    detail::dpt_fusion_backward(d_rn, d_fused, k, wt, grads, g, F, f, ws + O.c, ws + O.b, ws + O.a, ws + O.r, ws + O.u,
+                                scratch);
 
     // Token pyramid, per level: layer_rn, resize layer, embedding (constant), projection, norm.
     for (int i = 0; i < 4; ++i) {
       const index_t ls = g.level_size(i);
-      T* d_level = ws + o_level;
+      T* d_level = ws + O.level;
       zero(d_level, oc[i] * ls);
-      detail::conv2d_same_backward(d_level, grads.layer_rn[i], static_cast<T*>(nullptr), ws + o_rn[i],
+      detail::conv2d_same_backward(d_level, grads.layer_rn[i], static_cast<T*>(nullptr), ws + O.rn[i],
                                    k.level[i].data() + f * oc[i] * ls, wt.layer_rn[i], oc[i], F, g.h[i], g.w[i], 3,
                                    scratch);
       T* d_proj = d_level;
       if (i != 2) {
-        d_proj = ws + o_proj;
+        d_proj = ws + O.proj;
         zero(d_proj, oc[i] * P);
         const T* proj = k.proj[i].data() + f * oc[i] * P;
         if (i == 3) {
@@ -926,7 +966,7 @@ void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grad
       }
       const index_t idx = cfg.intermediate_layer_idx[i];
       const T* tok = layers[idx] + (f * k.tokens + k.patch_start) * D;
-      T* normed = ws + o_normed;
+      T* normed = ws + O.normed;
       // The norm's output is recomputed from the tokens (bit-identical to the forward's) rather than stored.
       nn::layernorm_forward(normed, tok, wt.norm_weight, wt.norm_bias, P, D, static_cast<T>(cfg.norm_eps));
       if (grads.projects[i].bias)
@@ -939,7 +979,7 @@ void dpt_head_backward(std::span<T* const> d_layers, const DptHeadGrads<T>& grad
         gemm(Trans::no, Trans::no, oc[i], D, P, T(1), d_proj, P, normed, D, T(1), grads.projects[i].weight, D);
       T* d_tok = d_layers.empty() || !d_layers[idx] ? nullptr : d_layers[idx] + (f * k.tokens + k.patch_start) * D;
       if (!d_tok && !grads.norm_weight && !grads.norm_bias) continue;
-      T* d_normed = ws + o_dnormed;
+      T* d_normed = ws + O.dnormed;
       gemm(Trans::yes, Trans::no, P, D, oc[i], T(1), d_proj, P, wt.projects[i].weight, D, T(0), d_normed, D);
       nn::layernorm_backward(d_tok, grads.norm_weight, grads.norm_bias, d_normed, tok, wt.norm_weight, P, D,
                              nn::LayerNormCache<T>{k.ln_mean.data() + (f * 4 + i) * P, k.ln_rstd.data() + (f * 4 + i) * P});

@@ -344,6 +344,7 @@ void attention_forward_impl(T* out, T* lse, const T* q, const T* k, const T* v, 
 }
 
 // Adds into d_q, d_k, d_v (each may be null). Needs the forward's out and lse. `lanes` selects the kernels' lane type.
+// Long (about 170 lines): its packing and block kernels are lambdas over one per-worker scratch layout set up here.
 template <class T>
 void attention_backward_impl(T* d_q, T* d_k, T* d_v, const T* d_out, const T* out, const T* lse, const T* q, const T* k,
                              const T* v, const AttentionLayout& L, T scale, std::span<T> scratch, simd::Lanes lanes,
