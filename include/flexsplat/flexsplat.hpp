@@ -48,6 +48,7 @@
 #include "flexsplat/geometry/pose_encoding.hpp"
 #include "flexsplat/geometry/unproject.hpp"
 #include "flexsplat/geometry/camera_head.hpp"
+#include "flexsplat/geometry/dpt_weights.hpp"
 #include "flexsplat/geometry/dpt_head.hpp"
 #include "flexsplat/geometry/weights.hpp"
 #include "flexsplat/geometry/vggt.hpp"
