@@ -7,8 +7,8 @@
 
 #include <Eigen/Geometry>
 
-#include "flexsplat/model/frames.hpp"
 #include "flexsplat/eval/refine.hpp"
+#include "flexsplat/model/frames.hpp"
 #include "flexsplat/raster/render.hpp"
 
 using namespace flexsplat;
