@@ -89,6 +89,36 @@ void print_refinement(const std::vector<model::ObjectEval>& results) {
                 static_cast<long long>(r.refine.h));
 }
 
+// The run's tables: the model's scores (with --refine also before it, and the refinement's own), the baselines.
+void print_tables(const std::string& model_path, const std::optional<std::pair<bool, index_t>>& attention,
+                  const model::EvalOptions& eo, const model::EvalExperiment& x,
+                  const std::vector<model::ObjectEval>& results) {
+  const bool refined = x.refine_seconds > 0;
+  std::string title = "model " + model_path;
+  title += x.native ? ", scored at the folders' image size" : ", scored at the model's size";
+  char buf[96];
+  if (attention) title += attention->first ? ", local self-attention (windows of " + std::to_string(attention->second) + ")"
+                                           : std::string(", full self-attention");
+  if (x.gaussians > 0) title += ", " + std::to_string(x.gaussians) + " Gaussians";
+  if (x.true_cameras) title += ", the folders' input cameras";
+  if (x.rotation_noise_deg > 0) {
+    std::snprintf(buf, sizeof buf, ", rotation noise %g deg (seed %llu)", x.rotation_noise_deg,
+                  static_cast<unsigned long long>(x.seed));
+    title += buf;
+  }
+  if (refined) {
+    print_table((title + ", feed-forward").c_str(), results, &model::ObjectEval::feed_forward);
+    std::snprintf(buf, sizeof buf, ", refined %g s on the input views", x.refine_seconds);
+    title += buf;
+  }
+  print_table(title.c_str(), results, &model::ObjectEval::model);
+  if (refined) print_refinement(results);
+  if (eo.white_baseline) print_table("baseline white (a white image)", results, &model::ObjectEval::white);
+  if (x.posed_fit)
+    print_table("baseline posed-fit (ground-truth input cameras, fitted for the model's seconds from as many Gaussians)",
+                results, &model::ObjectEval::posed_fit);
+}
+
 int eval_command(Args args) {
   std::string model_path, views_text, json_path, grid_path, lpips_path, max_targets_text, grid_cols_text;
   std::string refine_text, noise_text, seed_text, baseline, gaussians_text, attention_text;
@@ -189,30 +219,7 @@ int eval_command(Args args) {
     if (!quiet) std::fprintf(stderr, "eval: %s (%zu/%zu)\n", objects[i].name.c_str(), i + 1, objects.size());
   });
 
-  const bool refined = x.refine_seconds > 0;
-  std::string title = "model " + model_path;
-  title += x.native ? ", scored at the folders' image size" : ", scored at the model's size";
-  char buf[96];
-  if (attention) title += attention->first ? ", local self-attention (windows of " + std::to_string(attention->second) + ")"
-                                           : std::string(", full self-attention");
-  if (x.gaussians > 0) title += ", " + std::to_string(x.gaussians) + " Gaussians";
-  if (x.true_cameras) title += ", the folders' input cameras";
-  if (x.rotation_noise_deg > 0) {
-    std::snprintf(buf, sizeof buf, ", rotation noise %g deg (seed %llu)", x.rotation_noise_deg,
-                  static_cast<unsigned long long>(x.seed));
-    title += buf;
-  }
-  if (refined) {
-    print_table((title + ", feed-forward").c_str(), results, &model::ObjectEval::feed_forward);
-    std::snprintf(buf, sizeof buf, ", refined %g s on the input views", x.refine_seconds);
-    title += buf;
-  }
-  print_table(title.c_str(), results, &model::ObjectEval::model);
-  if (refined) print_refinement(results);
-  if (eo.white_baseline) print_table("baseline white (a white image)", results, &model::ObjectEval::white);
-  if (x.posed_fit)
-    print_table("baseline posed-fit (ground-truth input cameras, fitted for the model's seconds from as many Gaussians)",
-                results, &model::ObjectEval::posed_fit);
+  print_tables(model_path, attention, eo, x, results);
   if (!json_path.empty())
     write_file_atomic(json_path, "eval --json", model::eval_json(model_path, w->config(), eo, x, results).dump(1) + "\n");
   if (!grid_path.empty()) model::write_eval_grid(grid_path, results, w->config().image_h, w->config().image_w);
