@@ -132,7 +132,7 @@ expect_eval_refusal("--refine-grow '-1': expected an integer in \\[0, 16777216\\
 
 set(images ${OBJECT}/images/000.png ${OBJECT}/images/001.png)
 execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/out.glb
-                        --turntable ${WORK_DIR}/turntable.png --verbose
+                        --turntable ${WORK_DIR}/turntable.png --verbose --compact off
                 RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
 if(NOT code EQUAL 0 OR NOT out MATCHES "out.glb: 48 Gaussians, 2 camera\\(s\\)" OR NOT out MATCHES "decoder"
    OR NOT EXISTS ${WORK_DIR}/turntable.png)
