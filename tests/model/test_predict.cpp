@@ -447,7 +447,7 @@ TEST_CASE("with the match head, predict takes each view's camera from the view p
   const auto& [c, w0, e] = m;
   // Random weights place a view from its matches or not by their seed: init 8 places neither view (no pair finds an
   // inlier match), init 4 places both (70 and 27 inliers here), so both branches run.
-  for (const auto [seed, placed] : {std::pair<unsigned, index_t>{8, 0}, {4, 2}}) {
+  for (const auto& [seed, placed] : {std::pair<unsigned, index_t>{8, 0}, {4, 2}}) {
     CAPTURE(seed);
     auto w = model::FlexSplatWeights<float>::create(c, false);
     w->init(seed);

@@ -192,6 +192,9 @@ TEST_CASE("with the point head, the match head and every camera loss on, the who
   sc.match_coarse_weight = 0.6;
   sc.match_coarse_cell = 7;
   const auto e = model::make_train_example<double>(tiny_scene(2, 0, 13), c);
+  // On one thread: each of its forward passes is small and splits poorly; on a loaded 2-core machine two workers took
+  // 9x as long (145 s against 16 s), and one leaves ctest's other job a core.
+  const SerialScope one_thread;
   // The largest analytic entry of every tensor and five at random (every entry of a tensor of at most 6): a slot
   // written with = instead of += is off by the checker's junk in every entry, a wrong row or channel shows on some of
   // the random ones; 2 x 6 forward passes per tensor, about 3700 in all (geometry only: about 15 s on one thread).
