@@ -71,7 +71,8 @@ ViewChoice parse_views(const std::string& s) {
 // What eval does besides the protocol: test-time refinement, rotation noise, the posed-fit baseline.
 struct Experiment {
   bool native = true;             // score at the folder's image size (false: at the model's)
-  double refine_seconds = 0;      // 0: feed-forward only
+  double refine_seconds = 0;      // the refinement's time budget (0: none)
+  std::int64_t refine_steps = 0;  // its step budget (0: none); neither: feed-forward only
   index_t refine_longer = 0;      // the refinement's longer side (0: the photos' own resolution)
   bool refine_validate = false;   // choose the refinement's step count on a held-out input view
   bool refine_cameras = true;     // refine the predicted cameras with the Gaussians
@@ -82,6 +83,7 @@ struct Experiment {
   std::uint64_t seed = 0;         // rotation noise and the posed fit's initialisation (per object: model::object_seed)
   bool posed_fit = false;
   index_t gaussians = 0;          // 0: the model's budget for the view count
+  bool refining() const { return refine_seconds > 0 || refine_steps > 0; }
 };
 
 // The refinement's own numbers (steps, loss on the input views before and after, Gaussians pruned).
@@ -144,9 +146,10 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
   std::vector<float> w2c(p.geometry.extrinsics.begin(), p.geometry.extrinsics.end());
   // The refinement (and the posed fit beside it) fits the input photos at this size.
   const std::array<index_t, 2> fit_size =
-      x.refine_seconds > 0 ? model::refine_size(rgba, c, x.refine_longer) : std::array<index_t, 2>{c.image_h, c.image_w};
+      x.refining() ? model::refine_size(rgba, c, x.refine_longer) : std::array<index_t, 2>{c.image_h, c.image_w};
   index_t fit_gaussians = n_model;  // the posed fit's count: the refinement's start, before carving
-  if (x.refine_seconds > 0) {
+  double refine_spent = 0;  // the refinement's seconds
+  if (x.refining()) {
     model::EvalOptions before = o;
     before.white_baseline = false;
     model::EvalResult ff = model::score_prediction(rec, in, targets, w2c.data(), p.gaussians, sh, sw, before, ews);
@@ -158,12 +161,14 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
     const model::RefineViews<float> rv{p.views,       photos.h,   photos.w,           photos.images.data(),
                                        photos.K.data(), w2c.data(), photos.alpha.data()};
     model::RefineConfig rc = model::prediction_refine_config(rv, x.refine_seconds, seed, x.refine_grow);
+    rc.steps = x.refine_steps;
     rc.validate = x.refine_validate;
     rc.optimize_cameras = x.refine_cameras && !x.true_cameras;
     rc.carve = x.refine_carve;
     model::RefineWorkspace<float> rws;
     const model::RefineResult rr = model::refine(p.gaussians, rv, rc, rws);
-    seconds += since(t1);
+    refine_spent = since(t1);
+    seconds += refine_spent;
     r.refine = {static_cast<double>(rr.steps), rr.loss_initial, rr.loss_final, static_cast<double>(rr.pruned),
                 static_cast<double>(rr.trial_steps), rr.holdout_initial, rr.holdout_best, static_cast<double>(rr.carved),
                 static_cast<double>(rr.grown), photos.h, photos.w};
@@ -180,9 +185,11 @@ ObjectResult evaluate_object(const data::ObjectRecord& rec, const model::FlexSpl
   }
   if (x.posed_fit) {
     // The same input views with their ground-truth cameras, fitted for the model's time: with --refine the
-    // prediction's plus the whole refinement budget (the refinement may stop earlier when its trial says so), with
-    // as many Gaussians as the refinement started from (the prediction's and the grown ones).
-    const double budget = x.refine_seconds > 0 ? predict_seconds + x.refine_seconds : seconds;
+    // prediction's plus the whole refinement budget (the refinement may stop earlier when its trial says so; with
+    // --refine-steps alone, the seconds it took), with as many Gaussians as the refinement started from (the
+    // prediction's and the grown ones).
+    const double budget =
+        x.refining() ? predict_seconds + (x.refine_seconds > 0 ? x.refine_seconds : refine_spent) : seconds;
     const model::PosedFit f = model::posed_fit(rec, in, fit_size[0], fit_size[1], fit_gaussians, degree, budget, seed);
     model::EvalOptions po = o;
     po.white_baseline = false, po.grid_targets = 0;
@@ -295,7 +302,7 @@ nlohmann::json refine_json(const RefineInfo& r, const Scores& refined, const Sco
 
 int eval_command(Args args) {
   std::string model_path, views_text, json_path, grid_path, lpips_path, max_targets_text, grid_cols_text;
-  std::string refine_text, noise_text, seed_text, baseline, gaussians_text, attention_text;
+  std::string refine_text, refine_steps_text, noise_text, seed_text, baseline, gaussians_text, attention_text;
   std::vector<std::string> baselines;
   take_option(args, "--model", model_path);
   take_option(args, "--views", views_text);
@@ -309,6 +316,7 @@ int eval_command(Args args) {
   take_option(args, "--lpips", lpips_path);
   take_option(args, "--max-targets", max_targets_text);
   take_option(args, "--refine", refine_text);
+  take_option(args, "--refine-steps", refine_steps_text);
   std::string refine_size_text, refine_validate = "off", refine_cameras = "on", refine_carve = "on", refine_grow_text;
   bool refine_options = false;
   for (auto [flag, value] : {std::pair{"--refine-size", &refine_size_text}, {"--refine-validate", &refine_validate},
@@ -350,6 +358,7 @@ int eval_command(Args args) {
   x.posed_fit = has("posed-fit");
   x.true_cameras = true_cameras;
   if (!refine_text.empty()) x.refine_seconds = parse_number(refine_text, "--refine", false);
+  if (!refine_steps_text.empty()) x.refine_steps = parse_integer(refine_steps_text, "--refine-steps", 1, 100000000);
   if (!noise_text.empty()) {
     x.rotation_noise_deg = parse_number(noise_text, "--rotation-noise", true);
     require(x.rotation_noise_deg <= 180, "--rotation-noise ", x.rotation_noise_deg, " must be at most 180 degrees");
@@ -361,9 +370,9 @@ int eval_command(Args args) {
   x.refine_cameras = parse_on_off(refine_cameras, "--refine-cameras");
   x.refine_carve = parse_on_off(refine_carve, "--refine-carve");
   x.refine_grow = parse_gaussian_count(refine_grow_text, "--refine-grow", model::refine_grow_gaussians);
-  require(!refine_options || x.refine_seconds > 0,
+  require(!refine_options || x.refining(),
           "eval: --refine-size, --refine-validate, --refine-cameras, --refine-carve and --refine-grow need --refine "
-          "SECONDS");
+          "SECONDS or --refine-steps N");
 
   if (!gaussians_text.empty()) x.gaussians = parse_count(gaussians_text, "--gaussians", 0);
   // --self-attention full | local | local:WINDOW (the decoder's self-attention has no parameters of its own).
@@ -400,7 +409,7 @@ int eval_command(Args args) {
     }
   }
 
-  const bool refined = x.refine_seconds > 0;
+  const bool refined = x.refining();
   std::vector<std::string> names;
   std::vector<Scores> rows, white_rows, posed_rows, ff_rows;
   for (const auto& r : results) {
@@ -421,7 +430,13 @@ int eval_command(Args args) {
   }
   if (refined) {
     print_table((title + ", feed-forward").c_str(), names, ff_rows);
-    std::snprintf(buf, sizeof buf, ", refined %g s on the input views", x.refine_seconds);
+    if (x.refine_steps > 0 && x.refine_seconds > 0)
+      std::snprintf(buf, sizeof buf, ", refined %g s or %lld steps on the input views", x.refine_seconds,
+                    static_cast<long long>(x.refine_steps));
+    else if (x.refine_steps > 0)
+      std::snprintf(buf, sizeof buf, ", refined %lld steps on the input views", static_cast<long long>(x.refine_steps));
+    else
+      std::snprintf(buf, sizeof buf, ", refined %g s on the input views", x.refine_seconds);
     title += buf;
   }
   print_table(title.c_str(), names, rows);
@@ -447,6 +462,7 @@ int eval_command(Args args) {
     nlohmann::json j;
     j["model"] = model_path;
     j["refine_seconds"] = x.refine_seconds;
+    j["refine_steps"] = x.refine_steps;
     j["rotation_noise_deg"] = x.rotation_noise_deg;
     j["seed"] = x.seed;
     j["resolution"] = resolution;
@@ -485,7 +501,8 @@ int eval_command(Args args) {
 const RegisterCommand registered_cmd_eval(
     "eval", {"evaluate a model on object folders: predicted cameras aligned to the ground truth, held-out views scored",
              "OBJECT_DIR... [--model M.safetensors] [--views N|i,j,k] [--max-targets N]\n"
-             "  [--baseline white|posed-fit|white,posed-fit] [--refine SECONDS] [--refine-size N|native]\n"
+             "  [--baseline white|posed-fit|white,posed-fit] [--refine SECONDS] [--refine-steps N]\n"
+             "  [--refine-size N|native]\n"
              "  [--refine-validate on|off] [--refine-cameras on|off] [--refine-carve on|off] [--refine-grow N]\n"
              "  [--rotation-noise DEG] [--seed N]\n"
              "  [--gaussians N] [--self-attention full|local[:WINDOW]] [--resolution native|model] [--lpips LPIPS.safetensors]\n"
@@ -506,6 +523,8 @@ const RegisterCommand registered_cmd_eval(
              "  about S seconds at the photos' own resolution (--refine-size N: N pixels on the longer side;\n"
              "  --refine-validate on: the step count chosen on the last input view held out of a trial fit;\n"
              "  --refine-cameras off: cameras fixed; --refine-carve off: no carving; --refine-grow N: N added);\n"
+             "  --refine-steps N: at most N optimisation steps (the held-out trial's too), alone or with --refine S\n"
+             "  (whichever ends first); alone, a budget that does not depend on the machine's speed;\n"
              "  the feed-forward scores and the PSNR change are reported too, and --baseline posed-fit then fits at\n"
              "  the refinement's size with its Gaussian count before carving; --rotation-noise DEG: each predicted\n"
              "  input camera turned by DEG degrees about a random axis before the decoder (seeded by --seed and the\n"
