@@ -1,11 +1,12 @@
 # ctest -j starts the tests of highest COST first; without it (a clean build has no cost history) it starts them in
 # definition order, and the longest, defined last, run alone at the end. Seconds under ASan + UBSan (.ci/run's stage 2,
-# docs/building.md#ci-and-compile-time; the consumer and MPI tests and the whole-model gradient check, 2 entries of each
-# tensor, run in stage 1 only: estimates). A renamed test only loses its place in the queue. tests/CMakeLists.txt
+# docs/building.md#ci-and-compile-time; the consumer and MPI tests and the whole-model gradient checks run in stage 1
+# only: estimates). A renamed test only loses its place in the queue. tests/CMakeLists.txt
 # includes this file twice: at configure time for the tests it defines itself, and through TEST_INCLUDE_FILES at ctest
 # time, after the Catch2 tests are discovered, for those.
 set(flexsplat_test_costs
     "train:the whole model passes the float64 gradient check from the losses to every module's parameters|200"
+    "train:with the point head, the match head and every camera loss on, the whole model passes the float64 gradient check, tensor by tensor|60"
     "check-reference: lpips_2024|77"
     "consumer_find_package|60"
     "consumer_add_subdirectory|60"

@@ -93,7 +93,7 @@ void print_refinement(const std::vector<model::ObjectEval>& results) {
 void print_tables(const std::string& model_path, const std::optional<std::pair<bool, index_t>>& attention,
                   const model::EvalOptions& eo, const model::EvalExperiment& x,
                   const std::vector<model::ObjectEval>& results) {
-  const bool refined = x.refine_seconds > 0;
+  const bool refined = x.refining();
   std::string title = "model " + model_path;
   title += x.native ? ", scored at the folders' image size" : ", scored at the model's size";
   char buf[96];
@@ -108,7 +108,13 @@ void print_tables(const std::string& model_path, const std::optional<std::pair<b
   }
   if (refined) {
     print_table((title + ", feed-forward").c_str(), results, &model::ObjectEval::feed_forward);
-    std::snprintf(buf, sizeof buf, ", refined %g s on the input views", x.refine_seconds);
+    if (x.refine_steps > 0 && x.refine_seconds > 0)
+      std::snprintf(buf, sizeof buf, ", refined %g s or %lld steps on the input views", x.refine_seconds,
+                    static_cast<long long>(x.refine_steps));
+    else if (x.refine_steps > 0)
+      std::snprintf(buf, sizeof buf, ", refined %lld steps on the input views", static_cast<long long>(x.refine_steps));
+    else
+      std::snprintf(buf, sizeof buf, ", refined %g s on the input views", x.refine_seconds);
     title += buf;
   }
   print_table(title.c_str(), results, &model::ObjectEval::model);
@@ -121,7 +127,7 @@ void print_tables(const std::string& model_path, const std::optional<std::pair<b
 
 int eval_command(Args args) {
   std::string model_path, views_text, json_path, grid_path, lpips_path, max_targets_text, grid_cols_text;
-  std::string refine_text, noise_text, seed_text, baseline, gaussians_text, attention_text;
+  std::string refine_text, refine_steps_text, noise_text, seed_text, baseline, gaussians_text, attention_text;
   std::vector<std::string> baselines;
   take_option(args, "--model", model_path);
   take_option(args, "--views", views_text);
@@ -135,6 +141,7 @@ int eval_command(Args args) {
   take_option(args, "--lpips", lpips_path);
   take_option(args, "--max-targets", max_targets_text);
   take_option(args, "--refine", refine_text);
+  take_option(args, "--refine-steps", refine_steps_text);
   std::string refine_size_text, refine_validate = "off", refine_cameras = "on", refine_carve = "on", refine_grow_text;
   bool refine_options = false;
   for (auto [flag, value] : {std::pair{"--refine-size", &refine_size_text}, {"--refine-validate", &refine_validate},
@@ -176,6 +183,7 @@ int eval_command(Args args) {
   x.posed_fit = has("posed-fit");
   x.true_cameras = true_cameras;
   if (!refine_text.empty()) x.refine_seconds = parse_number(refine_text, "--refine", false);
+  if (!refine_steps_text.empty()) x.refine_steps = parse_integer(refine_steps_text, "--refine-steps", 1, 100000000);
   if (!noise_text.empty()) {
     x.rotation_noise_deg = parse_number(noise_text, "--rotation-noise", true);
     require(x.rotation_noise_deg <= 180, "--rotation-noise ", x.rotation_noise_deg, " must be at most 180 degrees");
@@ -187,9 +195,9 @@ int eval_command(Args args) {
   x.refine_cameras = parse_on_off(refine_cameras, "--refine-cameras");
   x.refine_carve = parse_on_off(refine_carve, "--refine-carve");
   x.refine_grow = parse_gaussian_count(refine_grow_text, "--refine-grow", model::refine_grow_gaussians);
-  require(!refine_options || x.refine_seconds > 0,
+  require(!refine_options || x.refining(),
           "eval: --refine-size, --refine-validate, --refine-cameras, --refine-carve and --refine-grow need --refine "
-          "SECONDS");
+          "SECONDS or --refine-steps N");
 
   if (!gaussians_text.empty()) x.gaussians = parse_count(gaussians_text, "--gaussians", 0);
   // --self-attention full | local | local:WINDOW (the decoder's self-attention has no parameters of its own).
@@ -229,7 +237,8 @@ int eval_command(Args args) {
 const RegisterCommand registered_cmd_eval(
     "eval", {"evaluate a model on object folders: predicted cameras aligned to the ground truth, held-out views scored",
              "OBJECT_DIR... [--model M.safetensors] [--views N|i,j,k] [--max-targets N]\n"
-             "  [--baseline white|posed-fit|white,posed-fit] [--refine SECONDS] [--refine-size N|native]\n"
+             "  [--baseline white|posed-fit|white,posed-fit] [--refine SECONDS] [--refine-steps N]\n"
+             "  [--refine-size N|native]\n"
              "  [--refine-validate on|off] [--refine-cameras on|off] [--refine-carve on|off] [--refine-grow N]\n"
              "  [--rotation-noise DEG] [--seed N]\n"
              "  [--gaussians N] [--self-attention full|local[:WINDOW]] [--resolution native|model] [--lpips LPIPS.safetensors]\n"
@@ -250,6 +259,8 @@ const RegisterCommand registered_cmd_eval(
              "  about S seconds at the photos' own resolution (--refine-size N: N pixels on the longer side;\n"
              "  --refine-validate on: the step count chosen on the last input view held out of a trial fit;\n"
              "  --refine-cameras off: cameras fixed; --refine-carve off: no carving; --refine-grow N: N added);\n"
+             "  --refine-steps N: at most N optimisation steps (the held-out trial's too), alone or with --refine S\n"
+             "  (whichever ends first); alone, a budget that does not depend on the machine's speed;\n"
              "  the feed-forward scores and the PSNR change are reported too, and --baseline posed-fit then fits at\n"
              "  the refinement's size with its Gaussian count before carving; --rotation-noise DEG: each predicted\n"
              "  input camera turned by DEG degrees about a random axis before the decoder (seeded by --seed and the\n"

@@ -16,6 +16,7 @@
 #include "flexsplat/export/file.hpp"
 #include "flexsplat/image/image_io.hpp"
 #include "flexsplat/io/capture_cameras.hpp"
+#include "flexsplat/eval/compact.hpp"
 #include "flexsplat/model/predict.hpp"
 #include "flexsplat/eval/refine.hpp"
 #include "flexsplat/raster/render.hpp"
@@ -84,7 +85,7 @@ void write_turntable(const fs::path& path, const model::Prediction<float>& p, in
 
 int reconstruct_command(Args args) {
   std::string model_path, output, gaussians_text, turntable, refine_text, refine_size_text, turntable_size_text;
-  std::string refine_validate = "off", refine_grow_text;
+  std::string refine_validate = "off", refine_grow_text, compact_text = "on";
   take_option(args, "--model", model_path);
   require(take_option(args, "-o", output) || take_option(args, "--output", output),
           "reconstruct needs -o out.glb or -o out.ply");
@@ -95,6 +96,8 @@ int reconstruct_command(Args args) {
   if (take_option(args, "--refine-validate", refine_validate)) refine_options = true;
   if (take_option(args, "--refine-grow", refine_grow_text)) refine_options = true;
   take_option(args, "--turntable-size", turntable_size_text);
+  take_option(args, "--compact", compact_text);
+  const bool compact = parse_on_off(compact_text, "--compact");
   std::string cameras_text = "model";
   take_option(args, "--cameras", cameras_text);
   const bool given_cameras = cameras_text != "model" && cameras_text != "orbit" && cameras_text != "turntable";
@@ -195,6 +198,23 @@ int reconstruct_command(Args args) {
   }
 
   if (p.given) model::to_capture_world(p);  // the splat in the capture's world and units
+  if (compact) {
+    // The input views at the photos' resolution in the prediction's frame, with their alpha.
+    const std::array<index_t, 2> size = model::refine_size(rgba, c);
+    const model::PhotoTargets<float> photos =
+        given_cameras ? model::photo_targets<float>(rgba, photo_intrinsics(cameras), size[0], size[1])
+                      : model::photo_targets<float>(rgba, c, p.geometry.K.data(), size[0], size[1]);
+    std::vector<Camera> views;
+    for (index_t v = 0; v < p.views; ++v)
+      views.push_back(camera_from_arrays(photos.K.data() + 9 * v, p.geometry.extrinsics.data() + 12 * v,
+                                         static_cast<int>(size[1]), static_cast<int>(size[0])));
+    const model::CompactReport cr = model::compact_splat(p.gaussians, views, photos.alpha.data());
+    std::fprintf(stderr, "reconstruct: compact: %lld of %lld Gaussians kept (%lld outside the silhouettes, %lld unseen, "
+                 "%lld degenerate)\n", static_cast<long long>(cr.after), static_cast<long long>(cr.before),
+                 static_cast<long long>(cr.outside), static_cast<long long>(cr.unseen),
+                 static_cast<long long>(cr.degenerate));
+    t.lap("compact");
+  }
   gltf::WriteOptions wo;
   if (format == gaussians::FileFormat::Glb && given_cameras) {
     wo.cameras = cameras;
@@ -229,7 +249,7 @@ const RegisterCommand registered_cmd_reconstruct(
     "reconstruct", {"a Gaussian splat (.glb with the predicted cameras, or .ply) from a few uncalibrated images",
                     "IMAGE... -o out.glb|out.ply [--model M.safetensors] [--gaussians N] [--refine SECONDS]\n"
                     "  [--refine-size N|native] [--refine-validate on|off] [--refine-grow N] [--turntable out.png]\n"
-                    "  [--turntable-size N|native] [--cameras model|orbit|turntable|PATH] [--verbose]\n"
+                    "  [--turntable-size N|native] [--cameras model|orbit|turntable|PATH] [--compact on|off] [--verbose]\n"
                     "  IMAGE: 1 to the model's max_views PNG/JPEG files of any size; RGBA is composited on white and\n"
                     "  each picture's centred window of the model's aspect ratio is resized to the model's size\n"
                     "  --model: default the shipped model (models/flexsplat-small.safetensors in the source tree)\n"
@@ -248,6 +268,8 @@ const RegisterCommand registered_cmd_reconstruct(
                     "  predicted cameras (all but the first) on the input pictures for about S seconds before writing,\n"
                     "  at their own resolution (--refine-size N: N pixels on the longer side; --refine-validate on:\n"
                     "  the step count chosen on the last picture held out of a trial fit)\n"
+                    "  --compact off: keep every Gaussian (default: drop those outside the photos' silhouettes and\n"
+                    "  those no photo shows, model::compact_splat)\n"
                     "  (docs/app.md)",
                     reconstruct_command});
 

@@ -1,7 +1,7 @@
 # Runs `flexsplat train` twice into two folders and requires byte-identical model.safetensors.
 # -DFLEXSPLAT=exe -DCONFIG=json -DWORK_DIR=dir -DMODE=mpi|threads|resume [-DMPIEXEC=mpiexec]
 # Against one process of one thread, 4 steps: mpi, 2 MPI ranks of one thread; threads, one process of 2 threads (the
-# step's scenes side by side); resume, 2 steps, then a rerun to step 4.
+# step's scenes side by side); resume, 2 steps, then a rerun to step 4, its log compared with the uninterrupted run's.
 file(REMOVE_RECURSE ${WORK_DIR})
 file(MAKE_DIRECTORY ${WORK_DIR})
 function(run_train)
@@ -20,19 +20,57 @@ if(MODE STREQUAL "mpi")
 elseif(MODE STREQUAL "threads")
   run_train(${CMAKE_COMMAND} -E env FLEXSPLAT_NUM_THREADS=2 ${FLEXSPLAT} ${common} --out ${WORK_DIR}/b --steps 4)
 elseif(MODE STREQUAL "resume")
+  # The resumed run's log against the uninterrupted run's (a): the same steps, stages and learning rates and, one
+  # process of one thread each, the same loss parts and gradient norms to the last digit written.
+  function(check_lines_match first last)
+    file(STRINGS ${WORK_DIR}/a/log.jsonl a_lines)
+    file(STRINGS ${WORK_DIR}/b/log.jsonl b_lines)
+    foreach(i RANGE ${first} ${last})
+      list(GET a_lines ${i} la)
+      list(GET b_lines ${i} lb)
+      foreach(key step stage lr loss camera depth depth_shape points match rgb_head render render_depth lpips psnr
+              grad_norm)
+        string(JSON va GET "${la}" ${key})
+        string(JSON vb GET "${lb}" ${key})
+        if(NOT va STREQUAL vb)
+          message(FATAL_ERROR "log line ${i}: ${key} ${vb} in the resumed run, ${va} in the uninterrupted one\n"
+                              "resumed: ${lb}\nuninterrupted: ${la}")
+        endif()
+      endforeach()
+    endforeach()
+  endfunction()
   run_train(${one} ${FLEXSPLAT} ${common} --out ${WORK_DIR}/b --steps 2)
+  file(STRINGS ${WORK_DIR}/a/log.jsonl a_lines)
+  list(LENGTH a_lines n)
+  if(NOT n EQUAL 4)
+    message(FATAL_ERROR "uninterrupted run's log.jsonl has ${n} lines, expected 4")
+  endif()
+  check_lines_match(0 1)
+  # cpu_seconds runs on across a resume: the resumed process adds its own CPU time to the last kept line's. That line
+  # is set to 1e6 s here (no process of this test comes near): the resumed lines must read 1e6 plus at most an hour,
+  # where a resume that dropped the offset would log the new process's few seconds.
+  file(STRINGS ${WORK_DIR}/b/log.jsonl lines)
+  list(GET lines 1 kept)
+  string(REGEX REPLACE "\"cpu_seconds\":[-+0-9.eE]+" "\"cpu_seconds\":1000000" kept "${kept}")
+  if(NOT kept MATCHES "\"cpu_seconds\":1000000[,}]")
+    message(FATAL_ERROR "no cpu_seconds in the log line: ${kept}")
+  endif()
+  list(GET lines 0 first_line)
+  file(WRITE ${WORK_DIR}/b/log.jsonl "${first_line}\n${kept}\n")
   run_train(${one} ${FLEXSPLAT} ${common} --out ${WORK_DIR}/b --steps 4)
   file(STRINGS ${WORK_DIR}/b/log.jsonl lines)
   list(LENGTH lines n)
   if(NOT n EQUAL 4)
     message(FATAL_ERROR "resumed run's log.jsonl has ${n} lines, expected 4")
   endif()
-  # cpu_seconds runs on across the resume: each line's exceeds the one before (the resumed process adds to step 2's).
-  set(previous -1)
-  foreach(line IN LISTS lines)
+  check_lines_match(0 3)
+  set(previous 1000000)
+  foreach(i 2 3)
+    list(GET lines ${i} line)
     string(JSON cpu GET "${line}" cpu_seconds)
-    if(NOT cpu GREATER previous)
-      message(FATAL_ERROR "resumed run's cpu_seconds do not increase: ${cpu} after ${previous}")
+    if(NOT cpu GREATER previous OR cpu GREATER 1003600)
+      message(FATAL_ERROR "resumed run's line ${i}: cpu_seconds ${cpu}, expected in (${previous}, 1003600]: the resumed "
+                          "process adds its CPU time to the kept line's 1000000")
     endif()
     set(previous ${cpu})
   endforeach()

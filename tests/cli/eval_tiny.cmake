@@ -1,7 +1,12 @@
 # flexsplat eval and reconstruct end to end with a one-step tiny model (flexsplat train): eval on one shared object
-# with the white baseline (the JSON must have the issue's keys and finite numbers in range); eval with --refine,
+# with the white baseline (the JSON must have the issue's keys and finite numbers in range); eval with --refine-steps,
 # --rotation-noise and the posed-fit baseline (their keys, the same noise twice, refusals); reconstruct writes a .glb
 # with the predicted cameras and a turntable, refines with --refine, and refuses an unreadable image and too many views.
+# The one-step model's cameras are 130-150 degrees off, so after alignment its Gaussians fall outside the targets: it
+# scores the white image's PSNR and SSIM (to the last digit here). Its scores are held to the white image's plus 2 dB /
+# minus 1 dB (a few stray Gaussians in view move the PSNR by well under 1 dB; a black image scores about 1 dB on these
+# mostly white targets, a [0, 255] scale 48 dB more), the white image's to its measured value within 0.05 dB (the
+# scorer's rounding is far below that; another target, crop or compositing moves it by more).
 # -DFLEXSPLAT=exe -DCONFIG=json -DOBJECT=dir -DWORK_DIR=dir
 file(REMOVE_RECURSE ${WORK_DIR})
 file(MAKE_DIRECTORY ${WORK_DIR})
@@ -33,8 +38,8 @@ function(check_range label lo hi)
 endfunction()
 foreach(where "objects;0" "mean")
   string(REPLACE ";" " " label "${where}")
-  check_range("${label} psnr" 1 60 ${where} psnr)
-  check_range("${label} ssim" -1 1 ${where} ssim)
+  check_range("${label} psnr" 7.27 10.27 ${where} psnr)  # white: 8.269 (4 targets)
+  check_range("${label} ssim" 0.70 0.76 ${where} ssim)  # white: 0.7306
   check_range("${label} rotation_error_deg" 0 180 ${where} rotation_error_deg)
   check_range("${label} center_error_rel" 0 100 ${where} center_error_rel)
   check_range("${label} seconds" 0 60 ${where} seconds)
@@ -44,8 +49,8 @@ foreach(where "objects;0" "mean")
   endif()
 endforeach()
 string(JSON name GET "${doc}" objects 0 name)
-check_range("white psnr" 1 60 baselines white objects 0 psnr)
-check_range("white ssim" -1 1 baselines white objects 0 ssim)
+check_range("white psnr" 8.22 8.32 baselines white objects 0 psnr)  # measured 8.269
+check_range("white ssim" 0.725 0.735 baselines white objects 0 ssim)  # measured 0.7306
 string(JSON rt TYPE "${doc}" baselines white objects 0 rotation_error_deg)
 if(NOT rt STREQUAL "NULL")
   message(FATAL_ERROR "the white baseline has a rotation error (${rt}); it has no cameras")
@@ -67,37 +72,54 @@ if(NOT res MATCHES "^model$" OR NOT rh EQUAL 28)  # MATCHES: "model" also names 
   message(FATAL_ERROR "eval --resolution model: resolution '${res}', height ${rh}, expected model, 28 (the tiny model)")
 endif()
 
-# --refine, --rotation-noise and --baseline posed-fit: keys and ranges; the same seed gives the same noise.
+# --refine-steps, --rotation-noise and --baseline posed-fit: keys and ranges; the same seed gives the same noise.
+# --refine-steps 20 (no time budget): the held-out trial runs 20 steps whatever the machine's speed, scored every 10.
 foreach(run a b)
-  run(${FLEXSPLAT} eval ${OBJECT} --model ${WORK_DIR}/run/model.safetensors --max-targets 2 --quiet --refine 0.2
+  run(${FLEXSPLAT} eval ${OBJECT} --model ${WORK_DIR}/run/model.safetensors --max-targets 2 --quiet --refine-steps 20
       --refine-validate on --rotation-noise 10 --seed 4 --baseline white,posed-fit --json ${WORK_DIR}/eval_${run}.json)
 endforeach()
 file(READ ${WORK_DIR}/eval_a.json doc)
 file(READ ${WORK_DIR}/eval_b.json doc_b)
-check_range("refine_seconds" 0.2 0.2 refine_seconds)
+check_range("refine_seconds" 0 0 refine_seconds)
+check_range("refine_steps" 20 20 refine_steps)
 check_range("rotation_noise_deg" 10 10 rotation_noise_deg)
-check_range("refined psnr" 1 60 objects 0 psnr)
-check_range("feed-forward psnr" 1 60 objects 0 feed_forward psnr)
+# The white image scores 9.575 on these 2 targets; the model (feed-forward and refined) scores it too (see the top).
+check_range("white psnr" 9.525 9.625 baselines white objects 0 psnr)
+check_range("refined psnr" 8.575 11.575 objects 0 psnr)
+check_range("feed-forward psnr" 8.575 11.575 objects 0 feed_forward psnr)
 check_range("feed-forward rotation error" 0 180 objects 0 feed_forward rotation_error_deg)
-check_range("refine steps" 0 1000000 objects 0 refine steps)  # 0: the held-out trial kept the prediction
-check_range("refine trial steps" 1 1000000 objects 0 refine trial_steps)
-check_range("refine held-out loss" 0 10 objects 0 refine holdout_loss_best)
-check_range("refine size" 256 256 objects 0 refine size 0)  # the photos' own resolution
-check_range("refine carved" 0 47 objects 0 refine carved)  # at least one of the 48 Gaussians stays
-# The renders show background: the default growth, unless the trial kept the input (no steps then). How far the
-# trial gets in 0.2 s depends on the machine (a sanitized build: one step), so the growth itself is checked below.
+check_range("refine trial steps" 20 20 objects 0 refine trial_steps)
+# The trial improves the held-out view (loss 0.119 -> 0.112 at step 10 here): the refinement keeps its best step
+# count, 10 or 20 (a scoring point), and grows the default 4096 Gaussians; a trial that kept the input (0 steps, none
+# grown) or a step count off the scoring points fails.
+check_range("refine steps" 10 20 objects 0 refine steps)
 string(JSON steps GET "${doc}" objects 0 refine steps)
-string(JSON grown GET "${doc}" objects 0 refine grown)
-if(NOT (grown EQUAL 4096 OR (grown EQUAL 0 AND steps EQUAL 0)))
-  message(FATAL_ERROR "refine grown = '${grown}' after ${steps} steps: expected 4096, or 0 with the input kept")
+if(NOT (steps EQUAL 10 OR steps EQUAL 20))
+  message(FATAL_ERROR "refine steps = ${steps}: expected 10 or 20, the trial's scoring points")
 endif()
-check_range("refine loss" 0 10 objects 0 refine loss_final)
-check_range("psnr change" -60 60 objects 0 refine psnr_change)
-check_range("mean psnr change" -60 60 mean psnr_change)
+check_range("refine grown" 4096 4096 objects 0 refine grown)
+check_range("refine size" 256 256 objects 0 refine size 0)  # the photos' own resolution
+check_range("refine carved" 1 47 objects 0 refine carved)  # 39 here: the Gaussians seen on the background, not all
+# The losses fall: the held-out view's best below its start, the input views' after the steps below before them.
+function(check_below label a b)
+  string(JSON va GET "${doc}" ${a})
+  string(JSON vb GET "${doc}" ${b})
+  if(NOT va LESS vb)
+    message(FATAL_ERROR "${label}: ${va} is not below ${vb}")
+  endif()
+endfunction()
+check_range("refine held-out loss" 0 1 objects 0 refine holdout_loss_best)
+check_below("held-out loss" "objects;0;refine;holdout_loss_best" "objects;0;refine;holdout_loss_initial")
+check_below("input views' loss" "objects;0;refine;loss_final" "objects;0;refine;loss_initial")
+check_range("refine loss" 0 1 objects 0 refine loss_final)
+# The refined Gaussians still fall outside the targets (the cameras are as far off): no change beyond 1 dB.
+check_range("psnr change" -1 1 objects 0 refine psnr_change)
+check_range("mean psnr change" -1 1 mean psnr_change)
+# The posed fit gets the model's seconds (wall clock by design: the baseline is "as long as the model took"), so only
+# its range is checked.
 check_range("posed-fit psnr" 1 60 baselines posed-fit objects 0 psnr)
 check_range("posed-fit ssim" -1 1 baselines posed-fit mean ssim)
 check_range("posed-fit seconds" 0 60 baselines posed-fit objects 0 seconds)
-check_range("white psnr" 1 60 baselines white objects 0 psnr)
 string(JSON rt TYPE "${doc}" baselines posed-fit objects 0 rotation_error_deg)
 if(NOT rt STREQUAL "NULL")
   message(FATAL_ERROR "the posed-fit baseline has a rotation error (${rt}); it is given the cameras")
@@ -108,11 +130,12 @@ string(JSON clean GET "${doc}" objects 0 rotation_error_deg)
 if(NOT noisy_a STREQUAL noisy_b)
   message(FATAL_ERROR "--rotation-noise 10 --seed 4 gave rotation errors ${noisy_a} and ${noisy_b} in two runs")
 endif()
-# Without the held-out trial the growth always happens: the default count in the JSON.
-run(${FLEXSPLAT} eval ${OBJECT} --model ${WORK_DIR}/run/model.safetensors --max-targets 1 --quiet --refine 0.05
+# Without the held-out trial the growth always happens: the default count in the JSON, and the steps asked for.
+run(${FLEXSPLAT} eval ${OBJECT} --model ${WORK_DIR}/run/model.safetensors --max-targets 1 --quiet --refine-steps 2
     --json ${WORK_DIR}/eval_grow.json)
 file(READ ${WORK_DIR}/eval_grow.json doc)
 check_range("refine grown without the trial" 4096 4096 objects 0 refine grown)
+check_range("refine steps without the trial" 2 2 objects 0 refine steps)
 function(expect_eval_refusal pattern)
   execute_process(COMMAND ${FLEXSPLAT} eval ${OBJECT} --model ${WORK_DIR}/run/model.safetensors --quiet ${ARGN}
                   RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
@@ -126,13 +149,14 @@ expect_eval_refusal("--baseline 'posed' is not known" --baseline white,posed)
 expect_eval_refusal("--resolution 'full' is neither 'native'" --resolution full)
 expect_eval_refusal("--refine-validate 'yes': expected on or off" --refine 1 --refine-validate yes)
 expect_eval_refusal("--refine-size '0': expected an integer in \\[1, 16384\\]" --refine 1 --refine-size 0)
-expect_eval_refusal("--refine-grow need --refine SECONDS" --refine-carve off)
+expect_eval_refusal("--refine-grow need --refine SECONDS or --refine-steps N" --refine-carve off)
+expect_eval_refusal("--refine-steps '0': expected an integer in \\[1, 100000000\\]" --refine-steps 0)
 expect_eval_refusal("--refine-grow need --refine SECONDS" --refine-grow 10)
 expect_eval_refusal("--refine-grow '-1': expected an integer in \\[0, 16777216\\]" --refine 1 --refine-grow -1)
 
 set(images ${OBJECT}/images/000.png ${OBJECT}/images/001.png)
 execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/out.glb
-                        --turntable ${WORK_DIR}/turntable.png --verbose
+                        --turntable ${WORK_DIR}/turntable.png --verbose --compact off
                 RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
 if(NOT code EQUAL 0 OR NOT out MATCHES "out.glb: 48 Gaussians, 2 camera\\(s\\)" OR NOT out MATCHES "decoder"
    OR NOT EXISTS ${WORK_DIR}/turntable.png)

@@ -92,7 +92,7 @@ TEST_CASE("given_frame finds a capture's scale from true depth and silhouettes",
   model::FlexSplatConfig c;
   c.image_h = c.image_w = 56;
   c.geometry.aggregator.patch_size = 7;
-  for (const std::vector<int> in : {std::vector<int>{8, 10, 12, 14}, std::vector<int>{1, 9, 26}, std::vector<int>{8, 12}}) {
+  for (const std::vector<int>& in : {std::vector<int>{8, 10, 12, 14}, std::vector<int>{1, 9, 26}, std::vector<int>{8, 12}}) {
     std::vector<Tensor<float, 3>> rgba;
     std::vector<Camera> cams;
     const double units = 3.7;  // the capture's world is the renders' times this

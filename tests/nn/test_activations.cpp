@@ -9,6 +9,7 @@
 #include "flexsplat/nn/activations.hpp"
 #include "flexsplat/testing/gradcheck.hpp"
 #include "nn_test_util.hpp"
+#include "simd_lanes.hpp"
 
 using namespace flexsplat;
 
@@ -30,26 +31,16 @@ std::vector<T> gelu_inputs() {
   return v;
 }
 
-// The lanes of T this CPU runs: the build's batches, and for float the dispatched AVX2 / AVX-512 lanes it has.
+// The vector path `lanes` within tol (1 + |scalar|) of the scalar path, forward and backward.
 template <class T>
-std::vector<simd::Lanes> vector_lanes() {
-  std::vector<simd::Lanes> lanes{simd::Lanes::compiled};
-  if (std::is_same_v<T, float> && simd::best_lanes<float>(simd::DispatchLevel::avx2) == simd::Lanes::avx2)
-    lanes.push_back(simd::Lanes::avx2);
-  if (std::is_same_v<T, float> && simd::best_lanes<float>() == simd::Lanes::avx512) lanes.push_back(simd::Lanes::avx512);
-  return lanes;
-}
-
-// Every vector path within tol (1 + |scalar|) of the scalar path, forward and backward.
-template <class T>
-void check_gelu_paths(double tol) {
+void check_gelu_paths(double tol, simd::Lanes lanes) {
   const auto x = gelu_inputs<T>();
   const auto n = static_cast<index_t>(x.size());
   const auto g = uniform_vector<T>(x.size(), 92, -3.0, 3.0);
   std::vector<T> scalar_out(x.size()), scalar_d(x.size(), T(0.5));  // backward adds
   nn::gelu_forward_impl<T>(scalar_out.data(), x.data(), n, simd::Lanes::scalar);
   nn::gelu_backward_impl<T>(scalar_d.data(), g.data(), x.data(), n, simd::Lanes::scalar);
-  for (simd::Lanes lanes : vector_lanes<T>()) {
+  {
     INFO(simd::lanes_name(lanes));
     std::vector<T> out(x.size()), d(x.size(), T(0.5));
     nn::gelu_forward_impl<T>(out.data(), x.data(), n, lanes);
@@ -68,22 +59,30 @@ void check_gelu_paths(double tol) {
   }
 }
 
+// The float path `lanes` as the scalar one on 1001 inputs, and on infinities and NaN: gelu(+inf) = +inf, gelu(-inf)
+// and gelu(NaN) are NaN.
+void check_gelu_float(simd::Lanes lanes) {
+  check_gelu_paths<float>(4 * 0x1p-23, lanes);  // measured: 1.2 (forward) and 1.7 (backward) float eps on 2^22 inputs in [-9, 9]
+  float special[3] = {INFINITY, -INFINITY, NAN};
+  std::vector<float> in(37, 0.25f), out(37);
+  for (int k = 0; k < 3; ++k) in[5 + 7 * k] = special[k];
+  nn::gelu_forward_impl<float>(out.data(), in.data(), 37, lanes);
+  CHECK(out[5] == INFINITY);
+  CHECK(std::isnan(out[12]));
+  CHECK(std::isnan(out[19]));
+}
+
 }  // namespace
 
 TEST_CASE("GELU: every SIMD path agrees with the scalar path (float and double)", "[nn][activations][simd]") {
-  check_gelu_paths<float>(4 * 0x1p-23);  // measured: 1.2 (forward) and 1.7 (backward) float eps on 2^22 inputs in [-9, 9]
-  check_gelu_paths<double>(1e-13);
-  // Infinities and NaN as the scalar path: gelu(+inf) = +inf, gelu(-inf) and gelu(NaN) are NaN.
-  float special[3] = {INFINITY, -INFINITY, NAN};
-  for (simd::Lanes lanes : vector_lanes<float>()) {
-    std::vector<float> in(37, 0.25f), out(37);
-    for (int k = 0; k < 3; ++k) in[5 + 7 * k] = special[k];
-    nn::gelu_forward_impl<float>(out.data(), in.data(), 37, lanes);
-    CHECK(out[5] == INFINITY);
-    CHECK(std::isnan(out[12]));
-    CHECK(std::isnan(out[19]));
-  }
+  // The build's compiled lanes; the run-time dispatched float ones are the cases below, one per level (double has
+  // none).
+  check_gelu_float(simd::Lanes::compiled);
+  check_gelu_paths<double>(1e-13, simd::Lanes::compiled);
 }
+
+FLEXSPLAT_DISPATCH_TEST_CASES("GELU: the dispatched float lanes agree with the scalar path", "[nn][activations][simd]",
+                              check_gelu_float)
 
 TEST_CASE("gelu and silu backward pass the float64 gradient check", "[nn][activations]") {
   auto x = random_vector(40, 7, 2.0);

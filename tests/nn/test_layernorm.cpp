@@ -9,6 +9,7 @@
 #include "flexsplat/nn/layernorm.hpp"
 #include "flexsplat/testing/gradcheck.hpp"
 #include "nn_test_util.hpp"
+#include "simd_lanes.hpp"
 
 using namespace flexsplat;
 
@@ -37,16 +38,8 @@ TEST_CASE("layernorm normalises rows and passes the float64 gradient check", "[n
 }
 
 namespace {
-// The lanes of float this CPU runs: the build's batches and the dispatched AVX2 / AVX-512 lanes it has.
-std::vector<simd::Lanes> float_vector_lanes() {
-  std::vector<simd::Lanes> lanes{simd::Lanes::compiled};
-  if (simd::best_lanes<float>(simd::DispatchLevel::avx2) == simd::Lanes::avx2) lanes.push_back(simd::Lanes::avx2);
-  if (simd::best_lanes<float>() == simd::Lanes::avx512) lanes.push_back(simd::Lanes::avx512);
-  return lanes;
-}
-}  // namespace
-
-TEST_CASE("layernorm: every SIMD path agrees with the scalar path (float)", "[nn][layernorm][simd]") {
+// The float path `lanes` against the scalar one, forward and backward.
+void check_layernorm_lanes(simd::Lanes lanes) {
   // Rows with an offset and a few channels 50 times larger (as transformer residual streams have); widths with and
   // without a tail after the lanes. Bounds in float eps times (1 + |scalar|); measured on 1316 x 1024 rows: y 4.3,
   // mean 1.8, rstd 0.4, d_in 4.6 eps; d_gamma within 4 eps of the sum of its terms' magnitudes.
@@ -74,7 +67,7 @@ TEST_CASE("layernorm: every SIMD path agrees with the scalar path (float)", "[nn
       std::vector<double> dg_scale(dim, 1.0);  // 1 + sum_r |dy n|
       for (index_t r = 0; r < rows; ++r)
         for (index_t i = 0; i < dim; ++i) dg_scale[i] += std::abs(double(dy[r * dim + i]) * (x[r * dim + i] - ms[r]) * ss[r]);
-      for (simd::Lanes lanes : float_vector_lanes()) {
+      {
         INFO(simd::lanes_name(lanes));
         std::vector<float> y(x.size()), m(rows), s(rows), dx(x.size()), dg(dim), db(dim);
         nn::layernorm_forward_impl<float>(y.data(), x.data(), gamma, beta, rows, dim, 1e-6f, {m.data(), s.data()}, lanes);
@@ -98,6 +91,16 @@ TEST_CASE("layernorm: every SIMD path agrees with the scalar path (float)", "[nn
     }
   }
 }
+
+}  // namespace
+
+TEST_CASE("layernorm: every SIMD path agrees with the scalar path (float)", "[nn][layernorm][simd]") {
+  // The build's compiled lanes; the run-time dispatched ones are the cases below, one per level.
+  check_layernorm_lanes(simd::Lanes::compiled);
+}
+
+FLEXSPLAT_DISPATCH_TEST_CASES("layernorm: the dispatched float lanes agree with the scalar path", "[nn][layernorm][simd]",
+                              check_layernorm_lanes)
 
 TEST_CASE("layernorm backward: parameter gradients do not depend on the thread count", "[nn][layernorm]") {
   const index_t rows = 50, dim = 200;

@@ -1,8 +1,10 @@
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
+#include <numeric>
 #include <string>
 #include <vector>
 
@@ -88,7 +90,16 @@ TEST_CASE("train_scene_plan spreads a step's scenes over the ranks by their view
     for (index_t s = 0; s < 4; ++s) views.push_back(model::scene_view_count(cfg, step, s));
     CHECK(model::train_scene_plan(cfg, step, 1).owner == std::vector<int>(4, 0));
     const train::ScenePlan p = model::train_scene_plan(cfg, step, 2);
-    CHECK(p.owner == model::train_scene_plan(cfg, step, 2).owner);  // every rank computes the same plan
+    // The plan by hand (balanced_plan's rule): scenes by view count, most first (ties in scene order); the first to
+    // rank 0, the second to rank 1, the third to the less loaded rank (ties: rank 0), the last to the rank with room.
+    std::vector<std::size_t> by(4);
+    std::iota(by.begin(), by.end(), std::size_t(0));
+    std::stable_sort(by.begin(), by.end(), [&](std::size_t a, std::size_t b) { return views[a] > views[b]; });
+    std::vector<int> expect(4, -1);
+    expect[by[0]] = 0, expect[by[1]] = 1;
+    expect[by[2]] = views[by[1]] < views[by[0]] ? 1 : 0;
+    expect[by[3]] = 1 - expect[by[2]];
+    CHECK(p.owner == expect);
     index_t load[2] = {0, 0}, count[2] = {0, 0};
     for (std::size_t s = 0; s < 4; ++s) load[p.owner[s]] += views[s], ++count[p.owner[s]];
     CHECK(count[0] == 2);

@@ -8,9 +8,11 @@
 //   set.sh [N, K, 3], K = (degree + 1)^2, coefficient-major (the RGB triple of coefficient k is contiguous), DC first;
 //   set.features [N, F], optional per-Gaussian features the rasterizer blends (empty: none; not exported).
 //   GaussianSetGrad<T> grad = make_gaussian_grad(set);        // zeros of the same shapes; an empty field = not wanted
+#include <algorithm>
 #include <cmath>
 #include <string>
 #include <type_traits>
+#include <vector>
 
 #include <glm/glm.hpp>
 #include <glm/gtc/quaternion.hpp>
@@ -149,6 +151,26 @@ GaussianSet<To> convert_gaussian_set(const GaussianSet<From>& in) {
   copy(in.sh, out.sh);
   copy(in.features, out.features);
   return out;
+}
+
+// The rows `keep` of a set (in that order), features included.
+template <class T>
+GaussianSet<T> select_gaussians(const GaussianSet<T>& set, const std::vector<index_t>& keep) {
+  const index_t m = static_cast<index_t>(keep.size()), n = set.size();
+  const index_t K = set.sh.shape(1), F = set.features.empty() ? 0 : set.features.shape(1);
+  GaussianSet<T> c = make_gaussian_set<T>(m, set.sh_degree());
+  if (F > 0) c.features = Tensor<T, 2>(Shape<2>{m, F});
+  for (index_t j = 0; j < m; ++j) {
+    const index_t i = keep[static_cast<std::size_t>(j)];
+    require(i >= 0 && i < n, "select_gaussians: row ", i, " of a set of ", n);
+    std::copy_n(&set.means(i, 0), 3, &c.means(j, 0));
+    std::copy_n(&set.quats(i, 0), 4, &c.quats(j, 0));
+    std::copy_n(&set.scales(i, 0), 3, &c.scales(j, 0));
+    c.opacities(j) = set.opacities(i);
+    std::copy_n(set.sh.data() + i * K * 3, K * 3, c.sh.data() + j * K * 3);
+    if (F > 0) std::copy_n(&set.features(i, 0), F, &c.features(j, 0));
+  }
+  return c;
 }
 
 // The set moved by the similarity x -> scale * R x + t (R a rotation): centres mapped, standard deviations times

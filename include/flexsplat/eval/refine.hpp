@@ -536,19 +536,7 @@ index_t carve_to_silhouettes(GaussianSet<T>& set, const RefineViews<T>& v, const
   if (keep.empty()) keep.push_back(0);
   const index_t m = static_cast<index_t>(keep.size());
   if (m == n) return 0;
-  GaussianSet<T> c = make_gaussian_set<T>(m, set.sh_degree());
-  const index_t K = set.sh.shape(1), F = set.features.empty() ? 0 : set.features.shape(1);
-  if (F > 0) c.features = Tensor<T, 2>(Shape<2>{m, F});
-  for (index_t j = 0; j < m; ++j) {
-    const index_t i = keep[static_cast<std::size_t>(j)];
-    std::copy_n(&set.means(i, 0), 3, &c.means(j, 0));
-    std::copy_n(&set.quats(i, 0), 4, &c.quats(j, 0));
-    std::copy_n(&set.scales(i, 0), 3, &c.scales(j, 0));
-    c.opacities(j) = set.opacities(i);
-    std::copy_n(set.sh.data() + i * K * 3, K * 3, c.sh.data() + j * K * 3);
-    if (F > 0) std::copy_n(&set.features(i, 0), F, &c.features(j, 0));
-  }
-  set = std::move(c);
+  set = select_gaussians(set, keep);
   return n - m;
 }
 

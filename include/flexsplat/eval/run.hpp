@@ -38,7 +38,8 @@ struct ObjectScores {
 // What eval does besides the protocol: test-time refinement, rotation noise, the posed-fit baseline.
 struct EvalExperiment {
   bool native = true;             // score at the folder's image size (false: at the model's)
-  double refine_seconds = 0;      // 0: feed-forward only
+  double refine_seconds = 0;      // the refinement's time budget (0: none)
+  std::int64_t refine_steps = 0;  // its step budget (0: none); neither: feed-forward only
   index_t refine_longer = 0;      // the refinement's longer side (0: the photos' own resolution)
   bool refine_validate = false;   // choose the refinement's step count on a held-out input view
   bool refine_cameras = true;     // refine the predicted cameras with the Gaussians
@@ -49,6 +50,7 @@ struct EvalExperiment {
   std::uint64_t seed = 0;         // rotation noise and the posed fit's initialisation (per object: object_seed)
   bool posed_fit = false;
   index_t gaussians = 0;          // 0: the model's budget for the view count
+  bool refining() const { return refine_seconds > 0 || refine_steps > 0; }
 };
 
 // The refinement's own numbers (steps, loss on the input views before and after, Gaussians pruned).
@@ -73,12 +75,12 @@ inline ObjectScores object_scores(const EvalResult& e, double seconds) {
 
 namespace detail {
 // The test-time refinement of a prediction on its input photos at fit_size; fills r.refine and r.feed_forward (the
-// scores before it) and returns the Gaussians it grew.
+// scores before it), adds its seconds to seconds and into spent, and returns the Gaussians it grew.
 inline index_t eval_refine(ObjectEval& r, Prediction<float>& p, std::vector<float>& w2c, const data::ObjectRecord& rec,
                            const std::vector<int>& in, const std::vector<int>& targets,
                            const std::vector<Tensor<float, 3>>& rgba, const FlexSplatConfig& c, const EvalOptions& o,
                            EvalWorkspace& ews, const EvalExperiment& x, std::array<index_t, 2> fit_size,
-                           std::uint64_t seed, index_t sh, index_t sw, double& seconds) {
+                           std::uint64_t seed, index_t sh, index_t sw, double& seconds, double& spent) {
   auto since = [](auto t) { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count(); };
   EvalOptions before = o;
   before.white_baseline = false;
@@ -90,12 +92,14 @@ inline index_t eval_refine(ObjectEval& r, Prediction<float>& p, std::vector<floa
   const RefineViews<float> rv{p.views,         photos.h,   photos.w,           photos.images.data(),
                               photos.K.data(), w2c.data(), photos.alpha.data()};
   RefineConfig rc = prediction_refine_config(rv, x.refine_seconds, seed, x.refine_grow);
+  rc.steps = x.refine_steps;
   rc.validate = x.refine_validate;
   rc.optimize_cameras = x.refine_cameras && !x.true_cameras;
   rc.carve = x.refine_carve;
   RefineWorkspace<float> rws;
   const RefineResult rr = refine(p.gaussians, rv, rc, rws);
-  seconds += since(t1);
+  spent = since(t1);
+  seconds += spent;
   r.refine = {static_cast<double>(rr.steps), rr.loss_initial, rr.loss_final, static_cast<double>(rr.pruned),
               static_cast<double>(rr.trial_steps), rr.holdout_initial, rr.holdout_best, static_cast<double>(rr.carved),
               static_cast<double>(rr.grown), photos.h, photos.w};
@@ -103,7 +107,7 @@ inline index_t eval_refine(ObjectEval& r, Prediction<float>& p, std::vector<floa
 }
 }  // namespace detail
 
-// One object folder under the protocol and the experiment: predict, refine (x.refine_seconds > 0), score, and the
+// One object folder under the protocol and the experiment: predict, refine (x.refining()), score, and the
 // posed-fit baseline (x.posed_fit). seconds: reading and resizing the input views, the model's forward pass and the
 // refinement (what reconstruct costs).
 inline ObjectEval evaluate_object(const data::ObjectRecord& rec, const FlexSplatWeights<float>& w,
@@ -142,11 +146,12 @@ inline ObjectEval evaluate_object(const data::ObjectRecord& rec, const FlexSplat
   std::vector<float> w2c(p.geometry.extrinsics.begin(), p.geometry.extrinsics.end());
   // The refinement (and the posed fit beside it) fits the input photos at this size.
   const std::array<index_t, 2> fit_size =
-      x.refine_seconds > 0 ? refine_size(rgba, c, x.refine_longer) : std::array<index_t, 2>{c.image_h, c.image_w};
+      x.refining() ? refine_size(rgba, c, x.refine_longer) : std::array<index_t, 2>{c.image_h, c.image_w};
   index_t fit_gaussians = n_model;  // the posed fit's count: the refinement's start, before carving
-  if (x.refine_seconds > 0)
+  double refine_spent = 0;          // the refinement's seconds
+  if (x.refining())
     fit_gaussians = n_model + detail::eval_refine(r, p, w2c, rec, in, targets, rgba, c, o, ews, x, fit_size, seed, sh,
-                                                  sw, seconds);
+                                                  sw, seconds, refine_spent);
   EvalResult e = score_prediction(rec, in, targets, w2c.data(), p.gaussians, sh, sw, o, ews);
   r.model = object_scores(e, seconds);
   r.white = {e.white.psnr, e.white.ssim, e.white.lpips, NAN, NAN, NAN};
@@ -158,9 +163,11 @@ inline ObjectEval evaluate_object(const data::ObjectRecord& rec, const FlexSplat
   }
   if (x.posed_fit) {
     // The same input views with their ground-truth cameras, fitted for the model's time: with refinement the
-    // prediction's plus the whole refinement budget (the refinement may stop earlier when its trial says so), with
-    // as many Gaussians as the refinement started from (the prediction's and the grown ones).
-    const double budget = x.refine_seconds > 0 ? predict_seconds + x.refine_seconds : seconds;
+    // prediction's plus the whole refinement budget (the refinement may stop earlier when its trial says so; with a
+    // step budget alone, the seconds it took), with as many Gaussians as the refinement started from (the
+    // prediction's and the grown ones).
+    const double budget =
+        x.refining() ? predict_seconds + (x.refine_seconds > 0 ? x.refine_seconds : refine_spent) : seconds;
     const PosedFit f = posed_fit(rec, in, fit_size[0], fit_size[1], fit_gaussians, degree, budget, seed);
     EvalOptions po = o;
     po.white_baseline = false, po.grid_targets = 0;
@@ -241,16 +248,17 @@ inline nlohmann::json refine_json(const EvalRefineInfo& r, const ObjectScores& r
 }
 }  // namespace detail
 
-// The report `flexsplat eval --json` writes: {model, refine_seconds, rotation_noise_deg, seed, resolution,
+// The report `flexsplat eval --json` writes: {model, refine_seconds, refine_steps, rotation_noise_deg, seed, resolution,
 // self_attention, objects: [...], mean, baselines} (docs/app.md).
 inline nlohmann::json eval_json(const std::string& model_path, const FlexSplatConfig& c, const EvalOptions& o,
                                 const EvalExperiment& x, const std::vector<ObjectEval>& results) {
-  const bool refined = x.refine_seconds > 0;
+  const bool refined = x.refining();
   const std::vector<ObjectScores> rows = score_rows(results, &ObjectEval::model);
   const std::vector<ObjectScores> ff_rows = score_rows(results, &ObjectEval::feed_forward);
   nlohmann::json j;
   j["model"] = model_path;
   j["refine_seconds"] = x.refine_seconds;
+  j["refine_steps"] = x.refine_steps;
   j["rotation_noise_deg"] = x.rotation_noise_deg;
   j["seed"] = x.seed;
   j["resolution"] = x.native ? "native" : "model";
