@@ -3,7 +3,7 @@
 // in its frame (first input camera = identity, lengths in its predicted depth's units); the capture's world has its
 // own origin and scale. The frame is the first camera's; the scale is the one at which every view's predicted depth,
 // unprojected through the given cameras, lands inside the other views' silhouettes and on their surfaces (the orbit
-// search's objective, geometry/orbit_search.hpp, minimised over the scale alone). One view cannot tell a scale: its
+// search's objective, solvers/orbit_search.hpp, minimised over the scale alone). One view cannot tell a scale: its
 // object is taken to lie where the optical axis passes nearest the world origin. The prediction is brought back to the
 // capture's world afterwards (to_capture_world), so that a held-out camera of the same capture sees the splat in place.
 //

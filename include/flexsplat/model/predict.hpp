@@ -61,8 +61,8 @@ std::vector<Camera> input_cameras(const Prediction<T>& p, const std::vector<std:
 }
 
 // Where the cameras the decoder sees come from. model: the camera head, or with a match head the cameras solved from
-// its matches (geometry/procrustes.hpp); orbit_search: the views placed on an orbit around the object by their
-// predicted silhouettes (the match head's object probability), depth and colour (geometry/orbit_search.hpp); given:
+// its matches (solvers/procrustes.hpp); orbit_search: the views placed on an orbit around the object by their
+// predicted silhouettes (the match head's object probability), depth and colour (solvers/orbit_search.hpp); given:
 // the capture's own cameras (PredictWorkspace::given, model/given_cameras.hpp); turntable: photos in order at equal
 // azimuth steps around the object, the elevation, direction and distance searched (geometry::cameras_from_turntable).
 enum class CameraSource { model, orbit_search, given, turntable };

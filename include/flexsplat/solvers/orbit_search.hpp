@@ -422,6 +422,7 @@ std::vector<Placed> placed_cameras(const T* extrinsics, const T* intrinsics, con
 // [S, 3, 3] with pixel (u, v) at integer coordinates (geometry/unproject.hpp). Views without object pixels keep
 // [I | 0] and a false entry in `solved` (may be null, [S]). cost_out (may be null): the final total cost.
 // descriptors (optional): a descriptor term beside the colour's.
+// Over 150 lines: its stages (grid, beam, sweeps, pattern search) share the poses, placements and best-so-far state.
 template <class T>
 void cameras_from_orbit_search(T* extrinsics, const T* images, const T* foreground, const T* depth, const T* intrinsics,
                                index_t frames, index_t height, index_t width, const OrbitSearchConfig& cfg = {},
