@@ -37,19 +37,6 @@ double render_ms(const GaussianSet<float>& s, const data::ObjectRecord& rec, con
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
 }
 
-std::vector<int> parse_list(const std::string& s) {
-  std::vector<int> out;
-  std::size_t at = 0;
-  while (at <= s.size()) {
-    const std::size_t comma = s.find(',', at);
-    const std::string item = s.substr(at, comma == std::string::npos ? std::string::npos : comma - at);
-    if (!item.empty()) out.push_back(std::stoi(item));
-    if (comma == std::string::npos) break;
-    at = comma + 1;
-  }
-  return out;
-}
-
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -82,7 +69,7 @@ int main(int argc, char** argv) {
     for (const auto& dir : objects) {
       const data::ObjectRecord rec = data::load_object(dir);
       model::EvalOptions o;
-      o.view_list = parse_list(views);
+      model::set_views(o, views);
       std::vector<int> in, targets;
       model::eval_views(rec, o, in, targets);
       std::vector<Tensor<float, 3>> rgba;

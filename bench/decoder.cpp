@@ -1,5 +1,6 @@
-// Decoder forward: time (wall and process CPU) and memory per part for N_G Gaussians, 4 views, 128x128 fused feature
-// maps (C_f 128), C 256, FFN 1024, L 3, full vs local self-attention, and the error of local against full.
+// Decoder forward: time (wall and process CPU) and memory per stage (profile::Stage) for N_G Gaussians, 4 views,
+// 128x128 fused feature maps (C_f 128), C 256, FFN 1024, L 3, full vs local self-attention, and the error of local
+// against full.
 // Usage: decoder [--local-only] [--window W] [--reps R] [N_G...]   (default 10000 20000; threads: FLEXSPLAT_NUM_THREADS)
 #include <sys/resource.h>
 
@@ -15,7 +16,9 @@
 #include <span>
 #include <vector>
 
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/decoder/decoder.hpp"
+#include "stages.hpp"
 
 using namespace flexsplat;
 
@@ -112,23 +115,21 @@ int main(int argc, char** argv) {
       decoder::DecoderWorkspace<float> ws;
       ws.reserve(cfg, n, rig.views, fh, fw, rig.depth * rig.depth);
       decoder::decoder_forward(ws, n, params.data(), cfg, maps, geo);  // warm-up: touches every page once
-      decoder::DecoderProfile prof;
-      ws.profile = &prof;
+      profile::reset();
+      profile::set_enabled(true);
       const auto w0 = std::chrono::steady_clock::now();
       const std::clock_t c0 = std::clock();
       for (int r = 0; r < reps; ++r) decoder::decoder_forward(ws, n, params.data(), cfg, maps, geo);
       const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count() / reps;
       const double cpu = static_cast<double>(std::clock() - c0) / CLOCKS_PER_SEC / reps;
-      ws.profile = nullptr;
+      profile::set_enabled(false);
       std::size_t deform_bytes = 0, attn_bytes = 0;
       for (const auto& k : ws.layers) deform_bytes += k.deform.capacity_bytes(), attn_bytes += k.attention.capacity_bytes();
       std::printf("N_G %6lld %-5s forward wall %.3f s cpu %.3f s | workspace fwd %.0f MB (deform %.0f, self-attn %.0f) + bwd %.0f MB | peak RSS %.0f MB\n",
                   static_cast<long long>(n), local ? "local" : "full", wall, cpu,
                   mb(ws.capacity_bytes() - ws.grad.capacity_bytes()), mb(deform_bytes), mb(attn_bytes),
                   mb(ws.grad.capacity_bytes()), peak_rss_mb());
-      for (int p = 0; p < decoder::DecoderProfile::part_count; ++p)
-        std::printf("    %-16s wall %.3f s  cpu %.3f s  (all %lld layers)\n", decoder::DecoderProfile::names[p],
-                    prof.wall[p] / reps, prof.cpu[p] / reps, static_cast<long long>(cfg.layers));
+      bench::print_stages(profile::stages(), reps, 0);
       // Self-attention output of layer 0 on the same inputs, for the local-vs-full error.
       const auto& k = ws.layers[0];
       std::vector<float> sa(static_cast<std::size_t>(n * cfg.dim));

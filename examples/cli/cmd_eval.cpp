@@ -21,38 +21,6 @@ namespace flexsplat::cli::eval_cmd {
 namespace fs = std::filesystem;
 
 // --views: "N" (a count) or "i,j,k" (frame indices).
-struct ViewChoice {
-  int count = 0;
-  std::vector<int> list;
-};
-
-ViewChoice parse_views(const std::string& s) {
-  ViewChoice c;
-  std::stringstream in(s);
-  std::string item;
-  std::vector<int> values;
-  while (std::getline(in, item, ',')) {
-    std::size_t used = 0;
-    int v = -1;
-    try {
-      v = std::stoi(item, &used);
-    } catch (const std::exception&) {
-      used = 0;
-    }
-    require(used == item.size() && !item.empty() && v >= 0, "--views '", s,
-            "': expected a view count or comma-separated frame indices");
-    values.push_back(v);
-  }
-  require(!values.empty(), "--views '", s, "' is empty");
-  if (values.size() == 1 && s.find(',') == std::string::npos) {
-    require(values[0] >= 1, "--views ", values[0], ": need at least one input view");
-    c.count = values[0];
-  } else {
-    c.list = values;
-  }
-  return c;
-}
-
 using model::ObjectScores;
 
 std::string cell(double v, const char* fmt) {
@@ -100,6 +68,7 @@ void print_tables(const std::string& model_path, const std::optional<std::pair<b
   if (attention) title += attention->first ? ", local self-attention (windows of " + std::to_string(attention->second) + ")"
                                            : std::string(", full self-attention");
   if (x.gaussians > 0) title += ", " + std::to_string(x.gaussians) + " Gaussians";
+  if (x.auto_budget) title += ", --budget auto (" + std::to_string(x.outline_margin) + " anchor spacings)";
   if (x.true_cameras) title += ", the folders' input cameras";
   if (x.rotation_noise_deg > 0) {
     std::snprintf(buf, sizeof buf, ", rotation noise %g deg (seed %llu)", x.rotation_noise_deg,
@@ -151,6 +120,9 @@ int eval_command(Args args) {
   take_option(args, "--rotation-noise", noise_text);
   take_option(args, "--seed", seed_text);
   take_option(args, "--gaussians", gaussians_text);
+  std::string budget_text = "full";
+  take_option(args, "--budget", budget_text);
+  const bool auto_budget = budget_text == "auto" || budget_text.starts_with("auto:");
   std::string resolution = "native";
   take_option(args, "--resolution", resolution);
   require(resolution == "native" || resolution == "model", "eval: --resolution '", resolution,
@@ -172,10 +144,7 @@ int eval_command(Args args) {
     return text.empty() ? fallback : static_cast<int>(parse_integer(text, flag, 1, std::numeric_limits<int>::max()));
   };
   model::EvalOptions eo;
-  if (!views_text.empty()) {
-    const ViewChoice choice = parse_views(views_text);
-    eo.view_count = choice.count, eo.view_list = choice.list;
-  }
+  if (!views_text.empty()) model::set_views(eo, views_text);
   eo.max_targets = parse_count(max_targets_text, "--max-targets", 0);
   eo.grid_targets = grid_path.empty() ? 0 : parse_count(grid_cols_text, "--grid-targets", 4);
   eo.white_baseline = has("white");
@@ -200,6 +169,9 @@ int eval_command(Args args) {
           "SECONDS or --refine-steps N");
 
   if (!gaussians_text.empty()) x.gaussians = parse_count(gaussians_text, "--gaussians", 0);
+  x.auto_budget = auto_budget;
+  if (budget_text.starts_with("auto:")) x.outline_margin = parse_number(budget_text.substr(5), "--budget auto:", true);
+  require(auto_budget || budget_text == "full", "eval: --budget '", budget_text, "': expected full, auto or auto:CELLS");
   // --self-attention full | local | local:WINDOW (the decoder's self-attention has no parameters of its own).
   std::optional<std::pair<bool, index_t>> attention;
   if (!attention_text.empty()) {
@@ -241,7 +213,8 @@ const RegisterCommand registered_cmd_eval(
              "  [--refine-size N|native]\n"
              "  [--refine-validate on|off] [--refine-cameras on|off] [--refine-carve on|off] [--refine-grow N]\n"
              "  [--rotation-noise DEG] [--seed N]\n"
-             "  [--gaussians N] [--self-attention full|local[:WINDOW]] [--resolution native|model] [--lpips LPIPS.safetensors]\n"
+             "  [--gaussians N] [--budget full|auto[:CELLS]] [--self-attention full|local[:WINDOW]] [--resolution native|model]\n"
+             "  [--lpips LPIPS.safetensors]\n"
              "  [--cameras model|orbit|turntable|truth] [--json out.json]\n"
              "  [--grid out.png [--grid-targets 4]] [--quiet]\n"
              "  OBJECT_DIR: a folder in the layout of ../shared/data/objects/<name> or a folder of them\n"
@@ -251,8 +224,8 @@ const RegisterCommand registered_cmd_eval(
              "  with a similarity (Umeyama); targets are rendered on white and scored at the folders' own image size\n"
              "  (--resolution model: at the model's size, targets resized as the inputs); lpips is null without --lpips\n"
              "  center_error_rel: median camera-centre error / diagonal of the input views' depth-point box\n"
-             "  --json: {model, resolution, objects: [{name, resolution [h, w], psnr, ssim, lpips, rotation_error_deg,\n"
-             "  center_error_rel, seconds}],\n"
+             "  --json: {model, resolution, budget, objects: [{name, resolution [h, w], budget, gaussians, psnr, ssim,\n"
+             "  lpips, rotation_error_deg, center_error_rel, seconds}],\n"
              "  mean, baselines}; --grid: per object its inputs, renders and ground truth\n"
              "  --refine S: carve away the Gaussians seen on the input photos' background, add 4096 in the\n"
              "  silhouettes' visual hull, then optimise the Gaussians and predicted cameras on the input views for\n"
@@ -266,6 +239,8 @@ const RegisterCommand registered_cmd_eval(
              "  input camera turned by DEG degrees about a random axis before the decoder (seeded by --seed and the\n"
              "  object's name); --baseline posed-fit: a per-scene fit from the input views with their ground-truth\n"
              "  cameras for the model's seconds; --gaussians: default the model's budget for the view count;\n"
+             "  --budget auto: only the budget's queries within CELLS anchor spacings (default 1) of the object's\n"
+             "  outline run (reconstruct --budget auto);\n"
              "  --self-attention: the decoder's, whatever the model was trained with (local: windows of 512)\n"
              "  --cameras orbit: the input cameras searched on an orbit around the object from the predicted\n"
              "  silhouettes, depth and colours (models with a match head) instead of the model's own cameras;\n"

@@ -7,6 +7,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <limits>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -85,7 +86,7 @@ void write_turntable(const fs::path& path, const model::Prediction<float>& p, in
 
 int reconstruct_command(Args args) {
   std::string model_path, output, gaussians_text, turntable, refine_text, refine_size_text, turntable_size_text;
-  std::string refine_validate = "off", refine_grow_text, compact_text = "on";
+  std::string refine_validate = "off", refine_grow_text, compact_text = "on", budget_text = "full";
   take_option(args, "--model", model_path);
   require(take_option(args, "-o", output) || take_option(args, "--output", output),
           "reconstruct needs -o out.glb or -o out.ply");
@@ -97,6 +98,8 @@ int reconstruct_command(Args args) {
   if (take_option(args, "--refine-grow", refine_grow_text)) refine_options = true;
   take_option(args, "--turntable-size", turntable_size_text);
   take_option(args, "--compact", compact_text);
+  take_option(args, "--budget", budget_text);
+  require(budget_text == "full" || budget_text == "auto", "--budget '", budget_text, "': expected full or auto");
   const bool compact = parse_on_off(compact_text, "--compact");
   std::string cameras_text = "model";
   take_option(args, "--cameras", cameras_text);
@@ -153,16 +156,21 @@ int reconstruct_command(Args args) {
                static_cast<long long>(c.image_h));
   model::PredictWorkspace<float> ws;
   ws.cameras = camera_source;
+  ws.auto_budget = budget_text == "auto";
   model::Prediction<float> p;
   if (given_cameras) {
     p = model::predict_posed<float>(ws, *w, rgba, cameras, n_gaussians);
   } else {
-    const Tensor<float, 4> images = model::model_input<float>(rgba, c);
-    ws.silhouettes = model::photo_silhouettes<float>(rgba, c);
+    model::ModelPhotos<float> photos = model::model_photos<float>(rgba, c);
+    ws.silhouettes = std::move(photos.silhouettes);
     t.lap("preprocess");
-    p = model::predict<float>(ws, *w, TensorView<const float, 4>(images.view()), n_gaussians);
+    p = model::predict<float>(ws, *w, TensorView<const float, 4>(photos.images.view()), n_gaussians);
   }
+  if (ws.auto_budget)
+    std::fprintf(stderr, "reconstruct: --budget auto: the decoder ran %lld of the budget's %lld queries (those on the "
+                 "object's outline)\n", static_cast<long long>(p.budget_queries), static_cast<long long>(p.budget));
   t.ms.emplace_back("geometry (VGGT)", p.geometry_ms);
+  t.ms.emplace_back("cameras", p.cameras_ms);
   t.ms.emplace_back("decoder", p.decoder_ms);
   if (camera_source == model::CameraSource::turntable)
     std::fprintf(stderr, "reconstruct: turntable at elevation %.1f deg, turning %s\n", ws.turntable.elevation_deg,
@@ -171,14 +179,21 @@ int reconstruct_command(Args args) {
     std::fprintf(stderr, "reconstruct: the capture's scale %.6g world units per model unit (%s)\n", p.given->frame.scale,
                  p.given->from_views ? "the views' consistency" : "one view: the object at the world origin's distance");
   t.last = std::chrono::steady_clock::now();
+  // The photos as targets at h x w in the prediction's cameras, made once for refinement and compaction alike (K is
+  // neither refined nor moved to the capture's world).
+  std::optional<model::PhotoTargets<float>> targets;
+  auto targets_at = [&](std::array<index_t, 2> size) -> const model::PhotoTargets<float>& {
+    if (!targets || targets->h != size[0] || targets->w != size[1])
+      targets = given_cameras ? model::photo_targets<float>(rgba, photo_intrinsics(cameras), size[0], size[1])
+                              : model::photo_targets<float>(rgba, c, p.geometry.K.data(), size[0], size[1]);
+    return *targets;
+  };
   if (refine_seconds > 0) {
     // Test-time refinement of the Gaussians and the predicted cameras on the input pictures (camera 0 stays fixed).
     const std::array<index_t, 2> size = model::refine_size(rgba, c, refine_longer);
     std::fprintf(stderr, "reconstruct: refining for %g s on the input views at %lld x %lld\n", refine_seconds,
                  static_cast<long long>(size[1]), static_cast<long long>(size[0]));
-    const model::PhotoTargets<float> photos =
-        given_cameras ? model::photo_targets<float>(rgba, photo_intrinsics(cameras), size[0], size[1])
-                      : model::photo_targets<float>(rgba, c, p.geometry.K.data(), size[0], size[1]);
+    const model::PhotoTargets<float>& photos = targets_at(size);
     const model::RefineViews<float> rv{p.views,         photos.h, photos.w, photos.images.data(),
                                        photos.K.data(), p.geometry.extrinsics.data(), photos.alpha.data()};
     model::RefineConfig rc = model::prediction_refine_config(rv, refine_seconds, 0, refine_grow);
@@ -201,9 +216,7 @@ int reconstruct_command(Args args) {
   if (compact) {
     // The input views at the photos' resolution in the prediction's frame, with their alpha.
     const std::array<index_t, 2> size = model::refine_size(rgba, c);
-    const model::PhotoTargets<float> photos =
-        given_cameras ? model::photo_targets<float>(rgba, photo_intrinsics(cameras), size[0], size[1])
-                      : model::photo_targets<float>(rgba, c, p.geometry.K.data(), size[0], size[1]);
+    const model::PhotoTargets<float>& photos = targets_at(size);
     std::vector<Camera> views;
     for (index_t v = 0; v < p.views; ++v)
       views.push_back(camera_from_arrays(photos.K.data() + 9 * v, p.geometry.extrinsics.data() + 12 * v,
@@ -249,11 +262,14 @@ const RegisterCommand registered_cmd_reconstruct(
     "reconstruct", {"a Gaussian splat (.glb with the predicted cameras, or .ply) from a few uncalibrated images",
                     "IMAGE... -o out.glb|out.ply [--model M.safetensors] [--gaussians N] [--refine SECONDS]\n"
                     "  [--refine-size N|native] [--refine-validate on|off] [--refine-grow N] [--turntable out.png]\n"
-                    "  [--turntable-size N|native] [--cameras model|orbit|turntable|PATH] [--compact on|off] [--verbose]\n"
+                    "  [--turntable-size N|native] [--cameras model|orbit|turntable|PATH] [--compact on|off]\n"
+                    "  [--budget full|auto] [--verbose]\n"
                     "  IMAGE: 1 to the model's max_views PNG/JPEG files of any size; RGBA is composited on white and\n"
                     "  each picture's centred window of the model's aspect ratio is resized to the model's size\n"
                     "  --model: default the shipped model (models/flexsplat-small.safetensors in the source tree)\n"
-                    "  --gaussians: default the model's budget for the view count; --turntable: 8 views around the\n"
+                    "  --gaussians: default the model's budget for the view count; --budget auto: of it, only the\n"
+                    "  queries whose anchors lie on the object's outline (the photos' alpha, else the non-white pixels)\n"
+                    "  run, the others would place Gaussians on the background; --turntable: 8 views around the\n"
                     "  object in one picture, each at the pictures' resolution (--turntable-size N: N pixels on the longer\n"
                     "  side); --verbose: time of each stage; --cameras orbit: the cameras searched on an orbit around the\n"
                     "  object from the predicted silhouettes, depth and colours (models with a match head)\n"

@@ -2,6 +2,7 @@
 
 #include <chrono>
 #include <thread>
+#include <vector>
 
 #include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/profile.hpp"
@@ -109,4 +110,49 @@ TEST_CASE("gemm shapes: each call lands on its own M N K and transposes, only wi
   CHECK(plain->seconds > 0);
   profile::reset();
   CHECK(profile::gemm_shapes().empty());
+}
+
+TEST_CASE("profile stages: nested paths, a parent listed before its children, inclusive time and the FLOPs inside",
+          "[core][profile]") {
+  profile::reset();
+  {
+    const profile::Stage off("not recorded");  // disabled: nothing
+  }
+  CHECK(profile::stages().empty());
+  profile::set_enabled(true);
+  for (int round = 0; round < 2; ++round) {
+    const profile::Stage outer("outer");
+    busy(std::chrono::milliseconds(5));
+    {
+      const profile::Stage a("a");
+      const profile::Scope s(profile::Op::gemm, 100.0);
+      busy(std::chrono::milliseconds(10));
+    }
+    {
+      const profile::Stage b("b");
+      const profile::Scope s(profile::Op::attention_forward, 7.0);
+    }
+  }
+  {
+    const profile::Stage other("other");
+  }
+  profile::set_enabled(false);
+  const std::vector<profile::StageTotals> st = profile::stages();
+  REQUIRE(st.size() == 4);
+  CHECK(st[0].path == "outer");
+  CHECK(st[1].path == "outer/a");
+  CHECK(st[2].path == "outer/b");
+  CHECK(st[3].path == "other");
+  CHECK(st[0].depth == 0);
+  CHECK(st[1].depth == 1);
+  for (std::size_t i = 0; i < 3; ++i) CHECK(st[i].calls == 2);
+  // A stage's FLOPs are every op scope's inside it, its children's included; its time too (inclusive, unlike scopes).
+  CHECK(st[0].flops == 214.0);
+  CHECK(st[1].flops == 200.0);
+  CHECK(st[2].flops == 14.0);
+  CHECK(st[3].flops == 0.0);
+  CHECK(st[1].seconds >= 0.020);
+  CHECK(st[0].seconds >= st[1].seconds + 0.010);
+  profile::reset();
+  CHECK(profile::stages().empty());
 }

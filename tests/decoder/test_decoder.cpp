@@ -204,6 +204,47 @@ TEST_CASE("decoder forward without layer caches: same Gaussians from one cache, 
   }
 }
 
+TEST_CASE("decoder with a query subset: the chosen queries' start as in the whole budget, every query = no subset",
+          "[decoder][decoder][workspace]") {
+  for (index_t slots : {index_t(0), index_t(2)}) {
+    Tiny t(2, false, slots);
+    decoder::DecoderWorkspace<double> whole, part, all;
+    for (auto* ws : {&whole, &part, &all}) ws->keep_for_backward = false;
+    decoder::decoder_forward(whole, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry());
+    part.subset = {1, 2, 5};
+    decoder::decoder_forward(part, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry());
+    REQUIRE(part.gaussians.size() == whole.gaussians.size());
+    // Before the layers each Gaussian depends on its query's embedding and anchor only: the same rows as the whole
+    // budget's, to the rounding of a GEMM of another row count; the layers' self-attention then sees fewer queries.
+    const auto& g0 = part.gaussians[0];
+    REQUIRE(g0.size() == 3);
+    for (index_t i = 0; i < 3; ++i) {
+      const index_t q = part.subset[static_cast<std::size_t>(i)];
+      for (int k = 0; k < 3; ++k) CHECK(g0.means(i, k) == Approx(whole.gaussians[0].means(q, k)).epsilon(1e-12));
+      CHECK(g0.opacities(i) == Approx(whole.gaussians[0].opacities(q)).epsilon(1e-12));
+    }
+    CHECK(part.gaussians.back().size() == 3);
+    for (double v : part.gaussians.back().means.span()) CHECK(std::isfinite(v));
+    all.subset = {0, 1, 2, 3, 4, 5};
+    decoder::decoder_forward(all, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry());
+    for (std::size_t s = 0; s < whole.gaussians.size(); ++s) {
+      CHECK(std::ranges::equal(all.gaussians[s].means.span(), whole.gaussians[s].means.span()));
+      CHECK(std::ranges::equal(all.gaussians[s].sh.span(), whole.gaussians[s].sh.span()));
+    }
+    // Refused: indices out of order or past the budget, and a subset with backward caches.
+    part.subset = {2, 1};
+    CHECK_THROWS_WITH(decoder::decoder_forward(part, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry()),
+                      Catch::Contains("query subset entry 1 (1) is not an ascending index"));
+    part.subset = {6};
+    CHECK_THROWS_WITH(decoder::decoder_forward(part, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry()),
+                      Catch::Contains("below the budget 6"));
+    decoder::DecoderWorkspace<double> training;
+    training.subset = {0};
+    CHECK_THROWS_WITH(decoder::decoder_forward(training, t.n, t.params.data(), t.cfg, t.maps(), t.rig.geometry()),
+                      Catch::Contains("forward only"));
+  }
+}
+
 TEST_CASE("decoder_layer_offsets agrees with DecoderParamLayout", "[decoder][decoder]") {
   decoder::DecoderConfig c;
   c.dim = 16, c.ffn = 40, c.heads = 4, c.layers = 3, c.points = 2, c.max_views = 3, c.value_dim = 5, c.max_queries = 11;

@@ -1,6 +1,8 @@
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cmath>
+#include <vector>
 
 #include "decoder_test_util.hpp"
 #include "flexsplat/decoder/gaussians.hpp"
@@ -15,6 +17,37 @@ TEST_CASE("anchors cover every view round-robin at interior pixel centres", "[de
     CHECK((a.pixel[2 * i] > 0 && a.pixel[2 * i] < 30 && a.pixel[2 * i + 1] > 0 && a.pixel[2 * i + 1] < 20));
   }
   CHECK_THROWS_WITH(decoder::make_anchors(0, 2, 30, 20), Catch::Contains("budget must be positive"));
+}
+
+TEST_CASE("queries_on_outline keeps the queries whose anchors lie within the margin of the outline",
+          "[decoder][gaussians]") {
+  // 2 views of 40 x 40, 32 queries: a 4 x 4 grid per view, anchors 10 pixels apart at 5, 15, 25, 35. View 0 shows
+  // a 6 x 6 square at [12, 18) x [12, 18) (it holds anchor (15, 15)); view 1 shows nothing.
+  const index_t w = 40, h = 40, views = 2, n = 32;
+  std::vector<float> outline(static_cast<std::size_t>(views * h * w), 0.0f);
+  for (index_t y = 12; y < 18; ++y)
+    for (index_t x = 12; x < 18; ++x) outline[static_cast<std::size_t>(y * w + x)] = 1.0f;
+  const auto a = decoder::make_anchors(n, views, w, h);
+  // No margin: only the anchor inside the square; query j * 2 of view 0 sits at grid cell j.
+  const std::vector<index_t> inside = decoder::queries_on_outline(n, views, w, h, outline.data(), 0.0);
+  REQUIRE(inside.size() == 1);
+  CHECK(a.view[inside[0]] == 0);
+  CHECK(a.pixel[2 * inside[0]] == 15.0);
+  CHECK(a.pixel[2 * inside[0] + 1] == 15.0);
+  // One spacing (10 pixels): the anchors whose 20 x 20 window meets the square, (5..25) x (5..25): 9 of view 0.
+  const std::vector<index_t> near = decoder::queries_on_outline(n, views, w, h, outline.data(), 1.0);
+  REQUIRE(near.size() == 9);
+  for (index_t q : near) {
+    CHECK(a.view[q] == 0);
+    CHECK((a.pixel[2 * q] <= 25 && a.pixel[2 * q + 1] <= 25));
+  }
+  CHECK(std::is_sorted(near.begin(), near.end()));
+  // Alpha at 0.5 is not the object; a full outline keeps every query.
+  std::fill(outline.begin(), outline.end(), 0.5f);
+  CHECK(decoder::queries_on_outline(n, views, w, h, outline.data(), 1.0).empty());
+  std::fill(outline.begin(), outline.end(), 1.0f);
+  CHECK(decoder::queries_on_outline(n, views, w, h, outline.data(), 0.0).size() == static_cast<std::size_t>(n));
+  CHECK_THROWS_WITH(decoder::queries_on_outline(n, views, w, h, outline.data(), -1.0), Catch::Contains("negative"));
 }
 
 TEST_CASE("eq. 2 back-projection reproduces the depth-map point for zero offsets", "[decoder][gaussians]") {

@@ -103,13 +103,13 @@ TEST_CASE("given_frame finds a capture's scale from true depth and silhouettes",
       cams.push_back(cam);
     }
     const model::GivenCameras<float> gc = model::given_cameras<float>(rgba, cams, c);
-    const std::vector<float> silhouettes = model::photo_silhouettes<float>(rgba, c);
+    const model::ModelPhotos<float> photos = model::model_photos<float>(rgba, c);
+    const std::vector<float>& silhouettes = photos.silhouettes;
     REQUIRE(!silhouettes.empty());
     // Depth at the model's size in "model units": the renders' metres times 0.8, so the scale to find is units / 0.8.
     const index_t V = static_cast<index_t>(in.size()), h = 56, w = 56;
     std::vector<float> depth(static_cast<std::size_t>(V * h * w)), images(static_cast<std::size_t>(V * 3 * h * w), 1.0f);
-    const Tensor<float, 4> input = model::model_input<float>(rgba, c);
-    std::copy(input.data(), input.data() + input.size(), images.begin());
+    std::copy(photos.images.data(), photos.images.data() + photos.images.size(), images.begin());
     for (index_t v = 0; v < V; ++v) {
       const Tensor<double, 2> d = image::read_depth_png<double>(rec.frames[static_cast<std::size_t>(in[static_cast<std::size_t>(v)])].depth, rec.depth_scale);
       for (index_t y = 0; y < h; ++y)

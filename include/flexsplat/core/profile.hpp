@@ -4,14 +4,20 @@
 //   profile::set_enabled(true); ... profile::Scope s(profile::Op::gemm, 2.0 * m * n * k); ...
 //   const profile::Totals t = profile::totals();
 // With set_gemm_shapes(true) as well, every gemm() call's wall time is also kept per shape (gemm_shapes()).
+// Stages name the parts of a run (bench/reconstruct's roofline): profile::Stage s("dino") times its lifetime (wall
+// and process CPU) and the FLOPs the op scopes counted meanwhile on every thread; nested stages make paths
+// ("geometry/dino"); profile::stages() lists them, a parent before its children.
 #include <algorithm>
 #include <array>
 #include <atomic>
 #include <chrono>
 #include <compare>
 #include <cstdint>
+#include <ctime>
 #include <map>
 #include <mutex>
+#include <string>
+#include <string_view>
 #include <utility>
 #include <vector>
 
@@ -90,6 +96,32 @@ inline ShapeTable& shape_table() {
   return t;
 }
 
+}  // namespace detail
+
+// One stage's totals over its calls: wall and process-CPU seconds, and the FLOPs counted while it ran.
+struct StageTotals {
+  std::string path;  // the names of the enclosing stages and its own, joined by '/'
+  int depth = 0;     // the number of enclosing stages
+  std::uint64_t calls = 0;
+  double seconds = 0, cpu_seconds = 0, flops = 0;
+};
+
+namespace detail {
+
+struct StageTable {
+  std::mutex mutex;
+  std::vector<StageTotals> rows;  // in the order the stages first opened
+};
+
+inline StageTable& stage_table() {
+  static StageTable t;
+  return t;
+}
+
+// The path of the stages open on this thread.
+inline thread_local std::string stage_path;
+inline thread_local int stage_depth = 0;
+
 inline void add_time(Op op, std::chrono::steady_clock::duration d) {
   counters().nanoseconds[static_cast<int>(op)].fetch_add(
       std::chrono::duration_cast<std::chrono::nanoseconds>(d).count(), std::memory_order_relaxed);
@@ -107,6 +139,11 @@ inline void reset() {
     auto& t = detail::shape_table();
     const std::lock_guard lock(t.mutex);
     t.totals.clear();
+  }
+  {
+    auto& t = detail::stage_table();
+    const std::lock_guard lock(t.mutex);
+    t.rows.clear();
   }
   auto& c = detail::counters();
   for (int i = 0; i < op_count; ++i) {
@@ -209,6 +246,72 @@ private:
   bool active_ = false;
   detail::Frame frame_;
   detail::Frame* parent_ = nullptr;
+};
+
+// The FLOPs every op family counted so far.
+inline double counted_flops() {
+  const auto& c = detail::counters();
+  double f = 0;
+  for (int i = 0; i < op_count; ++i) f += c.flops[i].load(std::memory_order_relaxed);
+  return f;
+}
+
+// Every stage run while enabled, a parent before its children.
+inline std::vector<StageTotals> stages() {
+  auto& t = detail::stage_table();
+  const std::lock_guard lock(t.mutex);
+  return t.rows;
+}
+
+// Times its lifetime as the stage `name` inside the stages open on this thread. Stages are opened by the thread that
+// drives a run; the FLOPs of its worker threads count (so two stages must not run at once).
+class Stage {
+public:
+  explicit Stage(std::string_view name) {
+    if (!enabled()) return;
+    active_ = true;
+    outer_length_ = detail::stage_path.size();
+    if (!detail::stage_path.empty()) detail::stage_path += '/';
+    detail::stage_path += name;
+    ++detail::stage_depth;
+    flops0_ = counted_flops();
+    cpu0_ = std::clock();
+    since_ = std::chrono::steady_clock::now();
+  }
+  Stage(const Stage&) = delete;
+  Stage& operator=(const Stage&) = delete;
+  ~Stage() {
+    if (!active_) return;
+    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - since_).count();
+    const double cpu = static_cast<double>(std::clock() - cpu0_) / CLOCKS_PER_SEC;
+    const double flops = counted_flops() - flops0_;
+    --detail::stage_depth;
+    {
+      auto& t = detail::stage_table();
+      const std::lock_guard lock(t.mutex);
+      auto row = std::find_if(t.rows.begin(), t.rows.end(),
+                              [](const StageTotals& r) { return r.path == detail::stage_path; });
+      if (row == t.rows.end()) {
+        // A parent closes after its children: it goes before the first row under its path.
+        const std::string prefix = detail::stage_path + '/';
+        auto first_child = std::find_if(t.rows.begin(), t.rows.end(),
+                                        [&](const StageTotals& r) { return r.path.starts_with(prefix); });
+        row = t.rows.insert(first_child, StageTotals{detail::stage_path, detail::stage_depth});
+      }
+      row->calls += 1;
+      row->seconds += seconds;
+      row->cpu_seconds += cpu;
+      row->flops += flops;
+    }
+    detail::stage_path.resize(outer_length_);
+  }
+
+private:
+  bool active_ = false;
+  std::size_t outer_length_ = 0;
+  double flops0_ = 0;
+  std::clock_t cpu0_ = 0;
+  std::chrono::steady_clock::time_point since_;
 };
 
 }  // namespace profile

@@ -5,11 +5,11 @@
 // (DecoderParamLayout gives the offsets); backward adds into a parallel gradient block and reaches the fused features,
 // depth maps and cameras.
 #include <algorithm>
-#include <chrono>
-#include <ctime>
 #include <random>
+#include <string>
 #include <vector>
 
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/deformable_attention.hpp"
 #include "flexsplat/decoder/gaussians.hpp"
@@ -117,38 +117,7 @@ void decoder_init(T* params, const DecoderConfig& c, std::uint64_t seed) {
   }
 }
 
-// Wall-clock and process CPU seconds per part of decoder_forward, summed over layers (CPU time includes every
-// worker thread, so cpu / wall ~ the parallel speed-up; on a shared machine cpu is the steadier number).
-struct DecoderProfile {
-  enum Part { setup, deform, self_attention, ffn, norm, heads, part_count };
-  static constexpr const char* names[part_count] = {"setup", "deform-attn", "self-attn", "ffn", "norm+residual",
-                                                     "heads+gaussians"};
-  double wall[part_count] = {}, cpu[part_count] = {};
-  void clear() { *this = DecoderProfile{}; }
-};
-
 namespace detail {
-// Charges the time between construction and destruction to one part of a profile (no-op without a profile).
-class ProfileScope {
-public:
-  ProfileScope(DecoderProfile* p, DecoderProfile::Part part) : profile_(p), part_(part) {
-    if (profile_) wall0_ = std::chrono::steady_clock::now(), cpu0_ = std::clock();
-  }
-  ~ProfileScope() {
-    if (!profile_) return;
-    profile_->wall[part_] += std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0_).count();
-    profile_->cpu[part_] += static_cast<double>(std::clock() - cpu0_) / CLOCKS_PER_SEC;
-  }
-  ProfileScope(const ProfileScope&) = delete;
-  ProfileScope& operator=(const ProfileScope&) = delete;
-
-private:
-  DecoderProfile* profile_;
-  DecoderProfile::Part part_;
-  std::chrono::steady_clock::time_point wall0_{};
-  std::clock_t cpu0_ = 0;
-};
-
 template <class T, class A>
 std::size_t capacity_bytes_of(const std::vector<T, A>& v) {
   return v.capacity() * sizeof(T);
@@ -220,9 +189,12 @@ struct DecoderWorkspace {
   std::vector<GaussianSet<T>> gaussians;
   std::vector<DecoderLayerCache<T>> layers;
   DecoderGradScratch<T> grad;
-  DecoderProfile* profile = nullptr;  // set to collect per-part timings of decoder_forward
   // false: forward only (predict); every layer runs in layers[0], so decoder_backward cannot follow.
   bool keep_for_backward = true;
+  // Non-empty: decoder_forward runs only these queries of its budget (ascending indices: their anchors and embedding
+  // rows, as the whole budget would have them), forward only. Empty: every query.
+  std::vector<index_t> subset;
+  Anchors budget_anchors;  // the whole budget's anchors when a subset runs
 
   void resize_forward(const DecoderConfig& c, index_t n_queries, index_t views, index_t feat_h, index_t feat_w,
                       index_t depth_pixels) {
@@ -231,7 +203,7 @@ struct DecoderWorkspace {
     anchors.view.resize(z);
     anchors.pixel.resize(2 * z);
     base_depth.resize(z);
-    if (c.view_slots > 0) queries.resize(z * static_cast<std::size_t>(c.dim));
+    if (c.view_slots > 0 || !subset.empty()) queries.resize(z * static_cast<std::size_t>(c.dim));
     depth_used.resize(z);
     if (median_scratch.capacity() < static_cast<std::size_t>(depth_pixels))
       median_scratch.reserve(static_cast<std::size_t>(depth_pixels));
@@ -290,21 +262,36 @@ void decoder_forward(DecoderWorkspace<T>& ws, index_t n_queries, const T* params
   require(c.query_rows_used(n_queries, g.views) <= c.max_queries, "decoder: Gaussian budget ", n_queries, " over ",
           g.views, " views reads ", c.query_rows_used(n_queries, g.views), " query embeddings, the table has ",
           c.max_queries, " (max_queries)");
-  const index_t n = n_queries, C = c.dim;
+  const bool subset = !ws.subset.empty();
+  require(!subset || !ws.keep_for_backward, "decoder: a query subset runs forward only (keep_for_backward false)");
+  for (std::size_t i = 0; i < ws.subset.size(); ++i)
+    require(ws.subset[i] >= 0 && ws.subset[i] < n_queries && (i == 0 || ws.subset[i] > ws.subset[i - 1]),
+            "decoder: query subset entry ", i, " (", ws.subset[i], ") is not an ascending index below the budget ",
+            n_queries);
+  const index_t n = subset ? static_cast<index_t>(ws.subset.size()) : n_queries, C = c.dim;
+  auto query = [&](index_t i) { return subset ? ws.subset[static_cast<std::size_t>(i)] : i; };
   const T eps = static_cast<T>(layernorm_eps);
-  DecoderProfile* prof = ws.profile;
   const T* embeddings = params;  // the query table starts the block
   {
-    detail::ProfileScope t(prof, DecoderProfile::setup);
+    const profile::Stage stage("setup");
     ws.resize_forward(c, n, g.views, features.h, features.w, g.depth_w * g.depth_h);
-    if (c.view_slots > 0) {
+    if (c.view_slots > 0 || subset) {
       for (index_t i = 0; i < n; ++i) {
-        const T* row = params + c.query_row(i, g.views) * C;
+        const T* row = params + c.query_row(query(i), g.views) * C;
         std::copy(row, row + C, ws.queries.data() + i * C);
       }
       embeddings = ws.queries.data();
     }
-    make_anchors(ws.anchors, n, g.views, g.image_w, g.image_h);
+    if (subset) {
+      make_anchors(ws.budget_anchors, n_queries, g.views, g.image_w, g.image_h);
+      for (index_t i = 0; i < n; ++i) {
+        const auto q = static_cast<std::size_t>(query(i));
+        ws.anchors.view[static_cast<std::size_t>(i)] = ws.budget_anchors.view[q];
+        for (int a = 0; a < 2; ++a) ws.anchors.pixel[2 * static_cast<std::size_t>(i) + a] = ws.budget_anchors.pixel[2 * q + a];
+      }
+    } else {
+      make_anchors(ws.anchors, n, g.views, g.image_w, g.image_h);
+    }
     ws.scene_centre = scene_centre_from_axes(g, static_cast<const T*>(nullptr), &ws.median_scratch);
     const T centre[3] = {static_cast<T>(ws.scene_centre.centre[0]), static_cast<T>(ws.scene_centre.centre[1]),
                          static_cast<T>(ws.scene_centre.centre[2])};
@@ -319,41 +306,42 @@ void decoder_forward(DecoderWorkspace<T>& ws, index_t n_queries, const T* params
     // One cache serves every layer when none is kept: layer l reads x (layers[0].x3) only before it rewrites x3.
     auto& k = ws.layers[ws.keep_for_backward ? static_cast<std::size_t>(l) : 0];
     const T* centres = ws.gaussians[static_cast<std::size_t>(l)].means.data();
+    const profile::Stage layer("layer " + std::to_string(l + 1));
     {
-      detail::ProfileScope t(prof, DecoderProfile::deform);
+      const profile::Stage stage("deformable attention");
       mv_deform_forward(k.r1.data(), k.deform, x, centres, n, params + o.deform, c.deform(), features, g);
     }
     {
-      detail::ProfileScope t(prof, DecoderProfile::norm);
+      const profile::Stage stage("norm+residual");
       detail::add_inplace(k.r1.data(), x, n * C);
       nn::layernorm_forward(k.x1.data(), k.r1.data(), params + o.ln1_g, params + o.ln1_b, n, C, eps,
                             {k.mean1.data(), k.rstd1.data()});
     }
     {
-      detail::ProfileScope t(prof, DecoderProfile::self_attention);
+      const profile::Stage stage("self-attention");
       self_attention_forward(k.r2.data(), k.attention, k.x1.data(), centres, n, params + o.attn, c.self_attention());
     }
     {
-      detail::ProfileScope t(prof, DecoderProfile::norm);
+      const profile::Stage stage("norm+residual");
       detail::add_inplace(k.r2.data(), k.x1.data(), n * C);
       nn::layernorm_forward(k.x2.data(), k.r2.data(), params + o.ln2_g, params + o.ln2_b, n, C, eps,
                             {k.mean2.data(), k.rstd2.data()});
     }
     {
-      detail::ProfileScope t(prof, DecoderProfile::ffn);
+      const profile::Stage stage("FFN");
       T* pre = ws.keep_for_backward ? k.hidden_pre.data() : k.hidden.data();
       nn::linear_forward(pre, k.x2.data(), params + o.ffn_w1, params + o.ffn_b1, n, C, c.ffn);
       nn::gelu_forward(k.hidden.data(), pre, n * c.ffn);
       nn::linear_forward(k.r3.data(), k.hidden.data(), params + o.ffn_w2, params + o.ffn_b2, n, c.ffn, C);
     }
     {
-      detail::ProfileScope t(prof, DecoderProfile::norm);
+      const profile::Stage stage("norm+residual");
       detail::add_inplace(k.r3.data(), k.x2.data(), n * C);
       nn::layernorm_forward(k.x3.data(), k.r3.data(), params + o.ln3_g, params + o.ln3_b, n, C, eps,
                             {k.mean3.data(), k.rstd3.data()});
     }
     {
-      detail::ProfileScope t(prof, DecoderProfile::heads);
+      const profile::Stage stage("splat head");
       splat_head_forward(k.delta.data(), k.x3.data(), params + o.head_w, params + o.head_b, n, C, false);
       compose_forward(ws.states[l + 1].data(), ws.states[l].data(), k.delta.data(), n);
       gaussians_forward(ws.gaussians[l + 1], ws.states[l + 1].data(), ws.base_depth.data(), ws.anchors, g);

@@ -4,6 +4,7 @@
 //   mu_cam = [u1 * d + dx, u2 * d + dy, d + dz],  d = D_ref(anchor) + depth value,  mu_world = R^T (mu_cam - t),
 // with (u1, u2) = ((a_x - cx) / fx, (a_y - cy) / fy) the normalised image coordinates of the query's anchor
 // (a = pixel-edge coordinates, so pixel u has its centre at a = u + 0.5). Backward reaches the depth maps and cameras.
+#include <algorithm>
 #include <cmath>
 #include <span>
 #include <vector>
@@ -57,6 +58,14 @@ struct Anchors {
   std::vector<double> pixel;   // [N, 2] pixel-edge coordinates (a_x, a_y) in the image K refers to
 };
 
+// The side of view v's square anchor grid: queries v, v + views, ... fill it row by row.
+inline index_t anchor_grid(index_t n_queries, index_t views, index_t v) {
+  const index_t n_v = (n_queries - v + views - 1) / views;
+  index_t g = static_cast<index_t>(std::ceil(std::sqrt(static_cast<double>(n_v))));
+  while (g * g < n_v) ++g;
+  return g;
+}
+
 // Fills a in place (its vectors keep their capacity, so a reused Anchors does not allocate).
 inline void make_anchors(Anchors& a, index_t n_queries, index_t views, index_t image_w, index_t image_h) {
   require(n_queries >= 1, "decoder: the Gaussian budget must be positive, got ", n_queries);
@@ -64,9 +73,7 @@ inline void make_anchors(Anchors& a, index_t n_queries, index_t views, index_t i
   a.view.resize(static_cast<std::size_t>(n_queries));
   a.pixel.resize(static_cast<std::size_t>(2 * n_queries));
   for (index_t v = 0; v < views; ++v) {
-    const index_t n_v = (n_queries - v + views - 1) / views;
-    index_t g = static_cast<index_t>(std::ceil(std::sqrt(static_cast<double>(n_v))));
-    while (g * g < n_v) ++g;
+    const index_t n_v = (n_queries - v + views - 1) / views, g = anchor_grid(n_queries, views, v);
     for (index_t j = 0; j < n_v; ++j) {
       const index_t i = j * views + v;
       a.view[i] = v;
@@ -80,6 +87,35 @@ inline Anchors make_anchors(index_t n_queries, index_t views, index_t image_w, i
   Anchors a;
   make_anchors(a, n_queries, views, image_w, image_h);
   return a;
+}
+
+// The queries of a budget of n_queries whose anchors lie on the object: outline [views, image_h, image_w] (the
+// photos' alpha or an object probability, at the anchors' image size) above 0.5 within `cells` anchor spacings of the
+// anchor, so the object's edge keeps its queries. Ascending query indices (DecoderWorkspace::subset); the others
+// would place Gaussians on the background.
+template <class T>
+std::vector<index_t> queries_on_outline(index_t n_queries, index_t views, index_t image_w, index_t image_h,
+                                        const T* outline, double cells) {
+  require(outline, "decoder: null outline");
+  require(cells >= 0, "decoder: outline margin ", cells, " anchor spacings is negative");
+  const Anchors a = make_anchors(n_queries, views, image_w, image_h);
+  std::vector<index_t> keep;
+  for (index_t i = 0; i < n_queries; ++i) {
+    const index_t v = a.view[static_cast<std::size_t>(i)], g = anchor_grid(n_queries, views, v);
+    const double rx = cells * static_cast<double>(image_w) / static_cast<double>(g);
+    const double ry = cells * static_cast<double>(image_h) / static_cast<double>(g);
+    const double ax = a.pixel[2 * static_cast<std::size_t>(i)], ay = a.pixel[2 * static_cast<std::size_t>(i) + 1];
+    const index_t x0 = std::max<index_t>(0, static_cast<index_t>(std::floor(ax - rx)));
+    const index_t x1 = std::min<index_t>(image_w - 1, static_cast<index_t>(std::floor(ax + rx)));
+    const index_t y0 = std::max<index_t>(0, static_cast<index_t>(std::floor(ay - ry)));
+    const index_t y1 = std::min<index_t>(image_h - 1, static_cast<index_t>(std::floor(ay + ry)));
+    const T* o = outline + v * image_h * image_w;
+    bool on = false;
+    for (index_t y = y0; y <= y1 && !on; ++y)
+      for (index_t x = x0; x <= x1 && !on; ++x) on = o[y * image_w + x] > T(0.5);
+    if (on) keep.push_back(i);
+  }
+  return keep;
 }
 
 // Bilinear depth lookup at pixel-edge coordinates of the image, clamped to the border (align_corners=False).

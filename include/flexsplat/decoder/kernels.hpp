@@ -187,7 +187,10 @@ void window_attention_backward_impl(T* d_qkv, const T* d_out, const T* out, cons
 template <class T>
 void window_attention_forward(T* out, T* lse, const T* qkv, const WindowAttentionShape& s, T scale,
                               std::span<T> scratch, ThreadPool& pool = global_pool()) {
-  const profile::Scope timed(profile::Op::attention_forward);
+  // QK^T and PV over each window's keys: 4 x head_dim FLOPs per (query, key) pair and head.
+  const double full = static_cast<double>(s.n / s.window), last = static_cast<double>(s.n % s.window);
+  const double pairs = full * static_cast<double>(s.window) * static_cast<double>(s.window) + last * last;
+  const profile::Scope timed(profile::Op::attention_forward, 4.0 * pairs * static_cast<double>(s.heads * s.head_dim));
   if (simd::enabled()) window_attention_forward_impl<T, true>(out, lse, qkv, s, scale, scratch, pool);
   else window_attention_forward_impl<T, false>(out, lse, qkv, s, scale, scratch, pool);
 }

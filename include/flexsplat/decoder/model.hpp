@@ -9,6 +9,7 @@
 #include <random>
 #include <vector>
 
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/decoder.hpp"
 #include "flexsplat/decoder/fusion.hpp"
@@ -89,9 +90,15 @@ void model_forward(ModelWorkspace<T>& ws, index_t n_queries, const T* params, co
   ws.fused.resize(static_cast<std::size_t>(V * c.fusion.out_channels * h * w));
   ws.rgb.resize(ws.keep_for_backward ? static_cast<std::size_t>(V * 3 * h * w) : 0);
   ws.unet.keep_for_backward = ws.fusion.keep_for_backward = ws.decoder.keep_for_backward = ws.keep_for_backward;
-  unet_forward(ws.appearance.data(), ws.unet, images, V, h, w, params + L.unet, c.unet);
-  fusion_forward(ws.fused.data(), ws.keep_for_backward ? ws.rgb.data() : nullptr, ws.fusion, depth_features, dh, dw,
-                 ws.appearance.data(), V, h, w, params + L.fusion, c.fusion);
+  {
+    const profile::Stage stage("UNet");
+    unet_forward(ws.appearance.data(), ws.unet, images, V, h, w, params + L.unet, c.unet);
+  }
+  {
+    const profile::Stage stage("fusion");
+    fusion_forward(ws.fused.data(), ws.keep_for_backward ? ws.rgb.data() : nullptr, ws.fusion, depth_features, dh, dw,
+                   ws.appearance.data(), V, h, w, params + L.fusion, c.fusion);
+  }
   const FeatureMaps<T> maps{V, c.fusion.out_channels, h, w, ws.fused.data()};
   decoder_forward(ws.decoder, n_queries, params + L.decoder, c.decoder, maps, g);
 }

@@ -45,6 +45,35 @@ struct EvalOptions {
   const loss::LpipsWeights<float>* lpips = nullptr;  // null: no LPIPS (NaN)
 };
 
+// "4" (a view count) or "9,26,3" (the input frames, in that order) into o.view_count / o.view_list.
+inline void set_views(EvalOptions& o, const std::string& text) {
+  std::vector<int> values;
+  std::size_t at = 0;
+  while (true) {
+    const std::size_t comma = text.find(',', at);
+    const std::string item = text.substr(at, comma == std::string::npos ? std::string::npos : comma - at);
+    std::size_t used = 0;
+    int v = -1;
+    try {
+      v = std::stoi(item, &used);
+    } catch (const std::exception&) {
+      used = 0;
+    }
+    require(used == item.size() && !item.empty() && v >= 0, "views '", text,
+            "': expected a view count or comma-separated frame indices");
+    values.push_back(v);
+    if (comma == std::string::npos) break;
+    at = comma + 1;
+  }
+  o.view_count = 0, o.view_list.clear();
+  if (values.size() == 1 && text.find(',') == std::string::npos) {
+    require(values[0] >= 1, "views ", values[0], ": need at least one input view");
+    o.view_count = values[0];
+  } else {
+    o.view_list = values;
+  }
+}
+
 // Means over the targets; NaN = not measured.
 struct EvalScores {
   double psnr = 0, ssim = 0, lpips = std::numeric_limits<double>::quiet_NaN();

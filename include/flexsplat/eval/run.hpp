@@ -50,6 +50,8 @@ struct EvalExperiment {
   std::uint64_t seed = 0;         // rotation noise and the posed fit's initialisation (per object: object_seed)
   bool posed_fit = false;
   index_t gaussians = 0;          // 0: the model's budget for the view count
+  bool auto_budget = false;       // only the budget's queries on the object's outline (PredictWorkspace::auto_budget)
+  double outline_margin = decoder::outline_margin_cells;  // within this many anchor spacings of it
   bool refining() const { return refine_seconds > 0 || refine_steps > 0; }
 };
 
@@ -67,6 +69,7 @@ struct ObjectEval {
   std::vector<std::vector<float>> grid_gt, grid_render, grid_inputs;  // [h, w, 3] each
   std::vector<std::vector<float>> grid_feed_forward;                  // with refinement: the renders before it
   index_t score_h = 0, score_w = 0;  // the size targets were scored (and grid_gt / grid_render drawn) at
+  index_t budget = 0, gaussians = 0;  // the Gaussian budget and the count predicted (fewer with auto_budget)
 };
 
 inline ObjectScores object_scores(const EvalResult& e, double seconds) {
@@ -121,7 +124,7 @@ inline ObjectEval evaluate_object(const data::ObjectRecord& rec, const FlexSplat
   auto since = [](auto t) { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count(); };
   std::vector<Tensor<float, 3>> rgba;
   for (int v : in) rgba.push_back(image::read_float<float>(rec.frames[static_cast<std::size_t>(v)].image, 4));
-  const Tensor<float, 4> images = model_input<float>(rgba, c);
+  ModelPhotos<float> photos = model_photos<float>(rgba, c);
   BeforeDecoder<float> noise;
   if (x.rotation_noise_deg > 0)
     noise = [&](GeometryResult<float>& g) { rotation_noise(g.extrinsics.data(), g.views, x.rotation_noise_deg, seed); };
@@ -131,8 +134,10 @@ inline ObjectEval evaluate_object(const data::ObjectRecord& rec, const FlexSplat
     for (int v : in) cams.push_back(rec.frames[static_cast<std::size_t>(v)].camera);
     ws.given = given_cameras<float>(rgba, cams, c);
   }
-  ws.silhouettes = photo_silhouettes<float>(rgba, c);
-  Prediction<float> p = predict<float>(ws, w, TensorView<const float, 4>(images.view()), x.gaussians, noise);
+  ws.silhouettes = std::move(photos.silhouettes);
+  ws.auto_budget = x.auto_budget;
+  ws.outline_margin = x.outline_margin;
+  Prediction<float> p = predict<float>(ws, w, TensorView<const float, 4>(photos.images.view()), x.gaussians, noise);
   if (p.given) to_capture_world(p);  // the folder's world: the alignment below is then the identity
   double seconds = since(t0);
   const double predict_seconds = seconds;
@@ -140,6 +145,7 @@ inline ObjectEval evaluate_object(const data::ObjectRecord& rec, const FlexSplat
   const int degree = p.gaussians.sh_degree();
   ObjectEval r;
   r.name = rec.name;
+  r.budget = p.budget, r.gaussians = n_model;
   // Native: the folder's whole image, a window model_view copies unchanged, K as stored.
   const index_t sh = x.native ? rec.height : c.image_h, sw = x.native ? rec.width : c.image_w;
   r.score_h = sh, r.score_w = sw;
@@ -157,7 +163,7 @@ inline ObjectEval evaluate_object(const data::ObjectRecord& rec, const FlexSplat
   r.white = {e.white.psnr, e.white.ssim, e.white.lpips, NAN, NAN, NAN};
   r.grid_gt = std::move(e.grid_gt), r.grid_render = std::move(e.grid_render);
   if (o.grid_targets > 0) {
-    const std::vector<float> hwc = views_hwc(images.data(), p.views, p.h, p.w);
+    const std::vector<float> hwc = views_hwc(photos.images.data(), p.views, p.h, p.w);
     const std::size_t n = static_cast<std::size_t>(3 * p.h * p.w);
     for (index_t v = 0; v < p.views; ++v) r.grid_inputs.emplace_back(hwc.begin() + v * n, hwc.begin() + (v + 1) * n);
   }
@@ -262,12 +268,15 @@ inline nlohmann::json eval_json(const std::string& model_path, const FlexSplatCo
   j["rotation_noise_deg"] = x.rotation_noise_deg;
   j["seed"] = x.seed;
   j["resolution"] = x.native ? "native" : "model";
+  j["budget"] = x.auto_budget ? "auto" : "full";
   const auto& dc = c.appearance.decoder;
   j["self_attention"] = dc.local_attention ? "local:" + std::to_string(dc.window) : std::string("full");
   j["objects"] = nlohmann::json::array();
   for (std::size_t i = 0; i < rows.size(); ++i) {
     nlohmann::json obj = detail::scores_json(results[i].name, rows[i]);
     obj["resolution"] = {results[i].score_h, results[i].score_w};
+    obj["budget"] = results[i].budget;
+    obj["gaussians"] = results[i].gaussians;  // predicted, before refinement
     if (refined) {
       obj["feed_forward"] = detail::scores_json("", ff_rows[i]);
       obj["refine"] = detail::refine_json(results[i].refine, rows[i], ff_rows[i]);

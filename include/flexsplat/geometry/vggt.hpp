@@ -6,12 +6,14 @@
 #include <algorithm>
 #include <cmath>
 #include <functional>
+#include <optional>
 #include <set>
 #include <span>
 #include <string>
 #include <vector>
 
 #include "flexsplat/core/camera.hpp"
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/geometry/aggregator.hpp"
 #include "flexsplat/geometry/camera_head.hpp"
@@ -184,55 +186,64 @@ VggtOutputs<T> vggt_forward_impl(const T* images, index_t frames, index_t image_
   VggtOutputs<T> out;
   if (cache) cache->frames = frames, cache->image_h = image_h, cache->image_w = image_w;
 
-  report("dino", 0, 1);
-  ws.normalized.resize(static_cast<std::size_t>(n));
-  imagenet_normalize(ws.normalized.data(), images, frames, image_h, image_w);
-  out.dino_tokens.resize(Shape<3>{frames, P, C});
-  if (cache)
-    dino_forward_train(out.dino_tokens.data(), ws.normalized.data(), frames, image_h, image_w, c.aggregator.dino, w.dino,
-                       cache->dino, train.recompute, ws.dino);
-  else
-    dino_forward(out.dino_tokens.data(), ws.normalized.data(), frames, image_h, image_w, c.aggregator.dino, w.dino,
-                 ws.dino);
-  report("dino", 1, 1);
+  {
+    const profile::Stage stage("dino");
+    report("dino", 0, 1);
+    ws.normalized.resize(static_cast<std::size_t>(n));
+    imagenet_normalize(ws.normalized.data(), images, frames, image_h, image_w);
+    out.dino_tokens.resize(Shape<3>{frames, P, C});
+    if (cache)
+      dino_forward_train(out.dino_tokens.data(), ws.normalized.data(), frames, image_h, image_w, c.aggregator.dino, w.dino,
+                         cache->dino, train.recompute, ws.dino);
+    else
+      dino_forward(out.dino_tokens.data(), ws.normalized.data(), frames, image_h, image_w, c.aggregator.dino, w.dino,
+                   ws.dino);
+    report("dino", 1, 1);
+  }
 
   std::set<index_t> keep(c.depth.intermediate_layer_idx.begin(), c.depth.intermediate_layer_idx.end());
   keep.insert(c.aggregator.depth - 1);  // the camera head reads the last layer
   std::vector<index_t> keep_list(keep.begin(), keep.end());
   if (options.keep_all_layers) keep_list.clear();
   auto progress = [&](index_t step, index_t steps) { report("aggregator", step + 1, steps); };
+  std::optional<profile::Stage> aggregator_stage(std::in_place, "aggregator");
   out.aggregator = cache ? aggregator_trunk_forward_train<T>(out.dino_tokens.data(), frames, gh, gw, c.aggregator,
                                                              w.aggregator, keep_list, cache->aggregator, train.recompute,
                                                              ws.aggregator, progress)
                          : aggregator_trunk_forward<T>(out.dino_tokens.data(), frames, gh, gw, c.aggregator,
                                                        w.aggregator, keep_list, ws.aggregator, progress);
+  aggregator_stage.reset();
   if (!options.keep_dino_tokens) out.dino_tokens = Tensor<T, 3>();
   const index_t N = out.aggregator.tokens;
 
-  report("camera_head", 0, 1);
-  ws.head.resize(static_cast<std::size_t>(camera_head_workspace_size(c.camera, frames)));
-  out.pose_enc.resize(Shape<3>{c.camera.iterations, frames, pose_encoding_dim});
-  const T* last = out.aggregator.at(c.aggregator.depth - 1).data();
-  std::span<T> head_ws(ws.head.data(), ws.head.size());
-  if (cache)
-    camera_head_forward_train<T>(out.pose_enc.data(), cache->camera, c.camera, w.camera, last, frames, N, head_ws,
-                                 train.recompute, train.camera_feedback);
-  else
-    camera_head_forward<T>(out.pose_enc.data(), c.camera, w.camera, last, frames, N, head_ws);
-  out.extrinsics.resize(Shape<3>{frames, 3, 4});
-  out.intrinsics.resize(Shape<3>{frames, 3, 3});
-  pose_encoding_to_extri_intri<T>(out.extrinsics.data(), out.intrinsics.data(),
-                                  out.pose_enc.data() + (c.camera.iterations - 1) * frames * pose_encoding_dim, frames,
-                                  image_h, image_w, c.pose_decode);
-  if (c.aggregator.frame_tokens == 1) {
-    // Reference-free: no frame is told it is the first, so the first view's frame is chosen here.
-    out.head_extrinsics = out.extrinsics;
-    const T* raw = out.head_extrinsics.data();
-    std::copy(identity_w2c, identity_w2c + 12, out.extrinsics.data());
-    for (index_t v = 1; v < frames; ++v) relative_w2c(out.extrinsics.data() + 12 * v, raw + 12 * v, raw);
+  {
+    const profile::Stage stage("camera head");
+    report("camera_head", 0, 1);
+    ws.head.resize(static_cast<std::size_t>(camera_head_workspace_size(c.camera, frames)));
+    out.pose_enc.resize(Shape<3>{c.camera.iterations, frames, pose_encoding_dim});
+    const T* last = out.aggregator.at(c.aggregator.depth - 1).data();
+    std::span<T> head_ws(ws.head.data(), ws.head.size());
+    if (cache)
+      camera_head_forward_train<T>(out.pose_enc.data(), cache->camera, c.camera, w.camera, last, frames, N, head_ws,
+                                   train.recompute, train.camera_feedback);
+    else
+      camera_head_forward<T>(out.pose_enc.data(), c.camera, w.camera, last, frames, N, head_ws);
+    out.extrinsics.resize(Shape<3>{frames, 3, 4});
+    out.intrinsics.resize(Shape<3>{frames, 3, 3});
+    pose_encoding_to_extri_intri<T>(out.extrinsics.data(), out.intrinsics.data(),
+                                    out.pose_enc.data() + (c.camera.iterations - 1) * frames * pose_encoding_dim, frames,
+                                    image_h, image_w, c.pose_decode);
+    if (c.aggregator.frame_tokens == 1) {
+      // Reference-free: no frame is told it is the first, so the first view's frame is chosen here.
+      out.head_extrinsics = out.extrinsics;
+      const T* raw = out.head_extrinsics.data();
+      std::copy(identity_w2c, identity_w2c + 12, out.extrinsics.data());
+      for (index_t v = 1; v < frames; ++v) relative_w2c(out.extrinsics.data() + 12 * v, raw + 12 * v, raw);
+    }
+    report("camera_head", 1, 1);
   }
-  report("camera_head", 1, 1);
 
+  std::optional<profile::Stage> depth_stage(std::in_place, "depth head");
   report("depth_head", 0, 1);
   std::vector<const T*> layers(static_cast<std::size_t>(c.aggregator.depth), nullptr);
   for (auto& [index, tensor] : out.aggregator.layers) layers[static_cast<std::size_t>(index)] = tensor.data();
@@ -255,10 +266,12 @@ VggtOutputs<T> vggt_forward_impl(const T* images, index_t frames, index_t image_
     dpt_head_forward<T>(dpt_out, c.depth, w.depth, layer_span, frames, N, out.aggregator.patch_start_idx, image_h,
                         image_w, std::span<T>(ws.head.data(), ws.head.size()), images);
   report("depth_head", 1, 1);
+  depth_stage.reset();
 
   // The optional heads read the same layers: preds [frames, H, W, channels] and a per-pixel map.
   auto extra_head = [&](const char* name, const DptHeadConfig& hc, const DptHeadWeights<T>& hw, DptHeadCache<T>* hk,
                         Tensor<T, 4>& preds, Tensor<T, 3>& map) {
+    const profile::Stage stage(name);
     report(name, 0, 1);
     ws.head.resize(static_cast<std::size_t>(dpt_head_workspace_size(hc, gh, gw)));
     preds.resize(Shape<4>{frames, image_h, image_w, hc.output_dim - 1});
@@ -279,11 +292,14 @@ VggtOutputs<T> vggt_forward_impl(const T* images, index_t frames, index_t image_
   if (c.match_dim > 0)
     extra_head("match_head", c.match(), w.match, cache ? &cache->match : nullptr, out.descriptors, out.foreground);
 
-  report("unproject", 0, 1);
-  out.world_points.resize(Shape<4>{frames, image_h, image_w, 3});
-  unproject_depth_forward<T>(out.world_points.data(), out.depth.data(), out.extrinsics.data(), out.intrinsics.data(),
-                             frames, image_h, image_w);
-  report("unproject", 1, 1);
+  {
+    const profile::Stage stage("unproject");
+    report("unproject", 0, 1);
+    out.world_points.resize(Shape<4>{frames, image_h, image_w, 3});
+    unproject_depth_forward<T>(out.world_points.data(), out.depth.data(), out.extrinsics.data(), out.intrinsics.data(),
+                               frames, image_h, image_w);
+    report("unproject", 1, 1);
+  }
   return out;
 }
 }  // namespace detail

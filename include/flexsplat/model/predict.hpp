@@ -18,6 +18,7 @@
 #include "flexsplat/core/error.hpp"
 #include "flexsplat/core/gaussians.hpp"
 #include "flexsplat/core/gemm.hpp"
+#include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/tensor.hpp"
 #include "flexsplat/decoder/model.hpp"
 #include "flexsplat/solvers/orbit_search.hpp"
@@ -44,7 +45,11 @@ struct Prediction {
   // With CameraSource::given: the capture's world in the model's frame (to_capture_world maps the result back).
   std::optional<GivenFrame> given;
   GaussianSet<T> gaussians;     // the last decoder layer
-  double geometry_ms = 0, decoder_ms = 0;  // wall time of the two stages
+  // Wall time of the geometry network, the camera solvers after it (matches, orbit, turntable, given frame) and the
+  // appearance side (UNet, fusion, decoder).
+  double geometry_ms = 0, cameras_ms = 0, decoder_ms = 0;
+  // The Gaussian budget and the queries of it the decoder ran (fewer with PredictWorkspace::auto_budget).
+  index_t budget = 0, budget_queries = 0;
 };
 
 // The predicted input cameras (in the first view's frame, at the model's image size), named by `names` when given.
@@ -88,9 +93,14 @@ struct PredictWorkspace {
   CameraSource cameras = CameraSource::model;
   geometry::OrbitSearchConfig orbit = predicted_depth_search();  // with CameraSource::orbit_search
   GivenCameras<T> given;                                          // with CameraSource::given
-  // [V, h, w] the photos' alpha at the model's size (photo_silhouettes), or empty: the object's outline for the given
-  // and turntable cameras' searches, in place of a match head's object probability.
+  // [V, h, w] the photos' alpha at the model's size (model_photos), or empty: the object's outline for the given
+  // and turntable cameras' searches and the automatic budget, in place of a match head's object probability.
   std::vector<T> silhouettes;
+  // The automatic budget: of the Gaussian budget, only the queries whose anchors lie on the object's outline
+  // (decoder::queries_on_outline) run; the others would place Gaussians on the background. Prediction::budget_queries
+  // tells how many ran.
+  bool auto_budget = false;
+  double outline_margin = decoder::outline_margin_cells;  // anchor spacings around the outline the budget keeps
   geometry::TurntableResult turntable;                            // with CameraSource::turntable: what was found
   GeometryStage<T> geometry;
   decoder::ModelWorkspace<T> model;
@@ -147,8 +157,12 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
   }
   using clock = std::chrono::steady_clock;
   const auto t0 = clock::now();
-  geometry_stage_forward(ws.geometry, w, images, views, /*train=*/false);
+  {
+    const profile::Stage stage("geometry");
+    geometry_stage_forward(ws.geometry, w, images, views, /*train=*/false);
+  }
   const auto t1 = clock::now();
+  std::optional<profile::Stage> cameras_stage(std::in_place, "cameras");
   const GeometryResult<T>& g = ws.geometry.result;
   detail::require_finite(g.extrinsics.data(), g.extrinsics.size(), "camera extrinsic");
   detail::require_finite(g.K.data(), g.K.size(), "camera intrinsic");
@@ -186,20 +200,20 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
   const T* outline = !ws.silhouettes.empty()     ? ws.silhouettes.data()
                      : c.geometry.match_dim > 0 ? ws.geometry.outputs.foreground.data()
                                                 : nullptr;
+  // Without an outline: every pixel not the white background.
+  std::vector<T> fg;
+  const T* foreground = outline;
+  if (!foreground && ((ws.cameras == CameraSource::turntable && views > 1) || ws.auto_budget)) {
+    fg.resize(static_cast<std::size_t>(views * h * wd));
+    for (index_t v = 0; v < views; ++v)
+      for (index_t i = 0; i < h * wd; ++i) {
+        T m = T(1);
+        for (int ch = 0; ch < 3; ++ch) m = std::min(m, images[(v * 3 + ch) * h * wd + i]);
+        fg[static_cast<std::size_t>(v * h * wd + i)] = m < T(0.98) ? T(1) : T(0);
+      }
+    foreground = fg.data();
+  }
   if (ws.cameras == CameraSource::turntable && views > 1) {
-    // Without an outline: every pixel not the white background.
-    std::vector<T> fg;
-    const T* foreground = outline;
-    if (!foreground) {
-      fg.resize(static_cast<std::size_t>(views * h * wd));
-      for (index_t v = 0; v < views; ++v)
-        for (index_t i = 0; i < h * wd; ++i) {
-          T m = T(1);
-          for (int ch = 0; ch < 3; ++ch) m = std::min(m, images[(v * 3 + ch) * h * wd + i]);
-          fg[static_cast<std::size_t>(v * h * wd + i)] = m < T(0.98) ? T(1) : T(0);
-        }
-      foreground = fg.data();
-    }
     ws.turntable = geometry::cameras_from_turntable<T>(ws.geometry.result.extrinsics.data(), images, foreground,
                                                        g.depth.data(), ws.geometry.outputs.intrinsics.data(), views, h,
                                                        wd, ws.orbit);
@@ -211,9 +225,20 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
     place_given_cameras(ws.given, *given, ws.geometry.result.K.data(), ws.geometry.result.extrinsics.data());
   }
   if (before_decoder) before_decoder(ws.geometry.result);
+  cameras_stage.reset();
+  const auto t_decoder = clock::now();
   ws.model.keep_for_backward = false;  // no backward follows: the decoder's layers share one cache, no RGB head
-  decoder::model_forward(ws.model, n, w.appearance(), c.appearance, images, h, wd, g.features.data(), g.feature_h,
-                         g.feature_w, g.view_geometry());
+  // An outline with no object on it tells nothing to skip: the whole budget runs.
+  ws.model.decoder.subset.clear();
+  if (ws.auto_budget)
+    ws.model.decoder.subset = decoder::queries_on_outline(n, views, wd, h, foreground, ws.outline_margin);
+  {
+    const profile::Stage stage("appearance");
+    decoder::model_forward(ws.model, n, w.appearance(), c.appearance, images, h, wd, g.features.data(), g.feature_h,
+                           g.feature_w, g.view_geometry());
+  }
+  const index_t ran = ws.model.decoder.subset.empty() ? n : static_cast<index_t>(ws.model.decoder.subset.size());
+  ws.model.decoder.subset.clear();
   const auto t2 = clock::now();
   Prediction<T> p;
   p.views = views, p.h = h, p.w = wd;
@@ -225,10 +250,13 @@ Prediction<T> predict(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w, con
   const std::size_t last = static_cast<std::size_t>((ws.geometry.iterations - 1) * views * geometry::pose_encoding_dim);
   p.pose_enc.assign(ws.geometry.pose_enc.begin() + static_cast<std::ptrdiff_t>(last), ws.geometry.pose_enc.end());
   p.camera_matches = std::move(matched);
+  p.budget = n;
+  p.budget_queries = ran;
   p.given = given;
   p.geometry = std::move(ws.geometry.result);  // the workspace refills it on the next call
   p.geometry_ms = std::chrono::duration<double, std::milli>(t1 - t0).count();
-  p.decoder_ms = std::chrono::duration<double, std::milli>(t2 - t1).count();
+  p.cameras_ms = std::chrono::duration<double, std::milli>(t_decoder - t1).count();
+  p.decoder_ms = std::chrono::duration<double, std::milli>(t2 - t_decoder).count();
   return p;
 }
 
@@ -360,13 +388,20 @@ Tensor<T, 4> model_input(const std::vector<Tensor<float, 3>>& rgba, const FlexSp
   return out;
 }
 
-// The photos' alpha at the model's size [V, h, w] (PredictWorkspace::silhouettes), empty when every pixel is opaque.
+// The photos as the model sees them, resized once: the input tensor [V, 3, image_h, image_w] and their alpha at that
+// size [V, h, w] (PredictWorkspace::silhouettes), empty when every pixel is opaque.
 template <class T>
-std::vector<T> photo_silhouettes(const std::vector<Tensor<float, 3>>& rgba, const FlexSplatConfig& c) {
-  std::vector<T> alpha;
-  (void)model_input<T>(rgba, c, nullptr, {1.0f, 1.0f, 1.0f}, &alpha);
-  if (std::all_of(alpha.begin(), alpha.end(), [](T a) { return a >= T(1); })) alpha.clear();
-  return alpha;
+struct ModelPhotos {
+  Tensor<T, 4> images;
+  std::vector<T> silhouettes;
+};
+
+template <class T>
+ModelPhotos<T> model_photos(const std::vector<Tensor<float, 3>>& rgba, const FlexSplatConfig& c) {
+  ModelPhotos<T> m;
+  m.images = model_input<T>(rgba, c, nullptr, {1.0f, 1.0f, 1.0f}, &m.silhouettes);
+  if (std::all_of(m.silhouettes.begin(), m.silhouettes.end(), [](T a) { return a >= T(1); })) m.silhouettes.clear();
+  return m;
 }
 
 // A capture's cameras of the photos (io::cameras_for_images: one per photo, in order, at the photo's own size) for
@@ -398,11 +433,11 @@ template <class T>
 Prediction<T> predict_posed(PredictWorkspace<T>& ws, const FlexSplatWeights<T>& w,
                             const std::vector<Tensor<float, 3>>& rgba, const std::vector<Camera>& cameras,
                             index_t n_gaussians = 0) {
-  const Tensor<T, 4> images = model_input<T>(rgba, w.config());
+  ModelPhotos<T> photos = model_photos<T>(rgba, w.config());
   ws.cameras = CameraSource::given;
   ws.given = given_cameras<T>(rgba, cameras, w.config());
-  ws.silhouettes = photo_silhouettes<T>(rgba, w.config());
-  return predict(ws, w, TensorView<const T, 4>(images.view()), n_gaussians);
+  ws.silhouettes = std::move(photos.silhouettes);
+  return predict(ws, w, TensorView<const T, 4>(photos.images.view()), n_gaussians);
 }
 
 // A prediction made with given cameras, brought to the capture's world: the Gaussians by the similarity of its frame
