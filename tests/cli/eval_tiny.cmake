@@ -170,6 +170,21 @@ expect_eval_refusal("--refine-grow need --refine SECONDS or --refine-steps N" --
 expect_eval_refusal("--refine-steps '0': expected an integer in \\[1, 100000000\\]" --refine-steps 0)
 expect_eval_refusal("--refine-grow need --refine SECONDS" --refine-grow 10)
 expect_eval_refusal("--refine-grow '-1': expected an integer in \\[0, 16777216\\]" --refine 1 --refine-grow -1)
+expect_eval_refusal("--budget 'half': expected full, auto or auto:CELLS" --budget half)
+
+# --budget auto: the JSON names it and counts the queries that ran, at most the budget's 48 and at least one (spot
+# covers a quarter of each view); the same set of views with the whole budget runs all 48.
+run(${FLEXSPLAT} eval ${OBJECT} --model ${WORK_DIR}/run/model.safetensors --max-targets 1 --quiet --budget auto
+    --json ${WORK_DIR}/eval_auto.json)
+file(READ ${WORK_DIR}/eval_auto.json doc)
+string(JSON b GET "${doc}" budget)
+if(NOT b STREQUAL "auto")
+  message(FATAL_ERROR "eval --budget auto: JSON budget '${b}'")
+endif()
+check_range("auto budget" 48 48 objects 0 budget)
+check_range("auto budget's Gaussians" 1 47 objects 0 gaussians)
+file(READ ${WORK_DIR}/eval_grow.json doc)
+check_range("whole budget's Gaussians" 48 48 objects 0 gaussians)
 
 set(images ${OBJECT}/images/000.png ${OBJECT}/images/001.png)
 execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/out.glb
@@ -206,5 +221,15 @@ execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/r
 if(NOT code EQUAL 0 OR NOT err MATCHES " 500 grown in the silhouettes" OR NOT EXISTS ${WORK_DIR}/grown.ply)
   message(FATAL_ERROR "reconstruct --refine-grow 500 failed (${code}):\n${out}\n${err}")
 endif()
+execute_process(COMMAND ${FLEXSPLAT} reconstruct ${images} --model ${WORK_DIR}/run/model.safetensors -o ${WORK_DIR}/auto.glb
+                        --budget auto --compact off RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
+if(NOT code EQUAL 0 OR NOT err MATCHES "--budget auto: the decoder ran ([0-9]+) of the budget's 48 queries")
+  message(FATAL_ERROR "reconstruct --budget auto failed (${code}):\n${out}\n${err}")
+endif()
+set(ran ${CMAKE_MATCH_1})
+if(ran LESS 1 OR ran GREATER 47 OR NOT out MATCHES "auto.glb: ${ran} Gaussians")
+  message(FATAL_ERROR "reconstruct --budget auto ran ${ran} of 48 queries and wrote:\n${out}")
+endif()
+expect_refusal("--budget 'some': expected full or auto" ${images} --budget some)
 expect_refusal("cannot decode" ${CONFIG})
 expect_refusal("5 images; the model takes 1 to 4" ${images} ${images} ${OBJECT}/images/002.png)
