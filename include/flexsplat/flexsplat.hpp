@@ -121,4 +121,5 @@
 #include "flexsplat/eval/refine.hpp"
 #include "flexsplat/eval/compact.hpp"
 #include "flexsplat/eval/evaluate.hpp"
+#include "flexsplat/eval/reconstruct.hpp"
 #include "flexsplat/eval/run.hpp"

@@ -119,6 +119,21 @@ inline std::vector<Camera> cameras_for_images(const std::vector<Camera>& capture
   return out;
 }
 
+// The capture's camera of each photo (file paths, their sizes (width, height) in the same order): the capture at
+// `path` read with the photos' sizes for what a transforms.json leaves out, then matched as cameras_for_images does.
+inline std::vector<Camera> cameras_for_photos(const std::filesystem::path& path, const std::vector<std::string>& photos,
+                                              const std::vector<std::array<int, 2>>& sizes,
+                                              CameraFormat* format = nullptr) {
+  using namespace capture_detail;
+  require(sizes.size() == photos.size(), "cameras for photos: ", sizes.size(), " sizes for ", photos.size(), " photos");
+  const ImageSizeOf size_of = [&](const std::string& file) -> std::optional<std::array<int, 2>> {
+    for (std::size_t i = 0; i < photos.size(); ++i)
+      if (file_name(photos[i]) == file_name(file) || stem(photos[i]) == file_name(file)) return sizes[i];
+    return std::nullopt;
+  };
+  return cameras_for_images(load_capture_cameras(path, size_of, format), photos, sizes, path.string());
+}
+
 }  // namespace io
 }  // namespace v0
 }  // namespace flexsplat
