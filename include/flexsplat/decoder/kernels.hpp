@@ -13,6 +13,7 @@
 #include <Eigen/Core>
 
 #include "flexsplat/core/error.hpp"
+#include "flexsplat/core/gemm.hpp"
 #include "flexsplat/core/parallel.hpp"
 #include "flexsplat/core/profile.hpp"
 #include "flexsplat/core/simd.hpp"
@@ -129,16 +130,16 @@ void window_attention_forward_impl(T* out, T* lse, const T* qkv, const WindowAtt
     for (index_t t = t0; t < t1; ++t) {
       const index_t win = t / s.heads, h = t % s.heads;
       const index_t w0 = win * s.window, cnt = std::min(s.window, s.n - w0);
-      Rows<T> K(qkv + w0 * stride + D + h * hd, cnt, hd, Eigen::OuterStride<>(stride));
-      Rows<T> V(qkv + w0 * stride + 2 * D + h * hd, cnt, hd, Eigen::OuterStride<>(stride));
+      const T* K = qkv + w0 * stride + D + h * hd;
+      const T* V = qkv + w0 * stride + 2 * D + h * hd;
       for (index_t r0 = 0; r0 < cnt; r0 += window_q_block) {
         const index_t rows = std::min(window_q_block, cnt - r0);
-        Rows<T> Q(qkv + (w0 + r0) * stride + h * hd, rows, hd, Eigen::OuterStride<>(stride));
-        Dense<T> S(ws, rows, cnt);
-        S.noalias() = scale * (Q * K.transpose());
+        // S = scale Q K^T and O = P V through core/gemm: its BLAS kernels follow the CPU, Eigen's the build flags.
+        gemm(Trans::no, Trans::yes, rows, cnt, hd, scale, qkv + (w0 + r0) * stride + h * hd, stride, K, stride,
+             T(0), ws, cnt, pool);
         for (index_t r = 0; r < rows; ++r) lse[(w0 + r0 + r) * s.heads + h] = softmax_lse_impl<T, Simd>(ws + r * cnt, cnt);
-        MutRows<T> O(out + (w0 + r0) * D + h * hd, rows, hd, Eigen::OuterStride<>(D));
-        O.noalias() = S * V;
+        gemm(Trans::no, Trans::no, rows, hd, cnt, T(1), ws, cnt, V, stride, T(0), out + (w0 + r0) * D + h * hd, D,
+             pool);
       }
     }
   }, pool);
@@ -187,10 +188,7 @@ void window_attention_backward_impl(T* d_qkv, const T* d_out, const T* out, cons
 template <class T>
 void window_attention_forward(T* out, T* lse, const T* qkv, const WindowAttentionShape& s, T scale,
                               std::span<T> scratch, ThreadPool& pool = global_pool()) {
-  // QK^T and PV over each window's keys: 4 x head_dim FLOPs per (query, key) pair and head.
-  const double full = static_cast<double>(s.n / s.window), last = static_cast<double>(s.n % s.window);
-  const double pairs = full * static_cast<double>(s.window) * static_cast<double>(s.window) + last * last;
-  const profile::Scope timed(profile::Op::attention_forward, 4.0 * pairs * static_cast<double>(s.heads * s.head_dim));
+  const profile::Scope timed(profile::Op::attention_forward);  // its products count as GEMM FLOPs
   if (simd::enabled()) window_attention_forward_impl<T, true>(out, lse, qkv, s, scale, scratch, pool);
   else window_attention_forward_impl<T, false>(out, lse, qkv, s, scale, scratch, pool);
 }
