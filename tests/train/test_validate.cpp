@@ -40,6 +40,23 @@ TEST_CASE("validate_scene scores each target's render against it and the cameras
   CHECK(s.views == 3);
   CHECK(s.targets == 2);
 
+  CHECK(std::isnan(s.psnr_true_cameras));
+
+  // With the true cameras handed to the decoder (a decoder_true_cameras stage): its own score, the renders are its,
+  // and the model-camera score is as before, bit for bit.
+  std::vector<Tensor<float, 3>> true_renders;
+  const model::ValidationScore t = model::validate_scene(ws, *w, e, &true_renders, true);
+  REQUIRE(true_renders.size() == 2);
+  const double true_psnr = 0.5 * (loss::psnr(true_renders[0].data(), e.target_images.data(), n) +
+                                  loss::psnr(true_renders[1].data(), e.target_images.data() + n, n));
+  CHECK(t.psnr_true_cameras == Approx(true_psnr).epsilon(1e-12));
+  CHECK(t.psnr == s.psnr);
+  CHECK(t.rotation_deg == s.rotation_deg);
+  CHECK(std::isfinite(t.ssim_true_cameras));
+  // The untrained camera head is far from the truth (its rotation error above), so the two decoders' Gaussians differ.
+  REQUIRE(s.rotation_deg > 1.0);
+  CHECK(t.psnr_true_cameras != s.psnr);
+
   const model::ValidationScore one = model::validate_scene(ws, *w, validation_scene(1, 1, c));
   CHECK(one.rotation_deg == 0.0);
   CHECK_THROWS_WITH(model::validate_scene(ws, *w, validation_scene(2, 0, c)), Catch::Contains("no target views"));

@@ -135,9 +135,10 @@ inline std::vector<ValidationSet> make_validation_sets(const TrainData& d, const
 }
 
 // Scores every set (the means of validate_scene's scores, one JSON object per set) and draws `picture`: per scene
-// its inputs, then targets and renders.
+// its inputs, then targets and renders. true_cameras: also psnr_true_cameras / ssim_true_cameras, the decoder given
+// the ground-truth cameras (a decoder_true_cameras stage), whose renders the picture then shows.
 inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, const FlexSplatWeights<float>& w,
-                                    const std::filesystem::path& picture) {
+                                    const std::filesystem::path& picture, bool true_cameras = false) {
   std::vector<ValidationWorkspace<float>> ws(static_cast<std::size_t>(global_pool().size()));
   nlohmann::json result = nlohmann::json::object();
   std::deque<Tensor<float, 3>> keep;  // owns the renders the grid cells point at (a deque never moves them)
@@ -145,7 +146,7 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
   const int inputs_shown = 4, targets_shown = 2, cols = inputs_shown + 2 * targets_shown;
   for (const auto& set : sets) {
     double psnr = 0, ssim = 0, rot = 0, depth = 0, depth_shape = 0, rra15 = 0, rra30 = 0, prot = 0, prra15 = 0, prra30 = 0, chance = 0, mrot = 0,
-           mrra15 = 0, mrra30 = 0, macc = 0, mgt = 0, morc = 0, morc15 = 0, macc4 = 0, hrot = 0, hrra30 = 0;
+           mrra15 = 0, mrra30 = 0, macc = 0, mgt = 0, morc = 0, morc15 = 0, macc4 = 0, hrot = 0, hrra30 = 0, tpsnr = 0, tssim = 0;
     std::array<double, 4> bin_hits{}, bin_count{}, bin_pairs{}, bin_pairs15{};
     // Scored side by side as training scenes run (run_scenes), summed below in scene order.
     const index_t count = static_cast<index_t>(set.scenes.size());
@@ -153,7 +154,7 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
     std::vector<std::vector<Tensor<float, 3>>> scene_renders(set.scenes.size());
     auto score = [&](index_t i, int worker) {
       const auto k = static_cast<std::size_t>(i);
-      scores[k] = validate_scene(ws[static_cast<std::size_t>(worker)], w, set.scenes[k], &scene_renders[k]);
+      scores[k] = validate_scene(ws[static_cast<std::size_t>(worker)], w, set.scenes[k], &scene_renders[k], true_cameras);
     };
     run_scenes(count, score);
     for (std::size_t i = 0; i < set.scenes.size(); ++i) {
@@ -164,6 +165,7 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
       prot += s.points_rotation_deg, prra15 += s.points_rra15, prra30 += s.points_rra30, chance += s.chance_rotation_deg;
       mrot += s.matches_rotation_deg, mrra15 += s.matches_rra15, mrra30 += s.matches_rra30;
       hrot += s.head_rotation_deg, hrra30 += s.head_rra30;
+      if (true_cameras) tpsnr += s.psnr_true_cameras, tssim += s.ssim_true_cameras;
       macc += s.match_accuracy, mgt += s.matches_gt_depth_rotation_deg;
       morc += s.matches_oracle_rotation_deg, morc15 += s.matches_oracle_rra15, macc4 += s.match_accuracy_4px;
       for (std::size_t b = 0; b < bin_hits.size(); ++b) bin_hits[b] += s.match_hits_by_baseline[b], bin_count[b] += s.matches_by_baseline[b],
@@ -189,6 +191,7 @@ inline nlohmann::json validate_sets(const std::vector<ValidationSet>& sets, cons
                         {"depth_shape_rel", depth_shape / n},
                         {"rra15", rra15 / n}, {"rra30", rra30 / n}, {"chance_rotation_deg", chance / n},
                         {"head_rotation_deg", hrot / n}, {"head_rra30", hrra30 / n}};
+    if (true_cameras) result[set.name].update({{"psnr_true_cameras", tpsnr / n}, {"ssim_true_cameras", tssim / n}});
     if (w.config().geometry.point_head)
       result[set.name].update({{"points_rotation_deg", prot / n}, {"points_rra15", prra15 / n}, {"points_rra30", prra30 / n}});
     if (w.config().geometry.match_dim > 0)
@@ -231,6 +234,7 @@ inline void write_training_curves(const std::filesystem::path& log_path, const s
     if (j.contains("validation")) {
       for (const auto& [set, v] : j["validation"].items()) {
         add(psnr, "val " + set, step, v.value("psnr", 0.0));
+        if (v.contains("psnr_true_cameras")) add(psnr, "val " + set + " (true cameras)", step, v.value("psnr_true_cameras", 0.0));
         add(rot, "val " + set, step, v.value("rotation_deg", 0.0));
         if (v.contains("points_rotation_deg")) add(rot, "val " + set + " (points)", step, v.value("points_rotation_deg", 0.0));
         if (v.contains("matches_rotation_deg")) add(rot, "val " + set + " (matches)", step, v.value("matches_rotation_deg", 0.0));
@@ -418,7 +422,7 @@ inline TrainerResult run_training(const nlohmann::json& recipe, const TrainData&
     }
     if (cfg.validation.enabled() && (done % cfg.validation.every == 0 || done == stop_at)) {
       const double t0 = elapsed();
-      const json v = validate_sets(validation, *w, o.run / "validation.png");
+      const json v = validate_sets(validation, *w, o.run / "validation.png", stage.step.decoder_true_cameras);
       log << json{{"step", done}, {"validation", v}, {"seconds", now}, {"validation_seconds", elapsed() - t0}}.dump() << "\n";
       log.flush();
     }

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <vector>
 
 #include "flexsplat/core/camera.hpp"
@@ -38,6 +39,10 @@ inline std::size_t baseline_bin(double angle_deg) {
 
 struct ValidationScore {
   double psnr = 0, ssim = 0;    // means over the scene's target views
+  // The same with the ground-truth input cameras handed to the decoder (validate_scene's true_cameras: what a
+  // StepConfig::decoder_true_cameras stage trains); NaN otherwise.
+  double psnr_true_cameras = std::numeric_limits<double>::quiet_NaN();
+  double ssim_true_cameras = std::numeric_limits<double>::quiet_NaN();
   double rotation_deg = 0;      // mean over input views 2..V of the relative rotation error (0 for one view)
   double rra15 = 1, rra30 = 1;  // fraction of input-view pairs whose relative rotation is within 15 / 30 deg
   // The same three for the camera head's own cameras (the same as above unless another source placed the views).
@@ -92,30 +97,53 @@ struct ValidationWorkspace {
   loss::SsimWorkspace ssim;
 };
 
-// Scores one scene. With `renders`, each target's render [h, w, 3] is appended (for pictures).
+namespace detail {
+// Mean PSNR and SSIM of a Gaussian set's renders of the scene's targets; each render appended to `renders` (may be null).
 template <class T>
-ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeights<T>& w, const TrainExample<T>& e,
-                               std::vector<Tensor<T, 3>>* renders = nullptr) {
-  require(e.targets >= 1, "validation: the scene has no target views");
-  const Prediction<T> p = predict(ws.predict, w, e.images.data(), e.views);
-  ValidationScore s;
-  s.views = e.views, s.targets = e.targets;
+std::array<double, 2> score_targets(ValidationWorkspace<T>& ws, const GaussianSet<T>& gaussians, const TrainExample<T>& e,
+                                    std::vector<Tensor<T, 3>>* renders) {
   raster::RenderOptions ro;
   ro.background = {static_cast<double>(e.background[0]), static_cast<double>(e.background[1]),
                    static_cast<double>(e.background[2])};
   const index_t px = e.h * e.w;
   const loss::ImageShape shape{1, 3, e.h, e.w, loss::Layout::nhwc};
+  std::array<double, 2> score{0, 0};
   for (index_t m = 0; m < e.targets; ++m) {
     const auto& K = e.target_K[static_cast<std::size_t>(m)];
     const auto& E = e.target_w2c[static_cast<std::size_t>(m)];
     const raster::View<T> cam = raster::view_from_arrays(K.data(), E.data(), static_cast<int>(e.w), static_cast<int>(e.h));
-    raster::render_forward(p.gaussians, cam, ro, ws.render, ws.out);
+    raster::render_forward(gaussians, cam, ro, ws.render, ws.out);
     const T* target = e.target_images.data() + m * px * 3;
-    s.psnr += loss::psnr(ws.out.image.data(), target, 3 * px);
-    s.ssim += loss::ssim_forward(ws.out.image.data(), target, shape, loss::SsimConfig{}, ws.ssim);
+    score[0] += loss::psnr(ws.out.image.data(), target, 3 * px);
+    score[1] += loss::ssim_forward(ws.out.image.data(), target, shape, loss::SsimConfig{}, ws.ssim);
     if (renders) renders->push_back(ws.out.image);
   }
-  s.psnr /= static_cast<double>(e.targets), s.ssim /= static_cast<double>(e.targets);
+  score[0] /= static_cast<double>(e.targets), score[1] /= static_cast<double>(e.targets);
+  return score;
+}
+}  // namespace detail
+
+// Scores one scene. With `renders`, each target's render [h, w, 3] is appended (for pictures): with true_cameras the
+// renders of the decoder given the ground-truth input cameras, which psnr_true_cameras / ssim_true_cameras score.
+template <class T>
+ValidationScore validate_scene(ValidationWorkspace<T>& ws, const FlexSplatWeights<T>& w, const TrainExample<T>& e,
+                               std::vector<Tensor<T, 3>>* renders = nullptr, bool true_cameras = false) {
+  require(e.targets >= 1, "validation: the scene has no target views");
+  ValidationScore s;
+  s.views = e.views, s.targets = e.targets;
+  if (true_cameras) {
+    const BeforeDecoder<T> given = [&](GeometryResult<T>& g) {
+      std::copy(e.gt_extrinsics.begin(), e.gt_extrinsics.end(), g.extrinsics.begin());
+      std::copy(e.gt_K.begin(), e.gt_K.end(), g.K.begin());
+    };
+    const Prediction<T> t = predict(ws.predict, w, e.images.data(), e.views, 0, given);
+    const std::array<double, 2> score = detail::score_targets(ws, t.gaussians, e, renders);
+    s.psnr_true_cameras = score[0], s.ssim_true_cameras = score[1];
+  }
+  const Prediction<T> p = predict(ws.predict, w, e.images.data(), e.views);
+  const std::array<double, 2> score = detail::score_targets(ws, p.gaussians, e, true_cameras ? nullptr : renders);
+  s.psnr = score[0], s.ssim = score[1];
+  const index_t px = e.h * e.w;
   const index_t V = e.views;
   std::vector<double> pred(static_cast<std::size_t>(12 * V)), gt(pred.size());
   for (std::size_t i = 0; i < pred.size(); ++i)
