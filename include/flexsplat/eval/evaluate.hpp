@@ -45,12 +45,13 @@ struct EvalOptions {
   const loss::LpipsWeights<float>* lpips = nullptr;  // null: no LPIPS (NaN)
 };
 
-// "4" (a view count) or "9,26,3" (the input frames, in that order) into o.view_count / o.view_list.
+// "4" (a view count) or "9,26,3" (the input frames, in that order; "9," one frame) into o.view_count / o.view_list.
 inline void set_views(EvalOptions& o, const std::string& text) {
   std::vector<int> values;
   std::size_t at = 0;
   while (true) {
     const std::size_t comma = text.find(',', at);
+    if (comma == std::string::npos && at == text.size() && at > 0) break;  // a trailing comma ends the list
     const std::string item = text.substr(at, comma == std::string::npos ? std::string::npos : comma - at);
     std::size_t used = 0;
     int v = -1;
