@@ -120,7 +120,6 @@ inline StageTable& stage_table() {
 
 // The path of the stages open on this thread.
 inline thread_local std::string stage_path;
-inline thread_local int stage_depth = 0;
 
 inline void add_time(Op op, std::chrono::steady_clock::duration d) {
   counters().nanoseconds[static_cast<int>(op)].fetch_add(
@@ -273,7 +272,6 @@ public:
     outer_length_ = detail::stage_path.size();
     if (!detail::stage_path.empty()) detail::stage_path += '/';
     detail::stage_path += name;
-    ++detail::stage_depth;
     flops0_ = counted_flops();
     cpu0_ = std::clock();
     since_ = std::chrono::steady_clock::now();
@@ -285,7 +283,6 @@ public:
     const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - since_).count();
     const double cpu = static_cast<double>(std::clock() - cpu0_) / CLOCKS_PER_SEC;
     const double flops = counted_flops() - flops0_;
-    --detail::stage_depth;
     {
       auto& t = detail::stage_table();
       const std::lock_guard lock(t.mutex);
@@ -296,7 +293,8 @@ public:
         const std::string prefix = detail::stage_path + '/';
         auto first_child = std::find_if(t.rows.begin(), t.rows.end(),
                                         [&](const StageTotals& r) { return r.path.starts_with(prefix); });
-        row = t.rows.insert(first_child, StageTotals{detail::stage_path, detail::stage_depth});
+        const int depth = static_cast<int>(std::count(detail::stage_path.begin(), detail::stage_path.end(), '/'));
+        row = t.rows.insert(first_child, StageTotals{detail::stage_path, depth});
       }
       row->calls += 1;
       row->seconds += seconds;

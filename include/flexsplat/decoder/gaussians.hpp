@@ -99,9 +99,11 @@ std::vector<index_t> queries_on_outline(index_t n_queries, index_t views, index_
   require(outline, "decoder: null outline");
   require(cells >= 0, "decoder: outline margin ", cells, " anchor spacings is negative");
   const Anchors a = make_anchors(n_queries, views, image_w, image_h);
+  std::vector<index_t> grid(static_cast<std::size_t>(views));
+  for (index_t v = 0; v < views; ++v) grid[static_cast<std::size_t>(v)] = anchor_grid(n_queries, views, v);
   std::vector<index_t> keep;
   for (index_t i = 0; i < n_queries; ++i) {
-    const index_t v = a.view[static_cast<std::size_t>(i)], g = anchor_grid(n_queries, views, v);
+    const index_t v = a.view[static_cast<std::size_t>(i)], g = grid[static_cast<std::size_t>(v)];
     const double rx = cells * static_cast<double>(image_w) / static_cast<double>(g);
     const double ry = cells * static_cast<double>(image_h) / static_cast<double>(g);
     const double ax = a.pixel[2 * static_cast<std::size_t>(i)], ay = a.pixel[2 * static_cast<std::size_t>(i) + 1];
