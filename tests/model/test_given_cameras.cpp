@@ -155,7 +155,7 @@ TEST_CASE("reconstruct with given cameras: three formats, one splat, in the capt
   }
   std::vector<GaussianSet<float>> sets;
   for (const auto& path : {dir.path / "text", dir.path / "bin", dir.path / "transforms.json"}) {
-    const std::vector<Camera> cams = io::cameras_for_images(io::load_capture_cameras(path), photos, sizes, path.string());
+    const std::vector<Camera> cams = io::cameras_for_photos(path, photos, sizes);
     model::PredictWorkspace<float> ws;
     model::Prediction<float> p = model::predict_posed<float>(ws, *w, rgba, cams);
     REQUIRE(p.given.has_value());

@@ -11,6 +11,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -48,11 +49,8 @@ struct EvalOptions {
 // "4" (a view count) or "9,26,3" (the input frames, in that order; "9," one frame) into o.view_count / o.view_list.
 inline void set_views(EvalOptions& o, const std::string& text) {
   std::vector<int> values;
-  std::size_t at = 0;
-  while (true) {
-    const std::size_t comma = text.find(',', at);
-    if (comma == std::string::npos && at == text.size() && at > 0) break;  // a trailing comma ends the list
-    const std::string item = text.substr(at, comma == std::string::npos ? std::string::npos : comma - at);
+  std::istringstream in(text);
+  for (std::string item; std::getline(in, item, ',');) {  // "9," yields one item
     std::size_t used = 0;
     int v = -1;
     try {
@@ -63,9 +61,8 @@ inline void set_views(EvalOptions& o, const std::string& text) {
     require(used == item.size() && !item.empty() && v >= 0, "views '", text,
             "': expected a view count or comma-separated frame indices");
     values.push_back(v);
-    if (comma == std::string::npos) break;
-    at = comma + 1;
   }
+  require(!values.empty(), "views '", text, "': expected a view count or comma-separated frame indices");
   o.view_count = 0, o.view_list.clear();
   if (values.size() == 1 && text.find(',') == std::string::npos) {
     require(values[0] >= 1, "views ", values[0], ": need at least one input view");
@@ -299,17 +296,17 @@ struct PosedViews {
 
 inline PosedViews posed_views(const data::ObjectRecord& rec, const std::vector<int>& in, index_t h, index_t w) {
   std::vector<Tensor<float, 3>> rgba;
-  std::vector<double> K;
+  std::vector<Camera> cameras;
   PosedViews p;
   for (int v : in) {
     const data::FrameRecord& fr = rec.frames[static_cast<std::size_t>(v)];
     rgba.push_back(image::read_float<float>(fr.image, 4));
-    double k[9], E[12];
-    camera_arrays(fr.camera, k, E);
-    K.insert(K.end(), k, k + 9);
+    cameras.push_back(fr.camera);
+    double E[12];
+    camera_arrays(fr.camera, static_cast<double*>(nullptr), E);
     p.w2c.insert(p.w2c.end(), E, E + 12);
   }
-  p.photos = photo_targets<float>(rgba, K, h, w);
+  p.photos = photo_targets<float>(rgba, cameras, h, w);
   return p;
 }
 

@@ -68,13 +68,6 @@ inline std::string format(const char* f, ...) {
   va_end(args);
   return buf;
 }
-
-// Row-major K [V, 3, 3] of cameras, at their own image size.
-inline std::vector<double> photo_intrinsics(const std::vector<Camera>& cameras) {
-  std::vector<double> K(9 * cameras.size());
-  for (std::size_t v = 0; v < cameras.size(); ++v) camera_arrays(cameras[v], K.data() + 9 * v, static_cast<double*>(nullptr));
-  return K;
-}
 }  // namespace reconstruct_detail
 
 // Photos (RGBA [H, W, 4] in [0, 1], any size, 1 to the model's max_views) -> the splat reconstruct writes.
@@ -131,7 +124,7 @@ inline Reconstruction reconstruct(const FlexSplatWeights<float>& w, const std::v
   std::optional<PhotoTargets<float>> targets;
   auto targets_at = [&](std::array<index_t, 2> size) -> const PhotoTargets<float>& {
     if (!targets || targets->h != size[0] || targets->w != size[1])
-      targets = given ? photo_targets<float>(rgba, reconstruct_detail::photo_intrinsics(o.given), size[0], size[1])
+      targets = given ? photo_targets<float>(rgba, o.given, size[0], size[1])
                       : photo_targets<float>(rgba, c, p.geometry.K.data(), size[0], size[1]);
     return *targets;
   };

@@ -508,6 +508,15 @@ PhotoTargets<T> photo_targets(const std::vector<Tensor<float, 3>>& rgba, const s
   return t;
 }
 
+// The same with each photo's camera (at the photo's own size).
+template <class T>
+PhotoTargets<T> photo_targets(const std::vector<Tensor<float, 3>>& rgba, const std::vector<Camera>& cameras, index_t h,
+                              index_t w) {
+  std::vector<double> K(9 * cameras.size());
+  for (std::size_t v = 0; v < cameras.size(); ++v) camera_arrays(cameras[v], K.data() + 9 * v, static_cast<double*>(nullptr));
+  return photo_targets<T>(rgba, K, h, w);
+}
+
 // The same with the model's intrinsics K_model [V, 3, 3] (at its image_h x image_w), carried back to each photo first.
 template <class T>
 PhotoTargets<T> photo_targets(const std::vector<Tensor<float, 3>>& rgba, const FlexSplatConfig& c, const T* K_model,
