@@ -20,7 +20,6 @@ namespace flexsplat::cli::eval_cmd {
 
 namespace fs = std::filesystem;
 
-// --views: "N" (a count) or "i,j,k" (frame indices).
 using model::ObjectScores;
 
 std::string cell(double v, const char* fmt) {
