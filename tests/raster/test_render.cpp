@@ -10,6 +10,7 @@
 #include "flexsplat/raster/render.hpp"
 #include "flexsplat/testing/gradcheck.hpp"
 #include "scene_util.hpp"
+#include "simd_lanes.hpp"
 
 using namespace rastertest;
 
@@ -223,8 +224,16 @@ TEST_CASE("render: every skip leaves forward and backward bit-identical", "[rast
   }
 }
 
-TEST_CASE("render: SIMD kernels (compiled batches, run-time AVX2 and AVX-512 dispatch) agree with the scalar ones",
-          "[raster][render]") {
+namespace {
+// The blend kernel a dispatch cap selects on this CPU (none: the compiled batches).
+detail::BlendKernel kernel_for(simd::DispatchLevel cap) {
+  RasterSkips skips;
+  skips.dispatch_cap = cap;
+  return detail::choose_blend_kernel<float>(skips);
+}
+
+// Renders and differentiates one scene with the kernels `cap` selects and compares with the scalar ones.
+void check_simd_render_agrees(simd::DispatchLevel cap) {
   SceneSpec spec;
   spec.n = 600;
   spec.width = 70, spec.height = 45;  // partial tiles on both edges
@@ -243,11 +252,10 @@ TEST_CASE("render: SIMD kernels (compiled batches, run-time AVX2 and AVX-512 dis
     }
     return m / std::max(scale, 1.0);
   };
-  // Cap none: the compiled xsimd batches; avx2 / avx512: the dispatched kernels where the CPU has them.
-  for (auto cap : {simd::DispatchLevel::none, simd::DispatchLevel::avx2, simd::DispatchLevel::avx512}) {
-    opt.skips.dispatch_cap = cap;
-    const Run vec = run_scene(s, opt);
-    INFO("dispatch cap " << simd::dispatch_name(cap) << ", CPU level " << simd::dispatch_name(simd::dispatch_level()));
+  opt.skips.dispatch_cap = cap;
+  const Run vec = run_scene(s, opt);
+  INFO("dispatch cap " << simd::dispatch_name(cap) << ", CPU level " << simd::dispatch_name(simd::dispatch_level()));
+  {
     CHECK(same_bits(vec.out.n_contrib, sca.out.n_contrib));
     CHECK(rel_diff(vec.out.image, sca.out.image) < 1e-5);
     CHECK(rel_diff(vec.out.alpha, sca.out.alpha) < 1e-5);
@@ -261,6 +269,22 @@ TEST_CASE("render: SIMD kernels (compiled batches, run-time AVX2 and AVX-512 dis
     CHECK(rel_diff(vec.grads.features, sca.grads.features) < 1e-4);
   }
 }
+
+// A dispatch level's case: its own kernel must be the one that runs (no quiet fall-back to the compiled batches).
+void check_dispatched_render(simd::Lanes lanes) {
+  const auto level = lanes == simd::Lanes::avx512 ? simd::DispatchLevel::avx512 : simd::DispatchLevel::avx2;
+  if (!simd::enabled()) FLEXSPLAT_SKIP("FLEXSPLAT_SIMD=scalar: no SIMD kernel runs");
+  REQUIRE(kernel_for(level) == (level == simd::DispatchLevel::avx512 ? detail::BlendKernel::avx512 : detail::BlendKernel::avx2));
+  check_simd_render_agrees(level);
+}
+}  // namespace
+
+TEST_CASE("render: SIMD kernels (compiled batches) agree with the scalar ones", "[raster][render]") {
+  check_simd_render_agrees(simd::DispatchLevel::none);
+}
+
+FLEXSPLAT_DISPATCH_TEST_CASES("render: the dispatched SIMD kernels agree with the scalar ones", "[raster][render][simd]",
+                              check_dispatched_render)
 
 TEST_CASE("render: the batched per-Gaussian pass matches the scalar one and keeps every pair the kernel draws",
           "[raster][render]") {
@@ -337,7 +361,9 @@ TEST_CASE("render: the batched per-Gaussian pass matches the scalar one and keep
   CHECK(tall > 10);  // some Gaussians have rows beyond the stored ones
 }
 
-TEST_CASE("render: the batched per-Gaussian backward is bit-identical to the scalar one", "[raster][render]") {
+namespace {
+// The batched per-Gaussian backward with the kernel `cap` selects against the scalar one, on a scene of hazards.
+void check_batched_backward(simd::DispatchLevel cap) {
   SceneSpec spec;
   spec.n = 1001;  // not a whole number of lane blocks or camera blocks
   spec.width = 64, spec.height = 48;
@@ -397,13 +423,10 @@ TEST_CASE("render: the batched per-Gaussian backward is bit-identical to the sca
     };
     std::vector<ViewGradParams<float>> ref_partials, partials;
     const Grads<float> ref = run(detail::BlendKernel::scalar, ref_partials);
-    for (auto cap : {simd::DispatchLevel::none, simd::DispatchLevel::avx2, simd::DispatchLevel::avx512}) {
-      RasterSkips skips;
-      skips.dispatch_cap = cap;
-      const detail::BlendKernel kernel = detail::choose_blend_kernel<float>(skips);
+    {
+      const detail::BlendKernel kernel = kernel_for(cap);
       INFO("antialiased " << opt.antialiased << ", dispatch cap " << simd::dispatch_name(cap) << ", lanes "
                           << detail::blend_lane_count<float>(kernel));
-      if (kernel == detail::BlendKernel::scalar) continue;  // FLEXSPLAT_SIMD=scalar
       const Grads<float> vec = run(kernel, partials);
       CHECK(same_bits(vec.means, ref.means));
       CHECK(same_bits(vec.quats, ref.quats));
@@ -424,6 +447,23 @@ TEST_CASE("render: the batched per-Gaussian backward is bit-identical to the sca
   CHECK(colour_dead > 30);
   CHECK(culled > 100);
 }
+
+void check_dispatched_backward(simd::Lanes lanes) {
+  const auto level = lanes == simd::Lanes::avx512 ? simd::DispatchLevel::avx512 : simd::DispatchLevel::avx2;
+  if (!simd::enabled()) FLEXSPLAT_SKIP("FLEXSPLAT_SIMD=scalar: no SIMD kernel runs");
+  REQUIRE(kernel_for(level) == (level == simd::DispatchLevel::avx512 ? detail::BlendKernel::avx512 : detail::BlendKernel::avx2));
+  check_batched_backward(level);
+}
+}  // namespace
+
+TEST_CASE("render: the batched per-Gaussian backward (compiled batches) is bit-identical to the scalar one",
+          "[raster][render]") {
+  if (!simd::enabled()) FLEXSPLAT_SKIP("FLEXSPLAT_SIMD=scalar: no SIMD kernel runs");
+  check_batched_backward(simd::DispatchLevel::none);
+}
+
+FLEXSPLAT_DISPATCH_TEST_CASES("render: the batched per-Gaussian backward (dispatched) is bit-identical to the scalar one",
+                              "[raster][render][simd]", check_dispatched_backward)
 
 TEST_CASE("render: extreme Gaussians give finite outputs and gradients", "[raster][render]") {
   // One scene with each hazard: tiny and huge scales, behind the camera, on the near plane, at the camera centre,
