@@ -271,12 +271,13 @@ void check_simd_render_agrees(simd::DispatchLevel cap) {
 }
 
 // A dispatch level's case: its own kernel must be the one that runs (no quiet fall-back to the compiled batches).
-void check_dispatched_render(simd::Lanes lanes) {
+void check_dispatched(simd::Lanes lanes, void (*check)(simd::DispatchLevel)) {
   const auto level = lanes == simd::Lanes::avx512 ? simd::DispatchLevel::avx512 : simd::DispatchLevel::avx2;
   if (!simd::enabled()) FLEXSPLAT_SKIP("FLEXSPLAT_SIMD=scalar: no SIMD kernel runs");
   REQUIRE(kernel_for(level) == (level == simd::DispatchLevel::avx512 ? detail::BlendKernel::avx512 : detail::BlendKernel::avx2));
-  check_simd_render_agrees(level);
+  check(level);
 }
+void check_dispatched_render(simd::Lanes lanes) { check_dispatched(lanes, check_simd_render_agrees); }
 }  // namespace
 
 TEST_CASE("render: SIMD kernels (compiled batches) agree with the scalar ones", "[raster][render]") {
@@ -448,12 +449,7 @@ void check_batched_backward(simd::DispatchLevel cap) {
   CHECK(culled > 100);
 }
 
-void check_dispatched_backward(simd::Lanes lanes) {
-  const auto level = lanes == simd::Lanes::avx512 ? simd::DispatchLevel::avx512 : simd::DispatchLevel::avx2;
-  if (!simd::enabled()) FLEXSPLAT_SKIP("FLEXSPLAT_SIMD=scalar: no SIMD kernel runs");
-  REQUIRE(kernel_for(level) == (level == simd::DispatchLevel::avx512 ? detail::BlendKernel::avx512 : detail::BlendKernel::avx2));
-  check_batched_backward(level);
-}
+void check_dispatched_backward(simd::Lanes lanes) { check_dispatched(lanes, check_batched_backward); }
 }  // namespace
 
 TEST_CASE("render: the batched per-Gaussian backward (compiled batches) is bit-identical to the scalar one",
