@@ -255,19 +255,17 @@ void check_simd_render_agrees(simd::DispatchLevel cap) {
   opt.skips.dispatch_cap = cap;
   const Run vec = run_scene(s, opt);
   INFO("dispatch cap " << simd::dispatch_name(cap) << ", CPU level " << simd::dispatch_name(simd::dispatch_level()));
-  {
-    CHECK(same_bits(vec.out.n_contrib, sca.out.n_contrib));
-    CHECK(rel_diff(vec.out.image, sca.out.image) < 1e-5);
-    CHECK(rel_diff(vec.out.alpha, sca.out.alpha) < 1e-5);
-    CHECK(rel_diff(vec.out.depth, sca.out.depth) < 1e-5);
-    CHECK(rel_diff(vec.out.features, sca.out.features) < 1e-5);
-    CHECK(rel_diff(vec.grads.means, sca.grads.means) < 1e-4);
-    CHECK(rel_diff(vec.grads.quats, sca.grads.quats) < 1e-4);
-    CHECK(rel_diff(vec.grads.scales, sca.grads.scales) < 1e-4);
-    CHECK(rel_diff(vec.grads.opacities, sca.grads.opacities) < 1e-4);
-    CHECK(rel_diff(vec.grads.sh, sca.grads.sh) < 1e-4);
-    CHECK(rel_diff(vec.grads.features, sca.grads.features) < 1e-4);
-  }
+  CHECK(same_bits(vec.out.n_contrib, sca.out.n_contrib));
+  CHECK(rel_diff(vec.out.image, sca.out.image) < 1e-5);
+  CHECK(rel_diff(vec.out.alpha, sca.out.alpha) < 1e-5);
+  CHECK(rel_diff(vec.out.depth, sca.out.depth) < 1e-5);
+  CHECK(rel_diff(vec.out.features, sca.out.features) < 1e-5);
+  CHECK(rel_diff(vec.grads.means, sca.grads.means) < 1e-4);
+  CHECK(rel_diff(vec.grads.quats, sca.grads.quats) < 1e-4);
+  CHECK(rel_diff(vec.grads.scales, sca.grads.scales) < 1e-4);
+  CHECK(rel_diff(vec.grads.opacities, sca.grads.opacities) < 1e-4);
+  CHECK(rel_diff(vec.grads.sh, sca.grads.sh) < 1e-4);
+  CHECK(rel_diff(vec.grads.features, sca.grads.features) < 1e-4);
 }
 
 // A dispatch level's case: its own kernel must be the one that runs (no quiet fall-back to the compiled batches).
@@ -424,24 +422,22 @@ void check_batched_backward(simd::DispatchLevel cap) {
     };
     std::vector<ViewGradParams<float>> ref_partials, partials;
     const Grads<float> ref = run(detail::BlendKernel::scalar, ref_partials);
-    {
-      const detail::BlendKernel kernel = kernel_for(cap);
-      INFO("antialiased " << opt.antialiased << ", dispatch cap " << simd::dispatch_name(cap) << ", lanes "
-                          << detail::blend_lane_count<float>(kernel));
-      const Grads<float> vec = run(kernel, partials);
-      CHECK(same_bits(vec.means, ref.means));
-      CHECK(same_bits(vec.quats, ref.quats));
-      CHECK(same_bits(vec.scales, ref.scales));
-      CHECK(same_bits(vec.opacities, ref.opacities));
-      CHECK(same_bits(vec.sh, ref.sh));
-      CHECK(same_bits(vec.features, ref.features));
-      REQUIRE(partials.size() == ref_partials.size());
-      CHECK(std::memcmp(partials.data(), ref_partials.data(), sizeof(ViewGradParams<float>) * partials.size()) == 0);
-      CHECK(all_finite<float>(vec.means.span()));
-      CHECK(all_finite<float>(vec.quats.span()));
-      CHECK(all_finite<float>(vec.scales.span()));
-      CHECK(all_finite<float>(vec.sh.span()));
-    }
+    const detail::BlendKernel kernel = kernel_for(cap);
+    INFO("antialiased " << opt.antialiased << ", dispatch cap " << simd::dispatch_name(cap) << ", lanes "
+                        << detail::blend_lane_count<float>(kernel));
+    const Grads<float> vec = run(kernel, partials);
+    CHECK(same_bits(vec.means, ref.means));
+    CHECK(same_bits(vec.quats, ref.quats));
+    CHECK(same_bits(vec.scales, ref.scales));
+    CHECK(same_bits(vec.opacities, ref.opacities));
+    CHECK(same_bits(vec.sh, ref.sh));
+    CHECK(same_bits(vec.features, ref.features));
+    REQUIRE(partials.size() == ref_partials.size());
+    CHECK(std::memcmp(partials.data(), ref_partials.data(), sizeof(ViewGradParams<float>) * partials.size()) == 0);
+    CHECK(all_finite<float>(vec.means.span()));
+    CHECK(all_finite<float>(vec.quats.span()));
+    CHECK(all_finite<float>(vec.scales.span()));
+    CHECK(all_finite<float>(vec.sh.span()));
   }
   INFO(with_record << " with records, " << colour_dead << " without colour cotangents, " << culled << " culled");
   CHECK(with_record > 300);
