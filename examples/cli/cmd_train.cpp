@@ -83,7 +83,7 @@ int train_command(Args args) {
 
 const RegisterCommand registered_cmd_train(
     "train", {"train a FlexSplat model from a JSON config (resumable exactly; data parallel under mpirun)",
-              "--config CFG.json --data procedural|DIR... --out RUN_DIR [--init VGGT.safetensors] [--steps N] "
+              "--config CFG.json --data procedural|DIR... --out RUN_DIR [--init VGGT.safetensors|MODEL.safetensors] [--steps N] "
               "[--seconds S] [--quiet]\n"
               "  CFG.json keys (all optional): model (\"tiny\" | \"paper\" | FlexSplat config object), seed, batch (global),\n"
               "  inputs [min, max] views per scene, structured_inputs (false: random views and order, no fixed rig),\n"
@@ -100,7 +100,8 @@ const RegisterCommand registered_cmd_train(
               "  RUN_DIR: config.json, log.jsonl, state.safetensors (resume point), model.safetensors (at the end),\n"
               "  curves.png (loss, PSNR, camera error against the step, redrawn at each checkpoint)\n"
               "  rerunning the same command resumes from state.safetensors; --steps N stops after global step N,\n"
-              "  --seconds S after S seconds, both with a checkpoint; --init loads VGGT geometry weights on a fresh run",
+              "  --seconds S after S seconds, both with a checkpoint; --init starts a fresh run from VGGT geometry weights or from\n"
+              "  every weight of a flexsplat model of the same architecture (its image size may differ)",
               train_command});
 
 }  // namespace

@@ -1,5 +1,6 @@
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cstring>
 #include <filesystem>
 
@@ -46,5 +47,32 @@ TEST_CASE("loading a model of another configuration names the difference", "[mod
   c.gaussians = 32;
   auto other = model::FlexSplatWeights<float>::create(c, false);
   CHECK_THROWS_WITH(other->load(path), Catch::Contains("configuration differs"));
+  std::filesystem::remove(path);
+}
+
+TEST_CASE("init_from_model takes every weight of a model of another image size and refuses another architecture",
+          "[model][weights]") {
+  const auto c = model::flexsplat_tiny_config();
+  auto w = model::FlexSplatWeights<float>::create(c, false);
+  w->init(3);
+  const auto path = std::filesystem::temp_directory_path() / "flexsplat_test_model_init_from.safetensors";
+  w->save(path, 7);
+  auto larger = c;
+  larger.image_h = larger.image_w = 2 * c.image_h;
+  auto fine = model::FlexSplatWeights<float>::create(larger, true);
+  fine->init(4);
+  REQUIRE(std::memcmp(fine->store().params(), w->store().params(), sizeof(float) * w->store().size()) != 0);
+  fine->init_from_model(path);
+  CHECK(fine->config().image_h == 2 * c.image_h);
+  CHECK(std::memcmp(fine->store().params(), w->store().params(), sizeof(float) * w->store().size()) == 0);
+  // The loaded model starts the fine-tune with fresh optimizer moments.
+  const auto& m = fine->store();
+  CHECK(std::all_of(m.adam_m(), m.adam_m() + m.size(), [](float v) { return v == 0.f; }));
+
+  auto wider = c;
+  wider.gaussians = 32;
+  auto other = model::FlexSplatWeights<float>::create(wider, false);
+  CHECK_THROWS_WITH(other->init_from_model(path), Catch::Contains("has another architecture") &&
+                                                      Catch::Contains("only the image size may differ"));
   std::filesystem::remove(path);
 }

@@ -114,3 +114,36 @@ TEST_CASE("train_scene_plan spreads a step's scenes over the ranks by their view
   }
   CHECK(uneven_contiguous > 8);
 }
+
+TEST_CASE("run_training starts a fresh run from a model of another image size", "[model][trainer]") {
+  const nlohmann::json recipe = nlohmann::json::parse(recipe_text);
+  const model::TrainRunConfig cfg = model::parse_train_config(recipe);
+  const model::TrainData data = model::train_data_from({"procedural"}, cfg);
+  train::SoloCommunicator solo;
+  flexsplat_test::TempDir dirs("trainer_init");
+  model::FlexSplatConfig smaller = cfg.model;
+  smaller.image_h = smaller.image_w = 2 * smaller.geometry.aggregator.patch_size;
+  REQUIRE(smaller.image_h != cfg.model.image_h);
+  auto start = model::FlexSplatWeights<float>::create(smaller, false);
+  start->init(5);
+  start->save(dirs.path / "start.safetensors");
+
+  model::TrainerOptions o;
+  o.run = dirs.path / "fine";
+  o.init = dirs.path / "start.safetensors";
+  o.stop_at = 1;
+  std::vector<std::string> notes;
+  o.note = [&](const std::string& s) { notes.push_back(s); };
+  CHECK(model::run_training(recipe, data, solo, o).step == 1);
+  CHECK(std::any_of(notes.begin(), notes.end(),
+                    [](const std::string& s) { return s.find("every weight initialised from") != std::string::npos; }));
+
+  model::FlexSplatConfig other = smaller;
+  other.gaussians += 16;
+  auto different = model::FlexSplatWeights<float>::create(other, false);
+  different->init(5);
+  different->save(dirs.path / "other.safetensors");
+  o.run = dirs.path / "refused";
+  o.init = dirs.path / "other.safetensors";
+  CHECK_THROWS_WITH(model::run_training(recipe, data, solo, o), Catch::Contains("has another architecture"));
+}

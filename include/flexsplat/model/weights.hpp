@@ -80,6 +80,22 @@ public:
     const nlohmann::json expected = to_json(config_);
     return train::load_checkpoint(path, store_, with_optimizer_state, &expected);
   }
+  // Every weight of another flexsplat model or training state whose configuration differs from this one at most in
+  // the input size and the self-attention choice (neither has parameters): a recipe that fine-tunes at a larger size.
+  void init_from_model(const std::filesystem::path& path) {
+    const auto file = safetensors::File::open(path);
+    require(file.has_metadata(train::checkpoint_config_key), "model file '", path.string(),
+            "' has no configuration in its metadata (not a flexsplat model)");
+    FlexSplatConfig theirs = flexsplat_config_from_json(file.metadata(train::checkpoint_config_key));
+    const FlexSplatConfig& ours = config_;
+    theirs.image_h = ours.image_h, theirs.image_w = ours.image_w;
+    theirs.appearance.decoder.local_attention = ours.appearance.decoder.local_attention;
+    theirs.appearance.decoder.window = ours.appearance.decoder.window;
+    require(to_json(theirs) == to_json(ours), "model file '", path.string(), "' has another architecture: ",
+            to_json(theirs).dump(), ", expected ", to_json(ours).dump(), " (only the image size may differ)");
+    const nlohmann::json as_saved = nlohmann::json::parse(file.metadata(train::checkpoint_config_key));
+    train::load_checkpoint(path, store_, false, &as_saved);
+  }
   // VGGT's model.safetensors (or any VGGT-layout file): initialises the geometry segment only.
   void load_geometry(const std::filesystem::path& path, const std::string& file_prefix = {}) {
     train::load_vggt_geometry(path, store_, geometry_segment, file_prefix);

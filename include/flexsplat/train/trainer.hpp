@@ -279,7 +279,7 @@ struct TrainerProgress {
 
 struct TrainerOptions {
   std::filesystem::path run;   // the run folder (created; a folder holding another recipe's run is refused)
-  std::filesystem::path init;  // VGGT geometry weights for a fresh run; empty: none
+  std::filesystem::path init;  // a fresh run's start: VGGT geometry weights or a flexsplat model; empty: none
   std::uint64_t stop_at = 0;   // stop after this global step; 0: the recipe's last
   double seconds = 0;          // > 0: stop after this much wall time (the last rank's clock decides)
   std::function<void(const std::string&)> note;             // rank 0's one-line messages (start, init)
@@ -335,8 +335,14 @@ inline TrainerResult run_training(const nlohmann::json& recipe, const TrainData&
               "' is not a training state");
       step = info.state.step;
     } else if (!o.init.empty()) {
-      w->load_geometry(o.init, train::vggt_name_prefix(safetensors::File::open(o.init)));
-      note("train: geometry initialised from " + o.init.string());
+      const auto init_file = safetensors::File::open(o.init);
+      if (init_file.has_metadata(train::checkpoint_config_key)) {
+        w->init_from_model(o.init);
+        note("train: every weight initialised from " + o.init.string());
+      } else {
+        w->load_geometry(o.init, train::vggt_name_prefix(init_file));
+        note("train: geometry initialised from " + o.init.string());
+      }
     }
     write_file_atomic(o.run / "config.json", "train", recipe.dump(2) + "\n");
     // Log lines past the checkpoint belong to steps that will be redone.
