@@ -1,0 +1,119 @@
+// An object folder's input views as a nerfstudio project for OpenSplat, the outside CPU 3D Gaussian Splatting trainer
+// (experiments/opensplat.sh): the views composited on white as RGB PNGs, their true cameras as transforms.json, and
+// points.ply, the start eval's posed fit uses (random_gaussians_in_views: that many points in the silhouettes' hull,
+// coloured from the views) as a coloured point cloud, since OpenSplat starts from a point cloud.
+// With --score PLY: the held-out PSNR of a splat in the object's world (OpenSplat's --keep-crs output) on every frame
+// but the views, rendered on white at the frames' size as eval scores a prediction.
+// Usage: opensplat_inputs OBJECT_DIR --views 9,26,3,20 --points 5120 [--seed 0] --out DIR
+//        opensplat_inputs OBJECT_DIR --views 9,26,3,20 --score SPLAT.ply [--on-inputs]  (the input views as targets)
+#include <algorithm>
+#include <cstdio>
+#include <cstdint>
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <vector>
+
+#include "flexsplat/data/dataset.hpp"
+#include "flexsplat/eval/evaluate.hpp"
+#include "flexsplat/export/file.hpp"
+#include "flexsplat/image/image_io.hpp"
+#include "flexsplat/io/transforms_json.hpp"
+
+using namespace flexsplat;
+
+int main(int argc, char** argv) try {
+  std::string object, views_text = "9,26,3,20", out, score;
+  long points = 5120, seed = 0;
+  bool on_inputs = false;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    auto next = [&]() -> std::string {
+      require(i + 1 < argc, "opensplat_inputs: ", a, " needs a value");
+      return argv[++i];
+    };
+    if (a == "--views") views_text = next();
+    else if (a == "--points") points = std::stol(next());
+    else if (a == "--seed") seed = std::stol(next());
+    else if (a == "--out") out = next();
+    else if (a == "--score") score = next();
+    else if (a == "--on-inputs") on_inputs = true;
+    else object = a;
+  }
+  require(!object.empty() && (!out.empty() || !score.empty()), "usage: opensplat_inputs OBJECT_DIR --views i,j,.. --points N --out DIR");
+  const data::ObjectRecord rec = data::load_object(object);
+  std::vector<int> in;
+  for (std::size_t at = 0; at <= views_text.size();) {
+    const std::size_t comma = views_text.find(',', at);
+    in.push_back(std::stoi(views_text.substr(at, comma - at)));
+    if (comma == std::string::npos) break;
+    at = comma + 1;
+  }
+  if (!score.empty()) {
+    model::EvalOptions o;
+    model::set_views(o, views_text);
+    std::vector<int> inputs, targets;
+    model::eval_views(rec, o, inputs, targets);
+    if (on_inputs) targets = inputs;
+    std::vector<float> w2c;
+    for (int v : inputs) {
+      double E[12];
+      camera_arrays(rec.frames[static_cast<std::size_t>(v)].camera, static_cast<double*>(nullptr), E);
+      w2c.insert(w2c.end(), E, E + 12);
+    }
+    const GaussianSet<float> splat = gaussians::read_gaussians(score);
+    const Camera& c = rec.frames[0].camera;
+    model::EvalWorkspace ws;
+    const model::EvalResult r = model::score_prediction(rec, inputs, targets, w2c.data(), splat, c.height, c.width, o, ws);
+    std::printf("%s %s: %lld Gaussians, PSNR %.2f dB, SSIM %.4f on %zu targets\n", object.c_str(), score.c_str(),
+                static_cast<long long>(splat.size()), r.model.psnr, r.model.ssim, targets.size());
+    return 0;
+  }
+  const Camera& first = rec.frames[static_cast<std::size_t>(in[0])].camera;
+  const index_t h = first.height, w = first.width;
+  model::PosedViews views = model::posed_views(rec, in, h, w);
+  const GaussianSet<float> start = model::random_gaussians_in_views<float>(
+      points, 0, views.refine_views(), views.photos.alpha.data(), static_cast<std::uint64_t>(seed));
+
+  namespace fs = std::filesystem;
+  fs::create_directories(fs::path(out) / "images");
+  std::vector<Camera> cameras;
+  for (std::size_t v = 0; v < in.size(); ++v) {
+    Tensor<float, 3> rgb(Shape<3>{h, w, 3});
+    const float* src = views.photos.images.data() + v * static_cast<std::size_t>(h * w * 3);
+    std::copy(src, src + h * w * 3, rgb.data());
+    char name[32];
+    std::snprintf(name, sizeof name, "images/%03d.png", in[v]);
+    image::write_png(fs::path(out) / name, rgb);
+    Camera c = rec.frames[static_cast<std::size_t>(in[v])].camera;
+    c.name = name;
+    cameras.push_back(c);
+  }
+  io::write_transforms_json(fs::path(out) / "transforms.json", cameras);
+  {  // OpenSplat reads ply_file_path from transforms.json
+    std::ifstream f(fs::path(out) / "transforms.json");
+    nlohmann::json doc = nlohmann::json::parse(f);
+    doc["ply_file_path"] = "points.ply";
+    std::ofstream(fs::path(out) / "transforms.json") << doc.dump(1);
+  }
+  std::ofstream ply(fs::path(out) / "points.ply", std::ios::binary);
+  ply << "ply\nformat binary_little_endian 1.0\nelement vertex " << start.size()
+      << "\nproperty float x\nproperty float y\nproperty float z\n"
+         "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n";
+  constexpr float sh_c0 = 0.28209479177387814f;
+  for (index_t i = 0; i < start.size(); ++i) {
+    const float xyz[3] = {start.means(i, 0), start.means(i, 1), start.means(i, 2)};
+    ply.write(reinterpret_cast<const char*>(xyz), sizeof xyz);
+    for (int k = 0; k < 3; ++k) {
+      const float c = std::clamp(0.5f + sh_c0 * start.sh(i, 0, k), 0.f, 1.f);
+      const auto u = static_cast<std::uint8_t>(c * 255.f + 0.5f);
+      ply.write(reinterpret_cast<const char*>(&u), 1);
+    }
+  }
+  std::printf("%s: %zu views of %lld x %lld, %lld points -> %s\n", object.c_str(), in.size(),
+              static_cast<long long>(w), static_cast<long long>(h), static_cast<long long>(start.size()), out.c_str());
+  return 0;
+} catch (const std::exception& e) {
+  std::fprintf(stderr, "opensplat_inputs: %s\n", e.what());
+  return 1;
+}
