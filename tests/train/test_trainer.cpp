@@ -27,14 +27,21 @@ const char* recipe_text = R"({
   ]
 })";
 
-}  // namespace
-
-TEST_CASE("run_training resumes exactly and reports its steps", "[model][trainer]") {
+// The tiny recipe, its data and a scratch folder: what every run_training case starts from.
+struct TinyRecipe {
   const nlohmann::json recipe = nlohmann::json::parse(recipe_text);
   const model::TrainRunConfig cfg = model::parse_train_config(recipe);
   const model::TrainData data = model::train_data_from({"procedural"}, cfg);
   train::SoloCommunicator solo;
-  flexsplat_test::TempDir dirs("trainer");
+  flexsplat_test::TempDir dirs;
+  explicit TinyRecipe(const std::string& folder) : dirs(folder) {}
+};
+
+}  // namespace
+
+TEST_CASE("run_training resumes exactly and reports its steps", "[model][trainer]") {
+  TinyRecipe t("trainer");
+  auto& [recipe, cfg, data, solo, dirs] = t;
 
   model::TrainerOptions straight;
   straight.run = dirs.path / "straight";
@@ -116,11 +123,8 @@ TEST_CASE("train_scene_plan spreads a step's scenes over the ranks by their view
 }
 
 TEST_CASE("run_training starts a fresh run from a model of another image size", "[model][trainer]") {
-  const nlohmann::json recipe = nlohmann::json::parse(recipe_text);
-  const model::TrainRunConfig cfg = model::parse_train_config(recipe);
-  const model::TrainData data = model::train_data_from({"procedural"}, cfg);
-  train::SoloCommunicator solo;
-  flexsplat_test::TempDir dirs("trainer_init");
+  TinyRecipe t("trainer_init");
+  auto& [recipe, cfg, data, solo, dirs] = t;
   model::FlexSplatConfig smaller = cfg.model;
   smaller.image_h = smaller.image_w = 2 * smaller.geometry.aggregator.patch_size;
   REQUIRE(smaller.image_h != cfg.model.image_h);
