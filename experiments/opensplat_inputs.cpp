@@ -1,12 +1,13 @@
 // An object folder's input views as a nerfstudio project for OpenSplat, the outside CPU 3D Gaussian Splatting trainer
-// (experiments/opensplat.sh): the views composited on white as RGB PNGs, their true cameras as transforms.json, and
+// (experiments/opensplat_curve.py): the views composited on white as RGB PNGs, their true cameras as transforms.json, and
 // points.ply, the start eval's posed fit uses (random_gaussians_in_views: that many points in the silhouettes' hull,
 // coloured from the views) as a coloured point cloud, since OpenSplat starts from a point cloud.
 // With --score PLY: the held-out PSNR of a splat in the object's world (OpenSplat's --keep-crs output) on every frame
 // but the views, rendered over --background (OpenSplat composites over a fixed (0.613, 0.0101, 0.3984), never
-// optimised; default white) at the frames' size against the frames composited on white, as eval scores a prediction.
+// optimised; default white) at the frames' size, clamped to [0, 1] as OpenSplat's loss sees it, against the frames
+// composited on white.
 // Usage: opensplat_inputs OBJECT_DIR --views 9,26,3,20 --points 5120 [--seed 0] --out DIR
-//        opensplat_inputs OBJECT_DIR --views 9,26,3,20 --score SPLAT.ply [--on-inputs] [--background r,g,b]
+//        opensplat_inputs OBJECT_DIR --views 9,26,3,20 --score SPLAT.ply [--on-inputs] [--background r,g,b] [--near Z]
 #include <algorithm>
 #include <cstdio>
 #include <cstdint>
@@ -30,6 +31,7 @@ int main(int argc, char** argv) try {
   long points = 5120, seed = 0;
   bool on_inputs = false;
   float background[3] = {1, 1, 1};
+  double near_plane = raster::default_near;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto next = [&]() -> std::string {
@@ -42,6 +44,7 @@ int main(int argc, char** argv) try {
     else if (a == "--out") out = next();
     else if (a == "--score") score = next();
     else if (a == "--on-inputs") on_inputs = true;
+    else if (a == "--near") near_plane = std::stod(next());
     else if (a == "--background") {
       require(std::sscanf(next().c_str(), "%f,%f,%f", &background[0], &background[1], &background[2]) == 3,
               "opensplat_inputs: --background takes r,g,b");
@@ -53,7 +56,7 @@ int main(int argc, char** argv) try {
   std::vector<int> in;
   for (std::size_t at = 0; at <= views_text.size();) {
     const std::size_t comma = views_text.find(',', at);
-    in.push_back(std::stoi(views_text.substr(at, comma - at)));
+    if (comma != at && at < views_text.size()) in.push_back(std::stoi(views_text.substr(at, comma - at)));
     if (comma == std::string::npos) break;
     at = comma + 1;
   }
@@ -66,6 +69,7 @@ int main(int argc, char** argv) try {
     const GaussianSet<float> splat = gaussians::read_gaussians(score);
     raster::RenderOptions ro;
     ro.background = {background[0], background[1], background[2]};
+    ro.near_plane = near_plane;
     raster::RenderWorkspace<float> ws;
     raster::RenderOutputs<float> rendered;
     double psnr = 0;
@@ -86,6 +90,8 @@ int main(int argc, char** argv) try {
       std::copy(E, E + 12, Ef);
       raster::render_forward(splat, raster::view_from_arrays(Kf, Ef, static_cast<int>(w), static_cast<int>(h)), ro, ws,
                              rendered);
+      // Shown as an image, as OpenSplat's loss sees it: clamped to [0, 1] (its white shell drifts above 1).
+      for (index_t i = 0; i < 3 * h * w; ++i) rendered.image.data()[i] = std::min(rendered.image.data()[i], 1.0f);
       psnr += loss::psnr(rendered.image.data(), target.data(), 3 * h * w);
     }
     std::printf("%s %s: %lld Gaussians, PSNR %.2f dB on %zu targets\n", object.c_str(), score.c_str(),
