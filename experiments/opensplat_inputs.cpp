@@ -53,19 +53,12 @@ int main(int argc, char** argv) try {
   }
   require(!object.empty() && (!out.empty() || !score.empty()), "usage: opensplat_inputs OBJECT_DIR --views i,j,.. --points N --out DIR");
   const data::ObjectRecord rec = data::load_object(object);
-  std::vector<int> in;
-  for (std::size_t at = 0; at <= views_text.size();) {
-    const std::size_t comma = views_text.find(',', at);
-    if (comma != at && at < views_text.size()) in.push_back(std::stoi(views_text.substr(at, comma - at)));
-    if (comma == std::string::npos) break;
-    at = comma + 1;
-  }
+  model::EvalOptions o;
+  model::set_views(o, views_text);
+  std::vector<int> in, targets;
+  model::eval_views(rec, o, in, targets);
   if (!score.empty()) {
-    model::EvalOptions o;
-    model::set_views(o, views_text);
-    std::vector<int> inputs, targets;
-    model::eval_views(rec, o, inputs, targets);
-    if (on_inputs) targets = inputs;
+    if (on_inputs) targets = in;
     const GaussianSet<float> splat = gaussians::read_gaussians(score);
     raster::RenderOptions ro;
     ro.background = {background[0], background[1], background[2]};
@@ -75,14 +68,8 @@ int main(int argc, char** argv) try {
     double psnr = 0;
     for (int t : targets) {
       const data::FrameRecord& fr = rec.frames[static_cast<std::size_t>(t)];
-      const Tensor<float, 3> rgba = image::read_float<float>(fr.image, 4);
-      const index_t h = rgba.shape(0), w = rgba.shape(1);
-      std::vector<float> target(static_cast<std::size_t>(3 * h * w));
-      for (index_t i = 0; i < h * w; ++i)
-        for (int k = 0; k < 3; ++k) {
-          const float a = rgba.data()[4 * i + 3];
-          target[static_cast<std::size_t>(3 * i + k)] = rgba.data()[4 * i + k] * a + (1 - a);
-        }
+      const Tensor<float, 3> target = image::read_rgb<float>(fr.image);  // composited on white
+      const index_t h = target.shape(0), w = target.shape(1);
       double K[9], E[12];
       camera_arrays(fr.camera, K, E);
       float Kf[9], Ef[12];
@@ -129,12 +116,12 @@ int main(int argc, char** argv) try {
   ply << "ply\nformat binary_little_endian 1.0\nelement vertex " << start.size()
       << "\nproperty float x\nproperty float y\nproperty float z\n"
          "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n";
-  constexpr float sh_c0 = 0.28209479177387814f;
   for (index_t i = 0; i < start.size(); ++i) {
     const float xyz[3] = {start.means(i, 0), start.means(i, 1), start.means(i, 2)};
     ply.write(reinterpret_cast<const char*>(xyz), sizeof xyz);
     for (int k = 0; k < 3; ++k) {
-      const float c = std::clamp(0.5f + sh_c0 * start.sh(i, 0, k), 0.f, 1.f);
+      const float c = std::clamp(static_cast<float>(sh_color_offset) + static_cast<float>(sh_c0) * start.sh(i, 0, k),
+                                 0.f, 1.f);
       const auto u = static_cast<std::uint8_t>(c * 255.f + 0.5f);
       ply.write(reinterpret_cast<const char*>(&u), 1);
     }

@@ -93,8 +93,7 @@ public:
     theirs.appearance.decoder.window = ours.appearance.decoder.window;
     require(to_json(theirs) == to_json(ours), "model file '", path.string(), "' has another architecture: ",
             to_json(theirs).dump(), ", expected ", to_json(ours).dump(), " (only the image size may differ)");
-    const nlohmann::json as_saved = nlohmann::json::parse(file.metadata(train::checkpoint_config_key));
-    train::load_checkpoint(path, store_, false, &as_saved);
+    train::load_checkpoint(path, store_, false);  // the configuration is checked above; the tensors are checked here
   }
   // VGGT's model.safetensors (or any VGGT-layout file): initialises the geometry segment only.
   void load_geometry(const std::filesystem::path& path, const std::string& file_prefix = {}) {
